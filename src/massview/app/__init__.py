@@ -1,0 +1,1 @@
+"""massview app layer."""

@@ -1,0 +1,179 @@
+"""The ``massview`` command line.
+
+Commands: ``render`` (a camera path on N ranks), ``report`` (table and plot of a run),
+``bench composite`` (compositing cost against the measured network floor).
+
+Commands that take ``--ranks N`` relaunch themselves under the installed ``mpiexec`` when they
+are not already inside an MPI job; under an external ``mpiexec -n N massview ...`` they use all
+the ranks they were given. Errors print as one message, no traceback, and exit non-zero.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ..core.config import RenderConfig, parse_size
+from ..core.errors import ConfigError, MassviewError
+from ..core.paths import BUILTIN_PATHS
+from ..parallel.composite import COMPOSITORS
+from ..parallel.codec import CODECS
+
+__all__ = ["main", "build_parser"]
+
+DECOMPOSITIONS = ("sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd", "sort-last")
+
+
+def _grid(spec: str) -> tuple[int, int]:
+    try:
+        r, c = (int(v) for v in spec.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{spec!r}: expected ROWSxCOLS, e.g. 2x3") from None
+    if r < 1 or c < 1:
+        raise argparse.ArgumentTypeError(f"{spec!r}: rows and cols must be positive")
+    return r, c
+
+
+def _positive(v: str) -> int:
+    try:
+        i = int(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{v!r} is not an integer") from None
+    if i < 1:
+        raise argparse.ArgumentTypeError(f"{v} must be at least 1")
+    return i
+
+
+def _add_render_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", help="builtin:objects[?n=COUNT&seed=S]")
+    p.add_argument("--ranks", type=_positive, default=None, help="local ranks to launch (default 1; ignored under an external mpiexec)")
+    p.add_argument("--decomposition", default="sort-last", metavar="MODE",
+                   help=f"one of {', '.join(DECOMPOSITIONS)} (default sort-last); 'horizontal' = side-by-side columns, 'vertical' = stacked rows")
+    p.add_argument("--compositor", default="binary-swap", choices=COMPOSITORS, help="sort-last depth compositing (default binary-swap)")
+    p.add_argument("--radix-k", type=int, default=None, help="k for radix-k (default 4)")
+    p.add_argument("--codec", default=None, choices=tuple(CODECS), help="sub-image byte codec (default blosc2)")
+    p.add_argument("--path", default="orbit", help=f"camera path: {', '.join(BUILTIN_PATHS)} or a keyframe FILE.json (default orbit)")
+    p.add_argument("--frames", type=_positive, default=10, help="frames to render (default 10)")
+    p.add_argument("--size", default="1280x1024", help="image WIDTHxHEIGHT (default 1280x1024)")
+    p.add_argument("--grid", type=_grid, default=None, help="ROWSxCOLS for sort-first:grid (default: chosen for the rank count)")
+    p.add_argument("--wall", default=None, metavar="CxR", help="display wall: C×R display ranks each write their own tile")
+    p.add_argument("--tile-targets", action="store_true", help="sort-first into tile-sized targets (off-axis frusta; equal to ~1e-4 of pixels)")
+    p.add_argument("--color-by-rank", action="store_true", help="tint each rank's contribution")
+    p.add_argument("--reference", action="store_true", help="also render each frame on one rank and report max_abs_diff and diff_fraction")
+    p.add_argument("--out", "-o", type=Path, default=Path("out/render"), help="output folder (default out/render)")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary table")
+    p.add_argument("--fault", default=None, help=argparse.SUPPRESS)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="massview", description="Parallel out-of-core rendering of massive terrains and models.")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    r = sub.add_parser("render", help="render a camera path on N ranks")
+    _add_render_args(r)
+    rep = sub.add_parser("report", help="summary table and report.png of a render folder")
+    rep.add_argument("dir", type=Path)
+    b = sub.add_parser("bench", help="benchmarks (figures as ratios against a baseline measured in the same run)")
+    bsub = b.add_subparsers(dest="bench", required=True, metavar="WHAT")
+    bc = bsub.add_parser("composite", help="compositing cost per algorithm and rank count vs the network floor")
+    bc.add_argument("--ranks", default="2,3,4", help="rank counts, comma-separated (default 2,3,4)")
+    bc.add_argument("--size", default="1280x1024")
+    bc.add_argument("--repeat", type=_positive, default=5, help="timed repetitions per case (default 5)")
+    bc.add_argument("--codec", default="blosc2", choices=tuple(CODECS))
+    bc.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
+    return ap
+
+
+def render_config(args) -> RenderConfig:
+    w, h = parse_size(args.size)
+    return RenderConfig.from_env(
+        decomposition=args.decomposition, compositor=args.compositor, radix_k=args.radix_k, codec=args.codec,
+        width=w, height=h, frames=args.frames, path=args.path, grid=args.grid, wall=args.wall,
+        tile_targets=args.tile_targets, reference=args.reference, color_by_rank=args.color_by_rank, fault=args.fault,
+    )
+
+
+def _validate_render(args, cfg: RenderConfig, nranks: int) -> None:
+    """Cheap checks before any rank starts, so a bad flag is reported once."""
+    from ..core.paths import load_path
+    from ..parallel.decompose import parse_decomposition, parse_wall, sort_first_tiles
+
+    if not args.scene.startswith("builtin:objects"):
+        from ..systems import open_system
+
+        open_system(args.scene)  # raises SceneNotFoundError with what to give instead
+    parse_decomposition(cfg.decomposition)
+    if cfg.decomposition == "sort-first:grid":
+        sort_first_tiles("grid", nranks, cfg.width, cfg.height, cfg.grid)
+    if cfg.wall:
+        parse_wall(cfg.wall, nranks, cfg.width, cfg.height)
+    load_path(cfg.path, [0, 0, 0], [1, 1, 1])
+
+
+def cmd_render(args, argv) -> int:
+    from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
+
+    cfg = render_config(args)
+    if not in_mpi_job():
+        nranks = args.ranks or 1
+        _validate_render(args, cfg, nranks)
+        if nranks > 1:
+            return relaunch(argv, nranks)
+    comm = world()
+    if comm.Get_rank() == 0:
+        if in_mpi_job():
+            _validate_render(args, cfg, comm.Get_size())
+        if args.ranks and args.ranks != comm.Get_size() and not _launched_by_us():
+            print(f"massview: note: running on the {comm.Get_size()} ranks mpiexec gave, not --ranks {args.ranks}", file=sys.stderr)
+    from .render_cmd import run_render
+
+    summary = guarded(comm, run_render, comm, args.scene, cfg, args.out, args.quiet)
+    if summary is not None and not args.quiet:
+        from .report import print_summary
+
+        print_summary(summary)
+        print(f"wrote {args.out}/summary.json, {args.out}/stats.jsonl and the frames")
+    return 0
+
+
+def _launched_by_us() -> bool:
+    import os
+
+    return os.environ.get("MASSVIEW_UNDER_MPI") == "1"
+
+
+def cmd_report(args) -> int:
+    from .report import load_run, print_summary, write_report
+
+    summary, records = load_run(args.dir)
+    print_summary(summary)
+    path = write_report(args.dir, records, summary)
+    print(f"wrote {path}")
+    return 0
+
+
+def cmd_bench(args, argv) -> int:
+    from . import bench_composite
+
+    if args.worker is not None:
+        return bench_composite.worker(args)
+    return bench_composite.run(args)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "render":
+            return cmd_render(args, argv)
+        if args.command == "report":
+            return cmd_report(args)
+        if args.command == "bench":
+            return cmd_bench(args, argv)
+    except MassviewError as e:
+        print(f"massview: error: {e}", file=sys.stderr)
+        return 2 if isinstance(e, ConfigError) else 1
+    except KeyboardInterrupt:
+        print("massview: interrupted", file=sys.stderr)
+        return 130
+    return 0

@@ -1,0 +1,71 @@
+"""Render configuration: defaults → environment → frozen config → explicit arguments.
+
+``RenderConfig.from_env(**explicit)`` starts from the defaults below, applies ``MASSVIEW_*``
+environment variables (``MASSVIEW_CODEC``, ``MASSVIEW_RADIX_K``, ``MASSVIEW_EGL_DEVICE``), then
+the explicit values (CLI flags); the result is frozen and validated, and is what travels to
+every rank. Nothing below the app reads the environment itself.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass, fields
+
+from .errors import ConfigError
+
+__all__ = ["RenderConfig", "parse_size"]
+
+
+def parse_size(spec: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in spec.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"--size {spec!r}: expected WIDTHxHEIGHT, e.g. 1280x1024") from None
+    if not (1 <= w <= 32768 and 1 <= h <= 32768):
+        raise ConfigError(f"--size {spec}: width and height must be between 1 and 32768")
+    return w, h
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    decomposition: str = "sort-last"
+    compositor: str = "binary-swap"
+    radix_k: int = 4
+    codec: str = "blosc2"
+    width: int = 1280
+    height: int = 1024
+    frames: int = 10
+    path: str = "orbit"
+    grid: tuple[int, int] | None = None
+    wall: str | None = None
+    tile_targets: bool = False
+    reference: bool = False
+    color_by_rank: bool = False
+    tau: float = 1.0
+    egl_device: int | None = None
+    fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
+
+    def __post_init__(self) -> None:
+        if self.frames < 1:
+            raise ConfigError(f"--frames must be at least 1, got {self.frames}")
+        if self.radix_k < 2:
+            raise ConfigError(f"--radix-k must be at least 2, got {self.radix_k}")
+        if not self.tau > 0:
+            raise ConfigError(f"--tau (pixel tolerance) must be positive, got {self.tau}")
+
+    @classmethod
+    def from_env(cls, env=None, **explicit) -> "RenderConfig":
+        env = os.environ if env is None else env
+        vals = {}
+        if "MASSVIEW_CODEC" in env:
+            vals["codec"] = env["MASSVIEW_CODEC"]
+        if "MASSVIEW_RADIX_K" in env:
+            vals["radix_k"] = int(env["MASSVIEW_RADIX_K"])
+        if env.get("MASSVIEW_EGL_DEVICE"):
+            vals["egl_device"] = int(env["MASSVIEW_EGL_DEVICE"])
+        known = {f.name for f in fields(cls)}
+        vals.update({k: v for k, v in explicit.items() if k in known and v is not None})
+        return cls(**vals)
+
+    def to_json(self) -> dict:
+        return asdict(self)

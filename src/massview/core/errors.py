@@ -1,0 +1,59 @@
+"""Project exceptions.
+
+Every error massview raises on purpose derives from :class:`MassviewError` and from the builtin
+that fits it, so callers can catch either. Messages name the file, block or parameter at fault
+and say what to do; the CLI prints the message (no traceback) and exits non-zero.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "MassviewError",
+    "ConfigError",
+    "GLUnavailableError",
+    "SceneNotFoundError",
+    "ParallelError",
+    "StoreError",
+    "BlockNotFoundError",
+    "CorruptBlockError",
+    "IngestError",
+]
+
+
+class MassviewError(Exception):
+    """Base class of all massview errors."""
+
+
+class ConfigError(MassviewError, ValueError):
+    """A parameter or option has a value massview cannot use."""
+
+
+class GLUnavailableError(MassviewError, RuntimeError):
+    """No headless OpenGL context could be created (EGL or a driver is missing)."""
+
+
+class SceneNotFoundError(MassviewError, FileNotFoundError):
+    """A scene or store name does not resolve to anything massview can render."""
+
+
+class ParallelError(MassviewError, RuntimeError):
+    """The MPI runtime could not start or a rank failed."""
+
+
+class StoreError(MassviewError, OSError):
+    """A store on disk is missing, incomplete or inconsistent."""
+
+
+class BlockNotFoundError(StoreError, KeyError):
+    """A block the store should hold is missing."""
+
+    def __str__(self) -> str:  # KeyError would repr() the message
+        return str(self.args[0]) if self.args else ""
+
+
+class CorruptBlockError(StoreError):
+    """A block exists but does not decode to what its metadata says."""
+
+
+class IngestError(MassviewError, ValueError):
+    """An input file cannot be read or has a shape/dtype massview cannot ingest."""

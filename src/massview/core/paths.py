@@ -1,0 +1,204 @@
+"""Camera paths: JSON keyframes with smooth interpolation, and built-in parametric paths.
+
+A path maps a parameter t ∈ [0, 1] to a :class:`Camera`. Keyframe files are JSON::
+
+    {"keyframes": [
+        {"time": 0.0, "position": [x, y, z], "look_at": [x, y, z]},
+        {"time": 2.5, "position": [x, y, z], "orientation": [w, x, y, z]}
+     ],
+     "fovy": 45, "near": 0.5, "far": 5000}
+
+Positions and look-at points are interpolated with centripetal-free uniform Catmull-Rom
+splines in time; orientations given directly are slerped. Built-in paths (``turn``, ``zoom``,
+``forward``, ``orbit``, ``flyover``) are fitted to a scene's axis-aligned bounding box, +z up.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .camera import Camera, look_at_quaternion
+from .errors import ConfigError
+
+__all__ = ["BUILTIN_PATHS", "CameraPath", "KeyframePath", "ParametricPath", "load_path"]
+
+BUILTIN_PATHS = ("turn", "zoom", "forward", "orbit", "flyover")
+
+
+class CameraPath:
+    fovy: float = 45.0
+
+    def pose(self, t: float) -> tuple[np.ndarray, tuple]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def clip(self) -> tuple[float, float]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def camera(self, t: float, width: int, height: int) -> Camera:
+        pos, q = self.pose(min(max(float(t), 0.0), 1.0))
+        near, far = self.clip()
+        return Camera(tuple(pos), q, fovy=self.fovy, near=near, far=far, width=width, height=height)
+
+    def cameras(self, frames: int, width: int, height: int) -> list[Camera]:
+        if frames < 1:
+            raise ConfigError(f"--frames must be at least 1, got {frames}")
+        ts = [0.0] if frames == 1 else [i / (frames - 1) for i in range(frames)]
+        return [self.camera(t, width, height) for t in ts]
+
+
+def _catmull_rom(points: np.ndarray, times: np.ndarray, t: float) -> np.ndarray:
+    n = len(points)
+    if n == 1:
+        return points[0]
+    i = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, n - 2))
+    t0, t1 = times[i], times[i + 1]
+    u = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
+    p0 = points[max(i - 1, 0)]
+    p1, p2 = points[i], points[i + 1]
+    p3 = points[min(i + 2, n - 1)]
+    u2, u3 = u * u, u * u * u
+    return 0.5 * ((2 * p1) + (-p0 + p2) * u + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u2 + (-p0 + 3 * p1 - 3 * p2 + p3) * u3)
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
+    d = float(np.dot(q0, q1))
+    if d < 0:
+        q1, d = -q1, -d
+    if d > 0.9995:
+        q = q0 + u * (q1 - q0)
+    else:
+        th = math.acos(d)
+        q = (math.sin((1 - u) * th) * q0 + math.sin(u * th) * q1) / math.sin(th)
+    return q / np.linalg.norm(q)
+
+
+@dataclass
+class KeyframePath(CameraPath):
+    times: np.ndarray
+    positions: np.ndarray
+    targets: np.ndarray | None
+    orientations: np.ndarray | None
+    fovy: float = 45.0
+    near: float = 0.1
+    far: float = 10000.0
+
+    def clip(self):
+        return self.near, self.far
+
+    def pose(self, t):
+        tt = self.times[0] + t * (self.times[-1] - self.times[0])
+        pos = _catmull_rom(self.positions, self.times, tt)
+        if self.targets is not None:
+            return pos, look_at_quaternion(pos, _catmull_rom(self.targets, self.times, tt))
+        i = int(np.clip(np.searchsorted(self.times, tt, side="right") - 1, 0, len(self.times) - 2))
+        span = self.times[i + 1] - self.times[i] if len(self.times) > 1 else 1.0
+        u = 0.0 if len(self.times) == 1 or span == 0 else (tt - self.times[i]) / span
+        j = min(i + 1, len(self.times) - 1)
+        return pos, tuple(_slerp(self.orientations[i], self.orientations[j], u))
+
+    @classmethod
+    def from_json(cls, data: dict, source: str = "<path>") -> "KeyframePath":
+        kfs = data.get("keyframes")
+        if not isinstance(kfs, list) or not kfs:
+            raise ConfigError(f"{source}: expected a non-empty 'keyframes' list")
+        try:
+            times = np.array([float(k.get("time", i)) for i, k in enumerate(kfs)])
+            positions = np.array([[float(v) for v in k["position"]] for k in kfs])
+            if all("look_at" in k for k in kfs):
+                targets = np.array([[float(v) for v in k["look_at"]] for k in kfs])
+                orients = None
+            elif all("orientation" in k for k in kfs):
+                targets = None
+                orients = np.array([[float(v) for v in k["orientation"]] for k in kfs])
+                orients /= np.linalg.norm(orients, axis=1, keepdims=True)
+            else:
+                raise ConfigError(f"{source}: every keyframe needs 'look_at' (or every one 'orientation')")
+        except (KeyError, TypeError, ValueError) as e:
+            raise ConfigError(f"{source}: malformed keyframe ({e}); each needs 'time', 'position' [x,y,z] and 'look_at' [x,y,z]") from None
+        if positions.shape[1:] != (3,) or np.any(np.diff(times) < 0):
+            raise ConfigError(f"{source}: positions must be [x, y, z] and times non-decreasing")
+        return cls(times, positions, targets, orients, float(data.get("fovy", 45.0)),
+                   float(data.get("near", 0.1)), float(data.get("far", 10000.0)))
+
+
+@dataclass
+class ParametricPath(CameraPath):
+    """One of the built-in paths, fitted to the box ``lo``..``hi`` (world units, +z up)."""
+
+    name: str
+    lo: np.ndarray
+    hi: np.ndarray
+    fovy: float = 45.0
+
+    def __post_init__(self):
+        if self.name not in BUILTIN_PATHS:
+            raise ConfigError(f"unknown path {self.name!r}; use one of {', '.join(BUILTIN_PATHS)} or a .json keyframe file")
+        self.lo = np.asarray(self.lo, np.float64)
+        self.hi = np.asarray(self.hi, np.float64)
+
+    @property
+    def _size(self) -> float:
+        return float(max(np.linalg.norm((self.hi - self.lo)[:2]), 1e-9))
+
+    def clip(self):
+        diag = float(np.linalg.norm(self.hi - self.lo))
+        return diag * 2e-4, diag * 4.0
+
+    def pose(self, t):
+        c = (self.lo + self.hi) / 2
+        ext = self.hi - self.lo
+        top = self.hi[2]
+        s = self._size
+        if self.name == "turn":  # stand above the middle, turn a full circle, looking down-out
+            eye = np.array([c[0], c[1], top + 0.08 * s])
+            a = 2 * math.pi * t
+            tgt = eye + np.array([math.cos(a), math.sin(a), -0.35]) * s * 0.3
+        elif self.name == "zoom":  # descend toward the middle along an oblique line
+            far = np.array([c[0] - 0.6 * ext[0], c[1] - 0.6 * ext[1], top + 0.9 * s])
+            near = np.array([c[0] - 0.05 * ext[0], c[1] - 0.05 * ext[1], top + 0.03 * s])
+            u = t * t * (3 - 2 * t)
+            eye = far + (near - far) * u
+            tgt = np.array([c[0] + 0.05 * ext[0], c[1] + 0.05 * ext[1], c[2]])
+        elif self.name == "forward":  # fly straight along +x at low altitude
+            x = self.lo[0] + ext[0] * (0.05 + 0.7 * t)
+            eye = np.array([x, c[1], top + 0.06 * s])
+            tgt = eye + np.array([1.0, 0.0, -0.25]) * s * 0.2
+        elif self.name == "orbit":  # circle the whole scene looking at its middle
+            a = 2 * math.pi * t
+            r = 0.75 * s
+            eye = np.array([c[0] + r * math.cos(a), c[1] + r * math.sin(a), top + 0.35 * s])
+            tgt = c
+        else:  # flyover: a curved low pass across the scene, looking ahead and down
+            def at(u):
+                x = self.lo[0] + ext[0] * (0.1 + 0.8 * u)
+                y = c[1] + 0.3 * ext[1] * math.sin(2 * math.pi * u)
+                z = top + s * (0.05 + 0.04 * math.cos(2 * math.pi * u))
+                return np.array([x, y, z])
+            eye = at(t)
+            ahead = at(min(t + 0.05, 1.0)) if t < 0.95 else eye + (eye - at(t - 0.05))
+            d = ahead - eye
+            d[2] = 0
+            d /= max(np.linalg.norm(d), 1e-12)
+            tgt = eye + d * s * 0.2 + np.array([0, 0, -0.07 * s])
+        return eye, look_at_quaternion(eye, tgt)
+
+
+def load_path(spec: str, lo, hi) -> CameraPath:
+    """A built-in path name fitted to the box lo..hi, or a keyframe ``.json`` file."""
+    if spec in BUILTIN_PATHS:
+        return ParametricPath(spec, lo, hi)
+    p = Path(spec)
+    if p.suffix.lower() != ".json":
+        raise ConfigError(f"--path {spec!r}: use one of {', '.join(BUILTIN_PATHS)} or a .json keyframe file")
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"--path {spec}: file not found") from None
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"--path {spec}: not valid JSON ({e})") from None
+    return KeyframePath.from_json(data, source=str(p))

@@ -1,0 +1,98 @@
+"""Per-frame, per-rank statistics: the source of every report, plot and benchmark.
+
+A :class:`FrameStats` records stage times in milliseconds (``lod`` = LOD/cull, ``draw``,
+``readback``, ``encode``, ``transfer``, ``composite``, ``total``), triangles drawn, bytes sent
+and received, and free-form counters (patches, blocks, cache hits ...). One JSON line per frame
+per rank goes to ``stats.jsonl``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["STAGES", "FrameStats", "summarize", "read_stats"]
+
+STAGES = ("lod", "draw", "readback", "encode", "transfer", "composite", "total")
+
+
+@dataclass
+class FrameStats:
+    frame: int
+    rank: int
+    times_ms: dict[str, float] = field(default_factory=lambda: {s: 0.0 for s in STAGES})
+    triangles: int = 0
+    bytes_sent: int = 0
+    bytes_recv: int = 0
+    counters: dict[str, float] = field(default_factory=dict)
+
+    @contextmanager
+    def stage(self, name: str):
+        """Add the wall time of the ``with`` body to stage ``name``."""
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.times_ms[name] = self.times_ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+
+    def count(self, name: str, value: float = 1) -> None:
+        self.counters[name] = self.counters.get(name, 0) + value
+
+    def to_json(self) -> dict:
+        return {
+            "frame": self.frame,
+            "rank": self.rank,
+            "times_ms": {k: round(v, 4) for k, v in self.times_ms.items()},
+            "triangles": int(self.triangles),
+            "bytes_sent": int(self.bytes_sent),
+            "bytes_recv": int(self.bytes_recv),
+            "counters": self.counters,
+        }
+
+
+def read_stats(path) -> list[dict]:
+    with open(path) as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+def summarize(records: list[dict], **extra) -> dict:
+    """Summary of per-frame per-rank records: frame time is the max ``total`` over ranks."""
+    frames = sorted({r["frame"] for r in records})
+    ranks = sorted({r["rank"] for r in records})
+    if not frames:
+        return {"frames": 0, "ranks": 0, **extra}
+    tri = np.zeros((len(frames), len(ranks)))
+    total = np.zeros_like(tri)
+    sent = np.zeros_like(tri)
+    fi = {f: i for i, f in enumerate(frames)}
+    ri = {r: i for i, r in enumerate(ranks)}
+    for r in records:
+        i, j = fi[r["frame"]], ri[r["rank"]]
+        tri[i, j] = r["triangles"]
+        total[i, j] = r["times_ms"].get("total", 0.0)
+        sent[i, j] = r["bytes_sent"]
+    frame_ms = total.max(axis=1)
+    mean_tri = tri.mean(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        imb = np.where(mean_tri > 0, tri.max(axis=1) / np.where(mean_tri > 0, mean_tri, 1), 1.0)
+    stage_means = {}
+    for s in STAGES:
+        vals = [r["times_ms"].get(s, 0.0) for r in records]
+        stage_means[s] = float(np.mean(vals))
+    mean_frame_ms = float(frame_ms.mean())
+    return {
+        "frames": len(frames),
+        "ranks": len(ranks),
+        **extra,
+        "mean_frame_ms": round(mean_frame_ms, 3),
+        "fps": round(1000.0 / mean_frame_ms, 3) if mean_frame_ms > 0 else None,
+        "triangles_per_rank": [float(v) for v in tri.mean(axis=0)],
+        "triangles_per_frame": float(tri.sum(axis=1).mean()),
+        "imbalance": round(float(imb.mean()), 4),
+        "bytes_per_frame": float(sent.sum(axis=1).mean()),
+        "stage_ms_mean": {k: round(v, 3) for k, v in stage_means.items()},
+    }

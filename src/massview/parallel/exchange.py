@@ -1,0 +1,42 @@
+"""Point-to-point exchange of variable-size byte messages with mpi4py buffer calls.
+
+``exchange(comm, sends, sources)`` sends ``sends[dest]`` to each destination and receives one
+message from each source: first the sizes (int64, uppercase Isend/Irecv), then the payloads
+as uint8 numpy buffers. Messages to self are handed over without MPI. Bytes on the wire
+(payloads plus the 8-byte size words) are counted into a :class:`FrameStats`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from mpi4py import MPI
+
+from ..core.stats import FrameStats
+
+__all__ = ["exchange"]
+
+_TAG_SIZE = 0x4D56
+_TAG_DATA = 0x4D57
+
+
+def exchange(comm, sends: dict[int, bytes], sources: list[int], stats: FrameStats | None = None, tag: int = 0) -> dict[int, np.ndarray]:
+    me = comm.Get_rank()
+    out: dict[int, np.ndarray] = {}
+    remote_sources = [s for s in sources if s != me]
+    sizes = {s: np.zeros(1, np.int64) for s in remote_sources}
+    reqs = [comm.Irecv(sizes[s], source=s, tag=_TAG_SIZE + 2 * tag) for s in remote_sources]
+    payloads = {d: np.frombuffer(b, np.uint8) for d, b in sends.items() if d != me}
+    size_words = {d: np.array([p.size], np.int64) for d, p in payloads.items()}
+    reqs += [comm.Isend(size_words[d], dest=d, tag=_TAG_SIZE + 2 * tag) for d in payloads]
+    MPI.Request.Waitall(reqs)
+    bufs = {s: np.empty(int(sizes[s][0]), np.uint8) for s in remote_sources}
+    reqs = [comm.Irecv(bufs[s], source=s, tag=_TAG_DATA + 2 * tag) for s in remote_sources]
+    reqs += [comm.Isend(p, dest=d, tag=_TAG_DATA + 2 * tag) for d, p in payloads.items()]
+    MPI.Request.Waitall(reqs)
+    out.update(bufs)
+    if me in sends and me in sources:
+        out[me] = np.frombuffer(sends[me], np.uint8)
+    if stats is not None:
+        stats.bytes_sent += sum(p.size + 8 for p in payloads.values())
+        stats.bytes_recv += sum(b.size + 8 for b in bufs.values())
+    return out

@@ -1,0 +1,84 @@
+"""The MPI runtime: launching ranks, the world communicator, and failing fast.
+
+``massview`` commands that take ``--ranks N`` run in one of two ways:
+
+* **inside an MPI job** (started by ``mpiexec``/``srun``, detected from the process-manager
+  environment): every rank runs the command and uses all the ranks it was given;
+* **standalone**: with N > 1 the command re-executes itself as
+  ``mpiexec -n N python -m massview ...`` with the ``mpiexec`` installed beside the Python
+  interpreter (the ``mpich`` wheel's) or on PATH, and returns its exit status.
+
+``guarded(comm, fn)`` runs a rank's work; an exception on any rank prints that rank's error
+once and calls ``MPI_Abort`` so that every rank ends and ``mpiexec`` exits non-zero — a
+failing rank never leaves the others waiting in a collective.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import traceback
+from pathlib import Path
+
+from ..core.errors import MassviewError, ParallelError
+
+__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "guarded"]
+
+_JOB_VARS = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "HYDRA_CONTROL_FD", "MASSVIEW_UNDER_MPI")
+
+
+def in_mpi_job() -> bool:
+    """True when this process was started by an MPI process manager."""
+    return any(v in os.environ for v in _JOB_VARS)
+
+
+def find_mpiexec() -> str:
+    here = Path(sys.executable).parent / "mpiexec"
+    if here.exists():
+        return str(here)
+    found = shutil.which("mpiexec") or shutil.which("mpirun")
+    if not found:
+        raise ParallelError(
+            "no mpiexec found: install the mpich wheel (`pip install mpich`, part of massview's "
+            "dependencies) or load your cluster's MPI module, or run under an external mpiexec"
+        )
+    return found
+
+
+def relaunch(argv: list[str], nranks: int) -> int:
+    """Run ``python -m massview argv...`` on ``nranks`` local ranks; returns the exit status."""
+    cmd = [find_mpiexec(), "-n", str(nranks), sys.executable, "-m", "massview", *argv]
+    env = dict(os.environ, MASSVIEW_UNDER_MPI="1")
+    try:
+        return subprocess.run(cmd, env=env).returncode
+    except KeyboardInterrupt:
+        return 130
+
+
+def world():
+    """MPI.COMM_WORLD (initializes MPI on first use; a singleton job when not under mpiexec)."""
+    from mpi4py import MPI
+
+    return MPI.COMM_WORLD
+
+
+def guarded(comm, fn, *args, **kw):
+    """Run ``fn`` on this rank; on an exception print it once, prefixed by the rank, and abort
+    every rank with exit status 1 (a single-rank run exits the same way, without MPI_Abort)."""
+    try:
+        return fn(*args, **kw)
+    except BaseException as e:  # noqa: BLE001 - any failure must end every rank
+        rank, size = comm.Get_rank(), comm.Get_size()
+        prefix = f"massview: error on rank {rank} of {size}: " if size > 1 else "massview: error: "
+        if isinstance(e, MassviewError):
+            msg = prefix + str(e)
+        elif isinstance(e, KeyboardInterrupt):
+            msg = prefix + "interrupted"
+        else:
+            msg = prefix + f"{type(e).__name__}: {e}\n" + "".join(traceback.format_exception(e))
+        print(msg, file=sys.stderr, flush=True)
+        if size > 1:
+            comm.Abort(130 if isinstance(e, KeyboardInterrupt) else 1)
+        raise SystemExit(130 if isinstance(e, KeyboardInterrupt) else 1) from None

@@ -1,0 +1,1 @@
+"""massview render layer."""

@@ -1,0 +1,46 @@
+"""Headless OpenGL through EGL: Mesa llvmpipe on CPU-only machines, the vendor driver on GPU nodes.
+
+The only module that creates GL contexts. ``create_context`` returns a moderngl context and
+raises :class:`GLUnavailableError` naming the system packages to install when EGL or a driver
+is missing.
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+
+import moderngl
+
+from ..core.errors import GLUnavailableError
+
+__all__ = ["create_context", "renderer_string", "load_shader"]
+
+_INSTALL_HINT = (
+    "massview renders headless through EGL. Install the EGL loader and an OpenGL driver: "
+    "on Debian/Ubuntu `apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri` (Mesa llvmpipe, CPU), "
+    "or the NVIDIA driver's EGL libraries (libnvidia-gl) on GPU nodes."
+)
+
+
+def create_context(device_index: int | None = None) -> moderngl.Context:
+    """A standalone OpenGL 3.3+ core context through EGL (no window, no display server).
+
+    ``device_index`` picks an EGL device on multi-GPU nodes (e.g. the local rank)."""
+    kw = {"backend": "egl", "require": 330}
+    if device_index is not None:
+        kw["device_index"] = int(device_index)
+    try:
+        ctx = moderngl.create_standalone_context(**kw)
+    except Exception as e:  # glcontext raises plain Exceptions with driver messages
+        raise GLUnavailableError(f"could not create a headless OpenGL context ({e}). {_INSTALL_HINT}") from None
+    return ctx
+
+
+def renderer_string(ctx: moderngl.Context) -> str:
+    info = ctx.info
+    return f"{info.get('GL_RENDERER', '?')} / {info.get('GL_VERSION', '?')}"
+
+
+def load_shader(name: str) -> str:
+    """GLSL source shipped in ``massview/render/shaders``."""
+    return importlib.resources.files("massview.render").joinpath("shaders").joinpath(name).read_text()

@@ -1,0 +1,85 @@
+"""The per-frame loop every system shares: plan → render → composite → deliver → record.
+
+Each frame, rank 0 (the destination) fixes the camera and plans one :class:`Task` per rank;
+both are broadcast. Every rank renders its task. Sort-first tiles already are final pixels;
+sort-last full-frame images are depth-composited (direct-send, binary-swap or radix-k). The
+final pixels are delivered to the display tiles — rank 0's whole frame, or each wall rank's
+own tile — and handed to ``sink(frame, tile_image)`` on display ranks. With ``reference`` each
+display rank also renders the serial image alone and records how its tile differs. Per-rank
+:class:`FrameStats` are gathered to rank 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..core.camera import Camera, Viewport
+from ..core.config import RenderConfig
+from ..core.errors import MassviewError
+from ..core.image import Image
+from ..core.stats import FrameStats
+from ..parallel.composite import composite, deliver
+from ..parallel.decompose import parse_decomposition, parse_wall
+from ..render.meshes import rank_tint
+
+__all__ = ["FrameResult", "display_tiles", "render_frame"]
+
+
+class InjectedFault(MassviewError, RuntimeError):
+    """Raised on purpose by ``--fault RANK:FRAME`` (tests of failure handling)."""
+
+
+@dataclass
+class FrameResult:
+    stats: FrameStats
+    tile: Image | None  # this rank's display tile, None on non-display ranks
+    diff: tuple[int, int, int] | None = None  # (max abs diff, differing pixels, pixels) vs serial
+
+
+def display_tiles(cfg: RenderConfig, nranks: int) -> list[tuple[int, Viewport]]:
+    if cfg.wall:
+        return list(enumerate(parse_wall(cfg.wall, nranks, cfg.width, cfg.height)))
+    return [(0, Viewport(0, 0, cfg.width, cfg.height))]
+
+
+def _check_fault(cfg: RenderConfig, rank: int, frame: int) -> None:
+    if cfg.fault:
+        r, _, f = cfg.fault.partition(":")
+        if int(r) == rank and int(f or 0) == frame:
+            raise InjectedFault(f"injected fault at frame {frame} (--fault {cfg.fault})")
+
+
+def image_diff(a: Image, b: Image) -> tuple[int, int, int]:
+    d = np.abs(a.color.astype(np.int16) - b.color.astype(np.int16)).max(axis=2)
+    return int(d.max(initial=0)), int(np.count_nonzero(d)), int(d.size)
+
+
+def render_frame(comm, system, cfg: RenderConfig, camera: Camera | None, frame: int,
+                 sink: Callable[[int, Image], None] | None = None) -> FrameResult:
+    """Render one frame on every rank of ``comm``; ``camera`` matters on rank 0 only."""
+    rank, n = comm.Get_rank(), comm.Get_size()
+    stats = FrameStats(frame=frame, rank=rank)
+    with stats.stage("total"):
+        camera = comm.bcast(camera, root=0)
+        with stats.stage("lod"):
+            tasks = comm.bcast(system.plan(camera, cfg, n) if rank == 0 else None, root=0)
+        _check_fault(cfg, rank, frame)
+        tint = rank_tint(rank) if cfg.color_by_rank else (0, 0, 0, 0)
+        image = system.render(tasks[rank], camera, cfg, stats, tint)
+        kind, _ = parse_decomposition(cfg.decomposition, system.sort_last_modes)
+        if kind == "sort-last":
+            piece = composite(comm, image, cfg.compositor, cfg.radix_k, stats, cfg.codec)
+        else:
+            piece = image
+        tile = deliver(comm, piece, display_tiles(cfg, n), stats, cfg.codec)
+    result = FrameResult(stats, tile)
+    if tile is not None:
+        if sink is not None:
+            sink(frame, tile)
+        if cfg.reference:
+            ref = system.render_reference(camera, cfg).crop(tile.viewport)
+            result.diff = image_diff(tile, ref)
+    return result
