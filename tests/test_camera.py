@@ -1,0 +1,99 @@
+import json
+import pickle
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from massview.core.camera import Camera, Viewport
+from massview.core.errors import ConfigError
+from massview.core.paths import BUILTIN_PATHS, KeyframePath, load_path
+
+
+def cam(**kw):
+    return Camera.look_at((10.0, -20.0, 15.0), (0.0, 0.0, 0.0), width=640, height=480, near=0.5, far=200.0, **kw)
+
+
+def test_look_at_points_at_target():
+    c = cam()
+    px, w = c.project(np.array([[0.0, 0.0, 0.0]]))
+    assert np.allclose(px[0], [320, 240])
+    assert w[0] > 0
+
+
+@given(st.integers(0, 639), st.integers(0, 479), st.integers(1, 640), st.integers(1, 480))
+@settings(max_examples=60, deadline=None)
+def test_subfrustum_maps_its_pixels_to_the_whole_ndc_square(x, y, w, h):
+    c = cam()
+    w, h = min(w, 640 - x), min(h, 480 - y)
+    vp = Viewport(x, y, w, h)
+    rng = np.random.default_rng(x * 1000 + y)
+    pts = rng.uniform(-5, 5, (20, 3))
+    full = c.view_projection() @ np.c_[pts, np.ones(20)].T
+    sub = c.view_projection(vp) @ np.c_[pts, np.ones(20)].T
+    fx = (full[0] / full[3] + 1) / 2 * 640
+    fy = (1 - full[1] / full[3]) / 2 * 480
+    sx = (sub[0] / sub[3] + 1) / 2 * w + x
+    sy = (1 - sub[1] / sub[3]) / 2 * h + y
+    assert np.allclose(fx, sx, atol=1e-6) and np.allclose(fy, sy, atol=1e-6)
+    assert np.allclose(full[2] / full[3], sub[2] / sub[3])  # same depth
+
+
+def test_frustum_planes_classify_points():
+    c = cam()
+    planes = c.frustum_planes()
+    inside = np.array([0.0, 0.0, 0.0, 1.0])
+    behind = np.array([20.0, -40.0, 30.0, 1.0])
+    assert np.all(planes @ inside >= 0)
+    assert np.any(planes @ behind < 0)
+
+
+def test_camera_json_and_pickle_round_trip():
+    c = cam(fovy=50)
+    assert Camera.from_json(json.loads(json.dumps(c.to_json()))) == c
+    assert pickle.loads(pickle.dumps(c)) == c
+
+
+def test_camera_rejects_bad_values():
+    with pytest.raises(ConfigError, match="near"):
+        Camera((0, 0, 0), (1, 0, 0, 0), near=5, far=1)
+    with pytest.raises(ConfigError, match="fovy"):
+        Camera((0, 0, 0), (1, 0, 0, 0), fovy=180)
+
+
+@pytest.mark.parametrize("name", BUILTIN_PATHS)
+def test_builtin_paths_fit_the_box_and_look_at_it(name):
+    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([100.0, 80.0, 10.0])
+    cams = load_path(name, lo, hi).cameras(12, 320, 240)
+    assert len(cams) == 12
+    centers = np.array([[50.0, 40.0, 5.0]])
+    for c in cams:
+        assert c.near < c.far and np.all(np.isfinite(c.position))
+    # over the path the scene is in view for most frames
+    seen = [np.all(c.frustum_planes() @ np.r_[centers[0], 1.0] > -60) for c in cams]
+    assert sum(seen) >= 6
+
+
+def test_keyframes_pass_through_keys_and_reject_garbage(tmp_path):
+    data = {"keyframes": [
+        {"time": 0, "position": [0, 0, 10], "look_at": [10, 0, 0]},
+        {"time": 1, "position": [10, 0, 10], "look_at": [20, 0, 0]},
+        {"time": 3, "position": [10, 10, 12], "look_at": [10, 30, 0]},
+    ]}
+    p = tmp_path / "p.json"
+    p.write_text(json.dumps(data))
+    path = load_path(str(p), [0, 0, 0], [1, 1, 1])
+    assert np.allclose(path.camera(0, 64, 48).position, [0, 0, 10])
+    assert np.allclose(path.camera(1 / 3, 64, 48).position, [10, 0, 10])
+    assert np.allclose(path.camera(1, 64, 48).position, [10, 10, 12])
+    mid = path.camera(2 / 3, 64, 48).position
+    assert 10 - 1 < mid[0] < 10 + 1 and 0 < mid[1] < 10
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"keyframes": [{"time": 0}]}')
+    with pytest.raises(ConfigError, match="bad.json"):
+        load_path(str(bad), [0, 0, 0], [1, 1, 1])
+    with pytest.raises(ConfigError, match="not valid JSON"):
+        (tmp_path / "x.json").write_text("{")
+        load_path(str(tmp_path / "x.json"), [0, 0, 0], [1, 1, 1])
+    assert isinstance(path, KeyframePath)

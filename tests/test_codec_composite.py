@@ -1,0 +1,91 @@
+"""Codec round trips and the compositing algebra, as properties (no MPI needed)."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from massview.core.camera import Viewport
+from massview.core.image import Image, blank_image
+from massview.parallel.codec import CODECS, decode_image, encode_image
+from massview.parallel.composite import combine, radix_factors, split_rows
+from massview.parallel.decompose import grid_shape, kd_tiles, sort_first_tiles
+
+
+def random_image(rng, vp, fill):
+    img = blank_image(vp)
+    mask = rng.random((vp.h, vp.w)) < fill
+    img.color[mask] = rng.integers(0, 256, (int(mask.sum()), 4), dtype=np.uint8)
+    img.depth[mask] = rng.random(int(mask.sum())).astype(np.float32) * np.float32(0.999)
+    return img
+
+
+def same(a: Image, b: Image) -> bool:
+    return a.viewport == b.viewport and np.array_equal(a.color, b.color) and np.array_equal(a.depth, b.depth)
+
+
+@given(st.integers(0, 40), st.integers(0, 40), st.integers(0, 50), st.integers(0, 50),
+       st.sampled_from([0.0, 1.0, 0.3, 0.97]), st.sampled_from(sorted(CODECS)), st.integers(0, 2**31))
+@settings(max_examples=120, deadline=None)
+def test_codec_round_trip(x, y, w, h, fill, codec, seed):
+    img = random_image(np.random.default_rng(seed), Viewport(x, y, w, h), fill)
+    assert same(decode_image(encode_image(img, codec)), img)
+
+
+def test_codec_empty_image_is_tiny_and_full_image_round_trips():
+    vp = Viewport(0, 0, 1280, 1024)
+    assert len(encode_image(blank_image(vp))) < 200
+    full = random_image(np.random.default_rng(1), vp, 1.0)
+    assert same(decode_image(encode_image(full)), full)
+
+
+@given(st.integers(0, 2**31), st.integers(1, 30), st.integers(1, 30))
+@settings(max_examples=60, deadline=None)
+def test_combine_is_associative_and_front_wins_ties(seed, w, h):
+    rng = np.random.default_rng(seed)
+    vp = Viewport(3, 5, w, h)
+    a, b, c = (random_image(rng, vp, 0.6) for _ in range(3))
+    # force some exact ties
+    b.depth[::2] = a.depth[::2]
+    assert same(combine(combine(a, b), c), combine(a, combine(b, c)))
+    ab = combine(a, b)
+    tie = (a.depth == b.depth)
+    assert np.array_equal(ab.color[tie], a.color[tie])
+
+
+def test_split_rows_covers_in_order():
+    vp = Viewport(0, 7, 10, 5)
+    bands = split_rows(vp, 8)
+    assert sum(b.h for b in bands) == 5 and bands[0].y == 7
+    assert all(bands[i].y + bands[i].h == bands[i + 1].y for i in range(7))
+
+
+@pytest.mark.parametrize("n,k,expect", [(1, 4, []), (2, 2, [2]), (3, 2, [3]), (8, 4, [4, 2]), (12, 4, [4, 3]), (7, 4, [7])])
+def test_radix_factors(n, k, expect):
+    f = radix_factors(n, k)
+    assert f == expect and int(np.prod(f)) == n
+
+
+@pytest.mark.parametrize("layout", ["horizontal", "vertical", "grid", "kd"])
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 7])
+def test_sort_first_tiles_partition_the_image(layout, n):
+    rng = np.random.default_rng(n)
+    rects = np.c_[rng.uniform(0, 600, (50, 2)), rng.uniform(0, 600, (50, 2))]
+    rects = np.c_[np.minimum(rects[:, :2], rects[:, 2:]), np.maximum(rects[:, :2], rects[:, 2:])]
+    tiles = sort_first_tiles(layout, n, 640, 480, rects=rects, weights=rng.uniform(1, 10, 50))
+    cover = np.zeros((480, 640), int)
+    for t in tiles:
+        cover[t.slices()] += 1
+    assert len(tiles) == n and np.all(cover == 1)
+
+
+def test_kd_balances_weight():
+    # all weight in the left quarter: the kd split must put most cuts there
+    rects = np.array([[x, 0, x + 8, 480] for x in range(0, 160, 8)], float)
+    tiles = kd_tiles(4, 640, 480, rects, np.ones(len(rects)))
+    assert sum(t.x < 160 for t in tiles) >= 3
+
+
+def test_grid_shape_prefers_square_tiles():
+    assert grid_shape(4, 1280, 1024) == (2, 2)
+    assert grid_shape(2, 1280, 720) == (1, 2)
