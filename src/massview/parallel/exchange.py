@@ -13,7 +13,7 @@ from mpi4py import MPI
 
 from ..core.stats import FrameStats
 
-__all__ = ["exchange"]
+__all__ = ["exchange", "measure_bandwidth"]
 
 _TAG_SIZE = 0x4D56
 _TAG_DATA = 0x4D57
@@ -40,3 +40,24 @@ def exchange(comm, sends: dict[int, bytes], sources: list[int], stats: FrameStat
         stats.bytes_sent += sum(p.size + 8 for p in payloads.values())
         stats.bytes_recv += sum(b.size + 8 for b in bufs.values())
     return out
+
+
+def measure_bandwidth(comm, nbytes: int = 8 << 20, repeat: int = 5) -> float:
+    """Point-to-point bandwidth in bytes/s between ranks 0 and 1 (ping-pong of ``nbytes``
+    uint8 buffers, best of ``repeat``); broadcast to every rank. 0.0 on a single rank."""
+    if comm.Get_size() < 2:
+        return 0.0
+    buf = np.zeros(nbytes, np.uint8)
+    best = float("inf")
+    me = comm.Get_rank()
+    for _ in range(repeat + 1):  # the first round trip warms up the connection
+        comm.Barrier()
+        t0 = MPI.Wtime()
+        if me == 0:
+            comm.Send(buf, dest=1, tag=77)
+            comm.Recv(buf, source=1, tag=78)
+        elif me == 1:
+            comm.Recv(buf, source=0, tag=77)
+            comm.Send(buf, dest=0, tag=78)
+        best = min(best, (MPI.Wtime() - t0) / 2)
+    return comm.bcast(nbytes / best if me == 0 else None, root=0)
