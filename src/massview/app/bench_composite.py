@@ -23,7 +23,7 @@ from ..core.stats import FrameStats
 from ..core.task import Task
 from ..parallel.composite import COMPOSITORS, composite, deliver
 from ..parallel.decompose import sort_last_ranges
-from ..parallel.exchange import measure_bandwidth
+from ..parallel.exchange import max_over_ranks, measure_bandwidth
 from ..parallel.runtime import relaunch, world
 
 __all__ = ["run", "worker"]
@@ -49,7 +49,7 @@ def worker(args) -> int:
             t0 = time.perf_counter()
             piece = composite(comm, image, method, 4, st, args.codec)
             deliver(comm, piece, [(0, cam.viewport)], st, args.codec)
-            dt = comm.allreduce(time.perf_counter() - t0, op=_max())
+            dt = max_over_ranks(comm, time.perf_counter() - t0)
             if dt < best:
                 best, best_stats = dt, st
         sent = comm.allreduce(best_stats.bytes_sent)
@@ -62,12 +62,6 @@ def worker(args) -> int:
     if rank == 0:
         Path(args.worker).write_text(json.dumps(rows))
     return 0
-
-
-def _max():
-    from mpi4py import MPI  # noqa: the app reaches MPI ops only through this tiny helper
-
-    return MPI.MAX
 
 
 def run(args) -> int:

@@ -13,7 +13,7 @@ from mpi4py import MPI
 
 from ..core.stats import FrameStats
 
-__all__ = ["exchange", "measure_bandwidth"]
+__all__ = ["exchange", "measure_bandwidth", "max_over_ranks"]
 
 _TAG_SIZE = 0x4D56
 _TAG_DATA = 0x4D57
@@ -61,3 +61,8 @@ def measure_bandwidth(comm, nbytes: int = 8 << 20, repeat: int = 5) -> float:
             comm.Send(buf, dest=0, tag=78)
         best = min(best, (MPI.Wtime() - t0) / 2)
     return comm.bcast(nbytes / best if me == 0 else None, root=0)
+
+
+def max_over_ranks(comm, value: float) -> float:
+    """The maximum of ``value`` over all ranks (e.g. a stage time: the slowest rank sets it)."""
+    return comm.allreduce(value, op=MPI.MAX)

@@ -1,0 +1,173 @@
+"""Elevation inputs read by windows, never whole (except ``.npz``, whose members zip stores).
+
+Every source exposes ``rows``, ``cols``, ``dtype``, ``nodata``, ``crs`` (WKT or None),
+``transform`` (GDAL 6-tuple ``(x0, dx, 0, y0, 0, -dy)`` or None), ``name``, and
+``read(r0, r1, c0, c1) -> float32 (r1-r0, c1-c0)`` with nodata samples as NaN. Integer inputs
+are converted to float32 (exact for 16-bit and for 32-bit values below 2^24).
+
+Formats: GeoTIFF / Cloud-Optimized GeoTIFF (rasterio, windowed), ``.npy`` (memory-mapped),
+SRTM ``.hgt`` (big-endian int16, 1201² or 3601², georeferenced from the file name),
+``.npz`` (a named array), raw binary (explicit shape and dtype), and the synthetic generator.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from ...core.errors import IngestError
+
+__all__ = ["RasterSource", "open_source", "ArraySource"]
+
+
+class RasterSource:
+    rows: int
+    cols: int
+    dtype: np.dtype
+    nodata: float | None = None
+    crs: str | None = None
+    transform: tuple[float, ...] | None = None
+    name: str = ""
+
+    def _raw(self, r0, r1, c0, c1) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def read(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        try:
+            a = np.asarray(self._raw(r0, r1, c0, c1))
+        except (OSError, ValueError) as e:
+            raise IngestError(f"{self.name}: could not read rows {r0}:{r1}, cols {c0}:{c1} ({e}); the file may be truncated or corrupt") from None
+        out = a.astype(np.float32)
+        if self.nodata is not None and not (isinstance(self.nodata, float) and math.isnan(self.nodata)):
+            out[a == self.nodata] = np.nan
+        out[~np.isfinite(out)] = np.nan
+        return out
+
+    def spacing(self) -> tuple[float, float]:
+        """Sample spacing (dx, dy) in metres: from the transform, converting degrees at the
+        centre latitude for geographic CRSs; (1, 1) without a transform."""
+        if not self.transform:
+            return 1.0, 1.0
+        dx, dy = abs(self.transform[1]), abs(self.transform[5])
+        if self.crs and _is_geographic(self.crs):
+            lat = self.transform[3] + self.transform[5] * self.rows / 2
+            m = 111_320.0
+            return dx * m * max(math.cos(math.radians(lat)), 1e-6), dy * m
+        return dx, dy
+
+
+def _is_geographic(crs: str) -> bool:
+    try:
+        from rasterio.crs import CRS
+
+        return bool(CRS.from_user_input(crs).is_geographic)
+    except Exception:  # noqa: BLE001 - an unparsable CRS is treated as projected
+        return crs.upper().startswith("GEOGCS")
+
+
+class ArraySource(RasterSource):
+    """Any 2-D array-like (numpy array, memmap, zarr array)."""
+
+    def __init__(self, arr, name: str, nodata=None, crs=None, transform=None):
+        if getattr(arr, "ndim", 0) != 2:
+            raise IngestError(f"{name}: expected a 2-D elevation array, got shape {getattr(arr, 'shape', '?')}; give a single band")
+        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+            raise IngestError(f"{name}: dtype {arr.dtype} is not numeric")
+        self.arr, self.name = arr, name
+        self.rows, self.cols = (int(v) for v in arr.shape)
+        self.dtype = np.dtype(arr.dtype)
+        self.nodata, self.crs, self.transform = nodata, crs, transform
+
+    def _raw(self, r0, r1, c0, c1):
+        return self.arr[r0:r1, c0:c1]
+
+
+class GeoTiffSource(RasterSource):
+    def __init__(self, path: Path, band: int = 1):
+        import rasterio
+
+        try:
+            self.ds = rasterio.open(path)
+        except rasterio.errors.RasterioIOError as e:
+            raise IngestError(f"{path}: cannot open as a raster ({e})") from None
+        if band > self.ds.count:
+            raise IngestError(f"{path}: has {self.ds.count} band(s), band {band} requested")
+        self.band, self.name = band, path.name
+        self.rows, self.cols = self.ds.height, self.ds.width
+        self.dtype = np.dtype(self.ds.dtypes[band - 1])
+        self.nodata = self.ds.nodatavals[band - 1]
+        self.crs = self.ds.crs.to_wkt() if self.ds.crs else None
+        t = self.ds.transform
+        self.transform = None if t.is_identity else (t.c, t.a, t.b, t.f, t.d, t.e)
+
+    def _raw(self, r0, r1, c0, c1):
+        from rasterio.windows import Window
+
+        return self.ds.read(self.band, window=Window(c0, r0, c1 - c0, r1 - r0))
+
+
+class HgtSource(ArraySource):
+    """SRTM ``.hgt``: square big-endian int16, nodata -32768; SW corner from the file name."""
+
+    def __init__(self, path: Path):
+        size = path.stat().st_size
+        side = int(round(math.sqrt(size / 2)))
+        if side * side * 2 != size or side not in (1201, 3601):
+            raise IngestError(f"{path}: {size} bytes is not an SRTM tile (1201² or 3601² int16 samples)")
+        arr = np.memmap(path, dtype=">i2", mode="r", shape=(side, side))
+        crs, transform = None, None
+        mt = re.match(r"([NS])(\d{2})([EW])(\d{3})", path.name.upper())
+        if mt:
+            lat = int(mt.group(2)) * (1 if mt.group(1) == "N" else -1)
+            lon = int(mt.group(4)) * (1 if mt.group(3) == "E" else -1)
+            d = 1.0 / (side - 1)
+            crs = 'GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433],AXIS["Latitude",NORTH],AXIS["Longitude",EAST],AUTHORITY["EPSG","4326"]]'
+            transform = (lon - d / 2, d, 0.0, lat + 1 + d / 2, 0.0, -d)
+        super().__init__(arr, path.name, nodata=-32768, crs=crs, transform=transform)
+
+
+def open_source(path, *, nodata=None, array: str | None = None, shape: tuple[int, int] | None = None,
+                dtype: str | None = None) -> RasterSource:
+    """Open an elevation input by its extension (see module docstring)."""
+    p = Path(path)
+    if not p.exists():
+        raise IngestError(f"{p}: no such file")
+    suffix = p.suffix.lower()
+    if suffix in (".tif", ".tiff", ".gtiff", ".vrt", ".img", ".asc"):
+        src = GeoTiffSource(p)
+    elif suffix == ".npy":
+        try:
+            src = ArraySource(np.load(p, mmap_mode="r"), p.name)
+        except ValueError as e:
+            raise IngestError(f"{p}: not a readable .npy file ({e})") from None
+    elif suffix == ".hgt":
+        src = HgtSource(p)
+    elif suffix == ".npz":
+        try:
+            with np.load(p) as z:
+                names = list(z.keys())
+                if array is None:
+                    if len(names) != 1:
+                        raise IngestError(f"{p}: holds arrays {', '.join(names)}; name one with --array")
+                    array = names[0]
+                if array not in names:
+                    raise IngestError(f"{p}: has no array {array!r} (it holds {', '.join(names)})")
+                src = ArraySource(z[array], f"{p.name}:{array}")
+        except (zipfile.BadZipFile, OSError, ValueError) as e:
+            raise IngestError(f"{p}: not a readable .npz file ({e})") from None
+    elif suffix in (".raw", ".bin", ".r32", ".f32", ".r16", ".dat"):
+        if shape is None or dtype is None:
+            raise IngestError(f"{p}: raw binary needs --shape ROWSxCOLS and --dtype (e.g. float32, <i2)")
+        want = shape[0] * shape[1] * np.dtype(dtype).itemsize
+        if p.stat().st_size != want:
+            raise IngestError(f"{p}: is {p.stat().st_size} bytes, but --shape {shape[0]}x{shape[1]} --dtype {dtype} needs {want}")
+        src = ArraySource(np.memmap(p, dtype=np.dtype(dtype), mode="r", shape=shape), p.name)
+    else:
+        raise IngestError(f"{p}: unknown input format {suffix or '(no extension)'}; use .tif/.tiff, .npy, .npz, .hgt or raw (.raw/.bin with --shape and --dtype)")
+    if nodata is not None:
+        src.nodata = nodata
+    return src
