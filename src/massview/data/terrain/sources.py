@@ -21,7 +21,7 @@ import numpy as np
 
 from ...core.errors import IngestError
 
-__all__ = ["RasterSource", "open_source", "ArraySource"]
+__all__ = ["RasterSource", "open_source", "ArraySource", "crs_name"]
 
 
 class RasterSource:
@@ -47,6 +47,10 @@ class RasterSource:
         out[~np.isfinite(out)] = np.nan
         return out
 
+    def read_rgb(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """(h, w, 3) uint8 colour of a window (orthophotos)."""
+        raise IngestError(f"{self.name}: not an RGB image; give a GeoTIFF with at least 3 bands as --color")
+
     def spacing(self) -> tuple[float, float]:
         """Sample spacing (dx, dy) in metres: from the transform, converting degrees at the
         centre latitude for geographic CRSs; (1, 1) without a transform."""
@@ -58,6 +62,16 @@ class RasterSource:
             m = 111_320.0
             return dx * m * max(math.cos(math.radians(lat)), 1e-6), dy * m
         return dx, dy
+
+
+def crs_name(wkt: str) -> str:
+    """A short name (e.g. ``EPSG:32632``) for a WKT CRS, or its first characters."""
+    try:
+        from rasterio.crs import CRS
+
+        return CRS.from_wkt(wkt).to_string() or wkt[:60]
+    except Exception:  # noqa: BLE001
+        return wkt[:60]
 
 
 def _is_geographic(crs: str) -> bool:
@@ -108,6 +122,17 @@ class GeoTiffSource(RasterSource):
         from rasterio.windows import Window
 
         return self.ds.read(self.band, window=Window(c0, r0, c1 - c0, r1 - r0))
+
+    def read_rgb(self, r0, r1, c0, c1):
+        from rasterio.windows import Window
+
+        if self.ds.count < 3:
+            return super().read_rgb(r0, r1, c0, c1)
+        a = self.ds.read([1, 2, 3], window=Window(c0, r0, c1 - c0, r1 - r0))
+        if a.dtype != np.uint8:  # scale other types to 0..255
+            lo, hi = float(a.min()), float(a.max())
+            a = ((a - lo) * (255.0 / max(hi - lo, 1e-9))).astype(np.uint8)
+        return np.moveaxis(a, 0, -1)
 
 
 class HgtSource(ArraySource):

@@ -1,0 +1,255 @@
+"""``prepare``: build a terrain store from any :class:`RasterSource`, out of core.
+
+Phases (each resumable — a block is flagged ``done`` only after it is written, and the store
+is marked ``complete`` last, so an interrupted prepare re-run with the same arguments
+continues where it stopped and a half-written store never opens as a good one):
+
+1. **level 0** in strips of M rows (one block row): windowed read, nodata/NaN filled from
+   valid neighbours (iterative 4-neighbour averaging inside the strip plus a margin; what is
+   still empty takes the mean of the strip's valid samples), padded by edge replication at
+   the outer border only, cut into blocks. The shared row between strips is taken from the
+   strip above, so borders are bit-identical in both blocks.
+2. **levels 1..L** by vertex decimation of 2 × 2 child blocks.
+3. **metadata** (and computed colour): every block is read back once; min/max, dropped-sample
+   errors, K-patch diamond errors and square z-ranges (:mod:`meta`).
+
+Peak memory is one strip (M × padded width float32, 17 MB at 16k) plus the diamond arrays.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ...core.errors import IngestError
+from .colors import shade_block
+from .layout import TerrainLayout
+from .meta import DiamondAccumulator, block_errors_from, vertex_deltas
+from .sources import RasterSource
+from .store import TerrainStore, create_store
+
+__all__ = ["prepare_terrain", "PrepareResult", "fill_nodata"]
+
+Progress = Callable[[str, int, int], None]  # (phase, advance, phase_total)
+_FILL_MARGIN = 32
+
+
+@dataclass
+class PrepareResult:
+    path: Path
+    layout: TerrainLayout
+    seconds: float
+    filled: int
+    resumed: bool
+    input_bytes: int
+
+
+def fill_nodata(a: np.ndarray, max_iter: int = 256) -> int:
+    """Fill NaNs in place from valid 4-neighbours (iterated); leftovers get the mean of the
+    valid samples (0 if none). Returns the number of samples filled."""
+    bad = np.isnan(a)
+    n = int(bad.sum())
+    if n == 0:
+        return 0
+    for _ in range(max_iter):
+        if not bad.any():
+            break
+        v = np.where(bad, 0.0, a)
+        w = (~bad).astype(np.float32)
+        s = np.zeros_like(v)
+        c = np.zeros_like(w)
+        s[1:] += v[:-1]; c[1:] += w[:-1]  # noqa: E702
+        s[:-1] += v[1:]; c[:-1] += w[1:]  # noqa: E702
+        s[:, 1:] += v[:, :-1]; c[:, 1:] += w[:, :-1]  # noqa: E702
+        s[:, :-1] += v[:, 1:]; c[:, :-1] += w[:, 1:]  # noqa: E702
+        take = bad & (c > 0)
+        if not take.any():
+            break
+        a[take] = (s[take] / c[take]).astype(a.dtype)
+        bad &= ~take
+    if bad.any():
+        valid = a[~bad]
+        a[bad] = float(valid.mean()) if valid.size else 0.0
+    return n
+
+
+def _read_strip(src: RasterSource, lay: TerrainLayout, bi: int, prev_row: np.ndarray | None) -> tuple[np.ndarray, int]:
+    """Rows bi·(M-1) .. +M of the padded grid, filled and padded (M × S float32), and how
+    many nodata samples of the rows new to this strip were filled."""
+    M, cols = lay.M, src.cols
+    r0 = bi * (M - 1)
+    strip = np.empty((M, lay.S), np.float32)
+    filled = 0
+    if r0 < src.rows:
+        data = src.read(r0, min(r0 + M + _FILL_MARGIN, src.rows), 0, cols)
+        first_new = 0
+        if prev_row is not None:  # the shared row is final already: keep it bit-identical
+            data[0] = prev_row[:cols]
+            first_new = 1
+        nv = min(M, src.rows - r0)
+        filled = int(np.count_nonzero(np.isnan(data[first_new:nv])))
+        fill_nodata(data)
+        strip[:nv, :cols] = data[:nv]
+        strip[nv:, :cols] = data[nv - 1]
+    else:  # a strip wholly in the bottom padding repeats the last row
+        strip[:, :cols] = prev_row[:cols]
+    strip[:, cols:] = strip[:, cols - 1: cols]
+    return strip, filled
+
+
+def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17, vertical_scale: float = 1.0,
+                    color: str | None = "computed", ortho: RasterSource | None = None, overwrite: bool = False,
+                    progress: Progress | None = None) -> PrepareResult:
+    t0 = time.perf_counter()
+    lay = TerrainLayout(src.rows, src.cols, block, K)
+    if not (math.isfinite(vertical_scale) and vertical_scale > 0):
+        raise IngestError(f"--vertical-scale must be a positive number, got {vertical_scale}")
+    dx, dy = src.spacing()
+    attrs = {"spacing": [dx, dy], "vertical_scale": float(vertical_scale), "crs": src.crs,
+             "transform": list(src.transform) if src.transform else None,
+             "nodata": {"value": None if src.nodata is None else float(src.nodata), "filled": 0},
+             "source": src.name, "source_dtype": str(src.dtype), "color": None}
+    g, resumed = create_store(out, lay, attrs, color is not None, overwrite)
+    prog = progress or (lambda phase, adv, total: None)
+    nb0 = lay.blocks(0)
+
+    # 1. level 0 ------------------------------------------------------------------------
+    done0 = g["blocks/0/done"]
+    flags = np.asarray(done0[...])
+    heights0 = g["heights/0"]
+    prev_row = None
+    filled = int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0
+    for bi in range(nb0):
+        if flags[bi].all():
+            prev_row = np.asarray(heights0[bi, :, -1, :]).reshape(nb0, -1)
+            prev_row = np.concatenate([prev_row[:, :-1].ravel(), prev_row[-1, -1:]]) if nb0 else prev_row
+            prog("level 0", nb0, nb0 * nb0)
+            continue
+        strip, nfill = _read_strip(src, lay, bi, prev_row)
+        for bj in range(nb0):
+            heights0[bi, bj] = strip[:, bj * (block - 1): bj * (block - 1) + block]
+        filled += nfill
+        done0[bi, :] = 1
+        nod = dict(g.attrs["nodata"])
+        nod["filled"] = filled
+        g.attrs["nodata"] = nod
+        prev_row = strip[-1].copy()
+        prog("level 0", nb0, nb0 * nb0)
+
+    # 2. coarser levels by decimation ---------------------------------------------------
+    for lv in range(1, lay.levels):
+        nb = lay.blocks(lv)
+        done = g[f"blocks/{lv}/done"]
+        flags = np.asarray(done[...])
+        child, dst = g[f"heights/{lv - 1}"], g[f"heights/{lv}"]
+        for i in range(nb):
+            for j in range(nb):
+                if not flags[i, j]:
+                    quad = np.asarray(child[2 * i: 2 * i + 2, 2 * j: 2 * j + 2])  # (2, 2, M, M)
+                    mosaic = np.concatenate([np.concatenate([quad[0, 0], quad[0, 1][:, 1:]], 1),
+                                             np.concatenate([quad[1, 0], quad[1, 1][:, 1:]], 1)[1:]], 0)
+                    dst[i, j] = mosaic[::2, ::2]
+                    done[i, j] = 1
+            prog(f"level {lv}", nb, nb * nb)
+
+    # 3. metadata and colour --------------------------------------------------------------
+    store = TerrainStore(out, require_complete=False)
+    meta = compute_metadata(store, prog, write_color=color is not None, ortho=ortho, vertical_scale=vertical_scale)
+    write_metadata(g, lay, meta)
+    g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
+    g.attrs["complete"] = True
+    seconds = time.perf_counter() - t0
+    return PrepareResult(Path(out), lay, seconds, filled, resumed, src.rows * src.cols * src.dtype.itemsize)
+
+
+@dataclass
+class Metadata:
+    minmax: list[np.ndarray]
+    block_error: list[np.ndarray]
+    sq: list[np.ndarray]
+    dg: list[np.ndarray]
+    zmin: list[np.ndarray]
+    zmax: list[np.ndarray]
+    zlo: float
+    zhi: float
+
+
+def compute_metadata(store: TerrainStore, prog: Progress, write_color: bool = False, ortho: RasterSource | None = None,
+                     vertical_scale: float = 1.0) -> Metadata:
+    """Read every block once and derive all metadata (also what ``verify`` recomputes)."""
+    lay = store.layout
+    acc = DiamondAccumulator(lay)
+    minmax, dmax = [], []
+    total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
+    for lv in range(lay.levels):
+        nb = lay.blocks(lv)
+        mm = np.zeros((nb, nb, 2), np.float32)
+        dm = np.zeros((nb, nb), np.float32)
+        for i in range(nb):
+            for j in range(nb):
+                b = store.get_block(lv, i, j)
+                mm[i, j] = b.min(), b.max()
+                d = vertex_deltas(b)
+                dm[i, j] = max(float(x.max()) if x.size else 0.0 for x in d)
+                acc.add_block(lv, i, j, b, d)
+            prog("metadata", nb, total)
+        minmax.append(mm)
+        dmax.append(dm)
+    top = store.get_block(lay.L, 0, 0)
+    for lv in range(lay.L + 1, lay.J):
+        acc.add_block(lv, 0, 0, top[:: 2 ** (lv - lay.L), :: 2 ** (lv - lay.L)])
+    sq, dg, zmin, zmax = acc.finish()
+    zlo, zhi = float(minmax[-1][..., 0].min()), float(minmax[-1][..., 1].max())
+    if write_color:
+        _write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
+    return Metadata(minmax, block_errors_from(dmax), sq, dg, zmin, zmax, zlo, zhi)
+
+
+def _write_colors(store: TerrainStore, lay: TerrainLayout, zlo: float, zhi: float, ortho, vscale: float, prog: Progress) -> None:
+    import zarr
+
+    g = zarr.open_group(str(store.path), mode="r+")
+    dx, dy = store.spacing
+    total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
+    for lv in range(lay.levels):
+        nb = lay.blocks(lv)
+        dst = g[f"color/{lv}"]
+        for i in range(nb):
+            for j in range(nb):
+                if ortho is not None:
+                    rgb = _ortho_block(ortho, lay, lv, i, j)
+                else:
+                    rgb = shade_block(store.get_block(lv, i, j), dx * 2**lv, dy * 2**lv, zlo, zhi, vscale)
+                dst[i, j] = rgb
+            prog("colour", nb, total)
+
+
+def _ortho_block(ortho, lay: TerrainLayout, lv: int, i: int, j: int) -> np.ndarray:
+    """Orthophoto pixels for a block, resampled (nearest) from an image covering the DEM extent."""
+    M = lay.M
+    step = 2**lv
+    rows = (i * (M - 1) + np.arange(M)) * step
+    cols = (j * (M - 1) + np.arange(M)) * step
+    fy, fx = ortho.rows / lay.rows, ortho.cols / lay.cols
+    ry = np.clip((np.minimum(rows, lay.rows - 1) * fy).astype(int), 0, ortho.rows - 1)
+    rx = np.clip((np.minimum(cols, lay.cols - 1) * fx).astype(int), 0, ortho.cols - 1)
+    r0, r1, c0, c1 = ry.min(), ry.max() + 1, rx.min(), rx.max() + 1
+    rgb = ortho.read_rgb(r0, r1, c0, c1)
+    return rgb[np.ix_(ry - r0, rx - c0)]
+
+
+def write_metadata(g, lay: TerrainLayout, meta: Metadata) -> None:
+    for lv in range(lay.levels):
+        for name, arr in ((f"blocks/{lv}/minmax", meta.minmax[lv]), (f"blocks/{lv}/error", meta.block_error[lv])):
+            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True)[...] = arr
+    for j in range(lay.J):
+        g.create_array(f"lod/square_error/{j}", shape=meta.sq[j].shape, dtype="float32", chunks=meta.sq[j].shape, overwrite=True)[...] = meta.sq[j]
+        g.create_array(f"lod/edge_error/{j}", shape=meta.dg[j].shape, dtype="float32", chunks=meta.dg[j].shape, overwrite=True)[...] = meta.dg[j]
+    for j in range(lay.J + 1):
+        for name, arr in ((f"lod/zmin/{j}", meta.zmin[j]), (f"lod/zmax/{j}", meta.zmax[j])):
+            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True)[...] = arr

@@ -1,0 +1,166 @@
+"""The terrain store: a zarr v3 group holding the M-block pyramid and its LOD metadata.
+
+Layout (readable with plain zarr; ``M`` = block size, ``nb_l = 2^(L-l)``)::
+
+    attrs: format "massview-terrain", format_version 1, complete (bool), M, K, levels,
+           rows, cols (input samples), padded (S), spacing [dx, dy] (metres), vertical_scale,
+           crs (WKT or null), transform (GDAL 6-tuple or null), nodata {value, filled},
+           source, height_range [min, max], color ("computed" | "orthophoto" | null)
+    heights/<l>     float32 (nb_l, nb_l, M, M), chunk (1, 1, M, M), blosc zstd+shuffle:
+                    block (i, j) = finest samples rows (i(M-1)+r)2^l, cols (j(M-1)+c)2^l
+    color/<l>       uint8 (nb_l, nb_l, M, M, 3), chunk (1, 1, M, M, 3)     [optional]
+    blocks/<l>/minmax   float32 (nb_l, nb_l, 2)   min and max height of the block
+    blocks/<l>/error    float32 (nb_l, nb_l)      saturated geometric error (height units)
+    blocks/<l>/done     uint8 (nb_l, nb_l)        1 once the block is written (resume)
+    lod/square_error/<j>  float32 (2^j, 2^j)            saturated K-patch square-diamond error
+    lod/edge_error/<j>    float32 (2, 2^j+1, 2^j+1)     edge diamonds: [0] horizontal, [1] vertical
+    lod/zmin/<j>, lod/zmax/<j>  float32 (2^j, 2^j)      height range of each level-j square
+
+Samples beyond ``rows``/``cols`` are padding (edge-replicated) and are not drawn. A store is
+only opened when ``complete`` is true, which ``prepare`` sets after everything is written.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from ...core.errors import BlockNotFoundError, CorruptBlockError, StoreError
+from .layout import TerrainLayout
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "dir_size"]
+
+FORMAT = "massview-terrain"
+FORMAT_VERSION = 1
+
+
+def _compressor():
+    from zarr.codecs import BloscCodec
+
+    return BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=4)
+
+
+def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, overwrite: bool = False):
+    """Create (or reopen for resuming, when its layout matches) an incomplete store."""
+    import zarr
+
+    path = Path(path)
+    if path.exists():
+        try:
+            g = zarr.open_group(str(path), mode="r+")
+            old = dict(g.attrs)
+        except Exception:  # noqa: BLE001 - not a zarr group
+            old = None
+        if old is None or old.get("format") != FORMAT:
+            raise StoreError(f"{path} exists and is not a massview terrain store; choose another -o or remove it")
+        same = all(old.get(k) == v for k, v in layout.to_json().items()) and old.get("source") == attrs.get("source")
+        if old.get("complete") and not overwrite:
+            raise StoreError(f"{path} is already a complete store; pass --overwrite to rebuild it")
+        if same and not overwrite:
+            return g, True  # resume
+        shutil.rmtree(path)
+    g = zarr.open_group(str(path), mode="w", zarr_format=3)
+    g.attrs.update({"format": FORMAT, "format_version": FORMAT_VERSION, "complete": False, **layout.to_json(),
+                    "levels": layout.levels, "padded": layout.S, **attrs})
+    M = layout.M
+    for lv in range(layout.levels):
+        nb = layout.blocks(lv)
+        g.create_array(f"heights/{lv}", shape=(nb, nb, M, M), chunks=(1, 1, M, M), dtype="float32",
+                       compressors=_compressor(), fill_value=np.nan)
+        if color:
+            g.create_array(f"color/{lv}", shape=(nb, nb, M, M, 3), chunks=(1, 1, M, M, 3), dtype="uint8",
+                           compressors=_compressor(), fill_value=0)
+        g.create_array(f"blocks/{lv}/done", shape=(nb, nb), chunks=(nb, nb), dtype="uint8", fill_value=0)
+    return g, False
+
+
+def dir_size(path: Path) -> int:
+    return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file())
+
+
+class TerrainStore:
+    """Read access to a complete terrain store. ``get_block`` is thread-safe."""
+
+    def __init__(self, path, require_complete: bool = True):
+        import zarr
+
+        self.path = Path(path)
+        if not self.path.exists():
+            raise StoreError(f"{self.path}: no such terrain store; create one with `massview prepare terrain INPUT -o {self.path}`")
+        try:
+            self.group = zarr.open_group(str(self.path), mode="r")
+            self.attrs = dict(self.group.attrs)
+        except Exception as e:  # noqa: BLE001
+            raise StoreError(f"{self.path}: not a readable zarr group ({e})") from None
+        if self.attrs.get("format") != FORMAT:
+            raise StoreError(f"{self.path}: not a massview terrain store (format attribute is {self.attrs.get('format')!r})")
+        if self.attrs.get("format_version", 0) > FORMAT_VERSION:
+            raise StoreError(f"{self.path}: format version {self.attrs['format_version']} is newer than this massview ({FORMAT_VERSION}); upgrade massview")
+        if require_complete and not self.attrs.get("complete"):
+            raise StoreError(f"{self.path}: store is incomplete (prepare was interrupted); re-run the same `massview prepare terrain` command to finish it")
+        self.layout = TerrainLayout(int(self.attrs["rows"]), int(self.attrs["cols"]), int(self.attrs["M"]), int(self.attrs["K"]))
+        self._heights = [self.group[f"heights/{lv}"] for lv in range(self.layout.levels)]
+        self.has_color = "color" in self.group and self.attrs.get("color") is not None
+        self._color = [self.group[f"color/{lv}"] for lv in range(self.layout.levels)] if self.has_color else None
+
+    @property
+    def spacing(self) -> tuple[float, float]:
+        dx, dy = self.attrs.get("spacing", [1.0, 1.0])
+        return float(dx), float(dy)
+
+    @property
+    def vertical_scale(self) -> float:
+        return float(self.attrs.get("vertical_scale", 1.0))
+
+    @property
+    def block_bytes(self) -> int:
+        return self.layout.M * self.layout.M * 4
+
+    def _check_key(self, level: int, i: int, j: int) -> None:
+        nb = self.layout.blocks(level) if 0 <= level < self.layout.levels else 0
+        if not (0 <= i < nb and 0 <= j < nb):
+            raise BlockNotFoundError(f"{self.path}: block (level {level}, {i}, {j}) is outside the pyramid ({self.layout.levels} levels)")
+
+    def chunk_path(self, level: int, i: int, j: int, what: str = "heights") -> Path:
+        tail = "/0/0/0" if what == "color" else "/0/0"
+        return self.path / what / str(level) / "c" / f"{i}/{j}{tail}"
+
+    def get_block(self, level: int, i: int, j: int) -> np.ndarray:
+        """Heights of block (level, i, j): float32 (M, M), rows = +y."""
+        self._check_key(level, i, j)
+        try:
+            b = np.asarray(self._heights[level][i, j])
+        except Exception as e:  # noqa: BLE001 - codec errors come in many types
+            raise CorruptBlockError(f"{self.path}: block (level {level}, {i}, {j}) does not decode ({type(e).__name__}: {e}); "
+                                    f"the file {self.chunk_path(level, i, j)} is damaged — re-run prepare with --overwrite") from None
+        if np.isnan(b).any():
+            raise BlockNotFoundError(f"{self.path}: block (level {level}, {i}, {j}) is missing ({self.chunk_path(level, i, j)}); "
+                                     "re-run prepare with --overwrite")
+        return b
+
+    def get_color(self, level: int, i: int, j: int) -> np.ndarray | None:
+        if not self.has_color:
+            return None
+        self._check_key(level, i, j)
+        try:
+            return np.asarray(self._color[level][i, j])
+        except Exception as e:  # noqa: BLE001
+            raise CorruptBlockError(f"{self.path}: colour block (level {level}, {i}, {j}) does not decode ({e})") from None
+
+    def block_minmax(self, level: int) -> np.ndarray:
+        return np.asarray(self.group[f"blocks/{level}/minmax"][...])
+
+    def block_error(self, level: int) -> np.ndarray:
+        return np.asarray(self.group[f"blocks/{level}/error"][...])
+
+    def lod_arrays(self):
+        """(square_error[j], edge_error[j], zmin[j], zmax[j]) lists for the patch LOD."""
+        J = self.layout.J
+        g = self.group
+        sq = [np.asarray(g[f"lod/square_error/{j}"][...]) for j in range(J)]
+        dg = [np.asarray(g[f"lod/edge_error/{j}"][...]) for j in range(J)]
+        zmin = [np.asarray(g[f"lod/zmin/{j}"][...]) for j in range(J + 1)]
+        zmax = [np.asarray(g[f"lod/zmax/{j}"][...]) for j in range(J + 1)]
+        return sq, dg, zmin, zmax
