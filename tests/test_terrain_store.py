@@ -1,0 +1,248 @@
+"""Terrain store: round trips, formats, georeference, nodata, resume, verify, pyramid invariants."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from conftest import run_cli
+from massview.core.errors import IngestError, StoreError
+from massview.data.generators import synthetic_heights
+from massview.data.terrain import ArraySource, TerrainStore, open_source, prepare_terrain
+from massview.data.terrain.meta import reduce_max
+from massview.data.terrain.synthetic import SyntheticSource
+
+
+def finest(store: TerrainStore) -> np.ndarray:
+    lay = store.layout
+    M = lay.M
+    out = np.full((lay.S, lay.S), np.nan, np.float32)
+    for i in range(lay.blocks(0)):
+        for j in range(lay.blocks(0)):
+            b = store.get_block(0, i, j)
+            sl = out[i * (M - 1): i * (M - 1) + M, j * (M - 1): j * (M - 1) + M]
+            seen = ~np.isnan(sl)
+            assert np.array_equal(sl[seen], b[seen]), "shared block borders disagree"
+            sl[:] = b
+    return out
+
+
+def prepare(arr, tmp_path, name="t.zarr", **kw):
+    kw.setdefault("color", None)
+    kw.setdefault("block", 129)
+    prepare_terrain(ArraySource(arr, "test"), tmp_path / name, **kw)
+    return TerrainStore(tmp_path / name)
+
+
+@pytest.mark.parametrize("shape", [(1000, 760), (130, 2000), (2, 2), (129, 129)])
+def test_float_round_trip_awkward_sizes(tmp_path, shape):
+    rng = np.random.default_rng(shape[0])
+    a = (rng.standard_normal(shape) * 100).astype(np.float32)
+    st_ = prepare(a, tmp_path)
+    assert np.array_equal(finest(st_)[: shape[0], : shape[1]], a)
+
+
+@pytest.mark.slow
+def test_round_trip_4097(tmp_path):
+    a = synthetic_heights(0, 4097, 0, 4097, 4097, 11)
+    np.save(tmp_path / "dem.npy", a)
+    run_cli("prepare", "terrain", tmp_path / "dem.npy", "-o", tmp_path / "s.zarr", "--no-color", "-q")
+    st_ = TerrainStore(tmp_path / "s.zarr")
+    assert st_.layout.levels == 5 and st_.layout.S == 4097
+    assert np.array_equal(finest(st_), a)
+
+
+def test_one_row_is_rejected(tmp_path):
+    np.save(tmp_path / "line.npy", np.zeros((1, 500), np.float32))
+    proc = run_cli("prepare", "terrain", tmp_path / "line.npy", "-o", tmp_path / "x.zarr", check=False)
+    assert proc.returncode != 0 and "at least 2 × 2 samples, got 1 × 500" in proc.stderr
+    assert "Traceback" not in proc.stderr and not (tmp_path / "x.zarr").exists()
+
+
+@pytest.mark.parametrize("dtype", [np.int16, np.uint16, np.int32])
+def test_integer_inputs_exact_after_conversion(tmp_path, dtype):
+    rng = np.random.default_rng(3)
+    a = rng.integers(-300 if dtype != np.uint16 else 0, 9000, (300, 200)).astype(dtype)
+    np.save(tmp_path / "i.npy", a)
+    prepare_terrain(open_source(tmp_path / "i.npy"), tmp_path / "i.zarr", block=129, color=None)
+    assert np.array_equal(finest(TerrainStore(tmp_path / "i.zarr"))[:300, :200], a.astype(np.float32))
+
+
+@given(st.integers(2, 300), st.integers(2, 300), st.integers(0, 2**31))
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+def test_pyramid_invariants(tmp_path, rows, cols, seed):
+    a = (np.random.default_rng(seed).random((rows, cols)) * 50).astype(np.float32)
+    path = tmp_path / f"p{rows}_{cols}_{seed}"
+    prepare_terrain(ArraySource(a, "h"), path, block=129, color=None)
+    s = TerrainStore(path)
+    lay, M = s.layout, s.layout.M
+    fine = finest(s)
+    for lv in range(1, lay.levels):  # coarse samples equal the fine samples they coincide with
+        step = 2**lv
+        for i in range(lay.blocks(lv)):
+            for j in range(lay.blocks(lv)):
+                r0, c0 = lay.block_origin(lv, i, j)
+                assert np.array_equal(s.get_block(lv, i, j), fine[r0: r0 + (M - 1) * step + 1: step, c0: c0 + (M - 1) * step + 1: step])
+        assert np.all(s.block_error(lv) >= reduce_max(s.block_error(lv - 1), 2))  # saturated blocks
+    sq, dg, zmin, zmax = s.lod_arrays()
+    for j in range(lay.J):  # diamond errors saturated over the DAG
+        n = 2**j
+        e = dg[j]
+        kids = np.maximum.reduce([e[0, :n, :n], e[0, 1:, :n], e[1, :n, :n], e[1, :n, 1:]])
+        assert np.all(sq[j] >= kids)
+        if j + 1 < lay.J:
+            c = np.pad(sq[j + 1], 1)
+            assert np.all(e[0, :, :n] >= np.maximum(c[0:-1:2, 1:-1:2], c[1::2, 1:-1:2]))
+        assert np.all(zmin[j] <= reduce_max(-zmin[j + 1] * -1, 1).min() + np.inf)
+    J = lay.J
+    for j in range(J):  # square z-ranges nest and bound the samples
+        assert np.all(zmin[j] <= zmin[j + 1].reshape(2**j, 2, 2**j, 2).min(axis=(1, 3)))
+    side = 2 ** (lay.n - J)
+    v, u = 1, 0
+    if (v + 1) * side < lay.S:
+        blk = fine[v * side:(v + 1) * side + 1, u * side:(u + 1) * side + 1]
+        assert zmin[J][v, u] == blk.min() and zmax[J][v, u] == blk.max()
+
+
+def test_geotiff_keeps_crs_and_transform(tmp_path):
+    import rasterio
+    from rasterio.transform import from_origin
+
+    a = synthetic_heights(0, 300, 0, 400, 400, 2)
+    with rasterio.open(tmp_path / "dem.tif", "w", driver="GTiff", width=400, height=300, count=1, dtype="float32",
+                       crs="EPSG:32632", transform=from_origin(500000, 5200000, 25, 25), tiled=True) as ds:
+        ds.write(a, 1)
+    run_cli("prepare", "terrain", tmp_path / "dem.tif", "-o", tmp_path / "g.zarr", "--block", "129", "-q")
+    info = json.loads(run_cli("info", tmp_path / "g.zarr", "--json").stdout)
+    from rasterio.crs import CRS
+
+    assert CRS.from_wkt(info["crs"]).to_epsg() == 32632
+    assert info["transform"] == [500000.0, 25.0, 0.0, 5200000.0, 0.0, -25.0]
+    assert info["spacing_m"] == [25.0, 25.0] and info["samples"] == [300, 400]
+    assert "EPSG:32632" in run_cli("info", tmp_path / "g.zarr").stdout
+    assert np.array_equal(finest(TerrainStore(tmp_path / "g.zarr"))[:300, :400], a)
+
+
+def test_nodata_and_nan_are_filled_and_recorded(tmp_path):
+    a = synthetic_heights(0, 200, 0, 300, 300, 4)
+    a[50:60, 70:90] = -9999
+    a[150, 10] = np.nan
+    a[:5, :5] = -9999
+    np.save(tmp_path / "n.npy", a)
+    run_cli("prepare", "terrain", tmp_path / "n.npy", "-o", tmp_path / "n.zarr", "--nodata", "-9999", "--block", "129", "-q")
+    s = TerrainStore(tmp_path / "n.zarr")
+    fine = finest(s)[:200, :300]
+    assert s.attrs["nodata"] == {"value": -9999.0, "filled": 200 + 1 + 25}
+    hole = fine[50:60, 70:90]
+    assert np.all(np.isfinite(hole)) and hole.min() >= a[40:70, 60:100][a[40:70, 60:100] > -9999].min() - 1e-3
+    ok = np.isfinite(a) & (a != -9999)
+    assert np.array_equal(fine[ok], a[ok])
+
+
+def test_other_formats(tmp_path):
+    a = (np.random.default_rng(5).random((150, 140)) * 1000).astype(np.float32)
+    np.savez(tmp_path / "d.npz", elevation=a, other=np.zeros(3))
+    with pytest.raises(IngestError, match="name one with --array"):
+        open_source(tmp_path / "d.npz")
+    src = open_source(tmp_path / "d.npz", array="elevation")
+    assert np.array_equal(src.read(0, 150, 0, 140), a)
+    a.astype("<f4").tofile(tmp_path / "d.raw")
+    src = open_source(tmp_path / "d.raw", shape=(150, 140), dtype="<f4")
+    assert np.array_equal(src.read(10, 20, 5, 50), a[10:20, 5:50])
+    with pytest.raises(IngestError, match="needs 168000"):
+        open_source(tmp_path / "d.raw", shape=(150, 280), dtype="<f4")
+    hgt = (np.arange(1201 * 1201) % 3000 - 100).astype(">i2").reshape(1201, 1201)
+    hgt[0, 0] = -32768
+    hgt.tofile(tmp_path / "N46E007.hgt")
+    src = open_source(tmp_path / "N46E007.hgt")
+    w = src.read(0, 3, 0, 3)
+    assert np.isnan(w[0, 0]) and w[0, 1] == hgt[0, 1]
+    dx, dy = src.spacing()
+    assert 60 < dx < 70 and 90 < dy < 95  # 3 arc-seconds at 46.5°N, in metres
+    with pytest.raises(IngestError, match="no such file"):
+        open_source(tmp_path / "missing.tif")
+    (tmp_path / "bad.tif").write_bytes(b"not a tiff")
+    with pytest.raises(IngestError, match="cannot open"):
+        open_source(tmp_path / "bad.tif")
+
+
+class FlakySource(ArraySource):
+    def __init__(self, arr, fail_after):
+        super().__init__(arr, "flaky")
+        self.reads, self.fail_after = 0, fail_after
+
+    def _raw(self, *a):
+        self.reads += 1
+        if self.reads > self.fail_after:
+            raise KeyboardInterrupt
+        return super()._raw(*a)
+
+
+def test_interrupted_prepare_resumes_and_only_then_opens(tmp_path):
+    a = synthetic_heights(0, 600, 0, 500, 600, 9)
+    with pytest.raises(KeyboardInterrupt):
+        prepare_terrain(FlakySource(a, 2), tmp_path / "r.zarr", block=129, color="computed")
+    with pytest.raises(StoreError, match="incomplete"):
+        TerrainStore(tmp_path / "r.zarr")
+    proc = run_cli("info", tmp_path / "r.zarr", check=False)
+    assert proc.returncode != 0 and "incomplete" in proc.stderr
+    src = FlakySource(a, 10**9)
+    res = prepare_terrain(src, tmp_path / "r.zarr", block=129, color="computed")
+    assert res.resumed and src.reads == 3  # strips 0 and 1 were not read again
+    prepare_terrain(ArraySource(a, "flaky"), tmp_path / "ref.zarr", block=129, color="computed")
+    s, ref = TerrainStore(tmp_path / "r.zarr"), TerrainStore(tmp_path / "ref.zarr")
+    assert np.array_equal(finest(s), finest(ref))
+    for j, (x, y) in enumerate(zip(s.lod_arrays()[0], ref.lod_arrays()[0])):
+        assert np.array_equal(x, y), j
+    run_cli("verify", tmp_path / "r.zarr", "-q")
+
+
+def test_verify_names_a_damaged_or_missing_block(tmp_path):
+    a = synthetic_heights(0, 300, 0, 300, 300, 6)
+    s = prepare(a, tmp_path, "v.zarr")
+    run_cli("verify", tmp_path / "v.zarr", "-q")
+    chunk = s.chunk_path(0, 1, 2)
+    data = chunk.read_bytes()
+    chunk.write_bytes(data[: len(data) // 2])
+    proc = run_cli("verify", tmp_path / "v.zarr", "-q", check=False)
+    assert proc.returncode != 0 and "block (level 0, 1, 2)" in proc.stderr and "Traceback" not in proc.stderr
+    chunk.unlink()
+    proc = run_cli("verify", tmp_path / "v.zarr", "-q", check=False)
+    assert proc.returncode != 0 and "block (level 0, 1, 2) is missing" in proc.stderr
+    shutil.rmtree(tmp_path / "v.zarr")
+
+
+def test_verify_catches_metadata_that_disagrees(tmp_path):
+    import zarr
+
+    prepare(synthetic_heights(0, 300, 0, 300, 300, 6), tmp_path, "m.zarr")
+    g = zarr.open_group(str(tmp_path / "m.zarr"), mode="r+")
+    mm = g["blocks/0/minmax"][...]
+    mm[1, 1, 1] += 5
+    g["blocks/0/minmax"][...] = mm
+    proc = run_cli("verify", tmp_path / "m.zarr", "-q", check=False)
+    assert proc.returncode != 0 and "level 0: block (1, 1) min/max" in proc.stderr
+
+
+def test_generator_is_deterministic_at_any_tiling(tmp_path):
+    whole = synthetic_heights(0, 300, 0, 300, 300, 8)
+    tiles = np.block([[synthetic_heights(r, min(r + 77, 300), c, min(c + 130, 300), 300, 8) for c in range(0, 300, 130)]
+                      for r in range(0, 300, 77)])
+    assert np.array_equal(whole, tiles)
+    assert not np.array_equal(whole, synthetic_heights(0, 300, 0, 300, 300, 9))
+    run_cli("generate", "terrain", tmp_path / "g.npy", "--size", 300, "--seed", 8, "-q")
+    assert np.array_equal(np.load(tmp_path / "g.npy"), whole)
+    s = SyntheticSource(300, 8)
+    assert np.array_equal(s.read(10, 20, 30, 40), whole[10:20, 30:40])
+
+
+def test_existing_complete_store_needs_overwrite(tmp_path):
+    a = synthetic_heights(0, 100, 0, 100, 100, 1)
+    prepare(a, tmp_path, "o.zarr")
+    with pytest.raises(StoreError, match="--overwrite"):
+        prepare(a, tmp_path, "o.zarr")
+    prepare(a * 2, tmp_path, "o.zarr", overwrite=True)
+    assert np.array_equal(finest(TerrainStore(tmp_path / "o.zarr"))[:100, :100], a * 2)
