@@ -112,6 +112,13 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--repeat", type=_positive, default=5, help="timed repetitions per case (default 5)")
     bc.add_argument("--codec", default="blosc2", choices=tuple(CODECS))
     bc.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
+    bi = bsub.add_parser("ingest", help="prepare a synthetic DEM: MB/s, compression ratio, peak RSS")
+    bi.add_argument("--size", type=_positive, default=16385, help="samples per side (default 16385: 1 GiB float32)")
+    bi.add_argument("--seed", type=int, default=1)
+    bi.add_argument("--block", type=int, default=257)
+    bi.add_argument("--workdir", default="out/bench", help="where the DEM is generated once and the store written")
+    bi.add_argument("--no-color", action="store_true")
+    bi.add_argument("--keep", action="store_true", help="keep the store afterwards")
     return ap
 
 
@@ -184,6 +191,10 @@ def cmd_report(args) -> int:
 
 
 def cmd_bench(args, argv) -> int:
+    if args.bench == "ingest":
+        from . import bench_ingest
+
+        return bench_ingest.run(args)
     from . import bench_composite
 
     if args.worker is not None:

@@ -131,8 +131,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
             prog("level 0", nb0, nb0 * nb0)
             continue
         strip, nfill = _read_strip(src, lay, bi, prev_row)
-        for bj in range(nb0):
-            heights0[bi, bj] = strip[:, bj * (block - 1): bj * (block - 1) + block]
+        heights0[bi] = np.stack([strip[:, bj * (block - 1): bj * (block - 1) + block] for bj in range(nb0)])
         filled += nfill
         done0[bi, :] = 1
         nod = dict(g.attrs["nodata"])
@@ -148,13 +147,10 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
         flags = np.asarray(done[...])
         child, dst = g[f"heights/{lv - 1}"], g[f"heights/{lv}"]
         for i in range(nb):
-            for j in range(nb):
-                if not flags[i, j]:
-                    quad = np.asarray(child[2 * i: 2 * i + 2, 2 * j: 2 * j + 2])  # (2, 2, M, M)
-                    mosaic = np.concatenate([np.concatenate([quad[0, 0], quad[0, 1][:, 1:]], 1),
-                                             np.concatenate([quad[1, 0], quad[1, 1][:, 1:]], 1)[1:]], 0)
-                    dst[i, j] = mosaic[::2, ::2]
-                    done[i, j] = 1
+            if not flags[i].all():
+                two = np.asarray(child[2 * i: 2 * i + 2])  # (2, 2nb, M, M): the two child block rows
+                dst[i] = np.stack([_decimate(two[:, 2 * j: 2 * j + 2]) for j in range(nb)])
+                done[i, :] = 1
             prog(f"level {lv}", nb, nb * nb)
 
     # 3. metadata and colour --------------------------------------------------------------
@@ -165,6 +161,13 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
     return PrepareResult(Path(out), lay, seconds, filled, resumed, src.rows * src.cols * src.dtype.itemsize)
+
+
+def _decimate(quad: np.ndarray) -> np.ndarray:
+    """The parent block of a (2, 2, M, M) quad of child blocks: every other sample."""
+    top = np.concatenate([quad[0, 0], quad[0, 1][:, 1:]], 1)
+    bottom = np.concatenate([quad[1, 0], quad[1, 1][:, 1:]], 1)
+    return np.concatenate([top, bottom[1:]], 0)[::2, ::2]
 
 
 @dataclass
@@ -191,8 +194,9 @@ def compute_metadata(store: TerrainStore, prog: Progress, write_color: bool = Fa
         mm = np.zeros((nb, nb, 2), np.float32)
         dm = np.zeros((nb, nb), np.float32)
         for i in range(nb):
+            row = store.get_block_row(lv, i)
             for j in range(nb):
-                b = store.get_block(lv, i, j)
+                b = row[j]
                 mm[i, j] = b.min(), b.max()
                 d = vertex_deltas(b)
                 dm[i, j] = max(float(x.max()) if x.size else 0.0 for x in d)
@@ -220,12 +224,12 @@ def _write_colors(store: TerrainStore, lay: TerrainLayout, zlo: float, zhi: floa
         nb = lay.blocks(lv)
         dst = g[f"color/{lv}"]
         for i in range(nb):
-            for j in range(nb):
-                if ortho is not None:
-                    rgb = _ortho_block(ortho, lay, lv, i, j)
-                else:
-                    rgb = shade_block(store.get_block(lv, i, j), dx * 2**lv, dy * 2**lv, zlo, zhi, vscale)
-                dst[i, j] = rgb
+            if ortho is not None:
+                rgb = [_ortho_block(ortho, lay, lv, i, j) for j in range(nb)]
+            else:
+                row = store.get_block_row(lv, i)
+                rgb = [shade_block(row[j], dx * 2**lv, dy * 2**lv, zlo, zhi, vscale) for j in range(nb)]
+            dst[i] = np.stack(rgb)
             prog("colour", nb, total)
 
 

@@ -5,7 +5,7 @@ Every source exposes ``rows``, ``cols``, ``dtype``, ``nodata``, ``crs`` (WKT or 
 ``read(r0, r1, c0, c1) -> float32 (r1-r0, c1-c0)`` with nodata samples as NaN. Integer inputs
 are converted to float32 (exact for 16-bit and for 32-bit values below 2^24).
 
-Formats: GeoTIFF / Cloud-Optimized GeoTIFF (rasterio, windowed), ``.npy`` (memory-mapped),
+Formats: GeoTIFF / Cloud-Optimized GeoTIFF (rasterio, windowed), ``.npy`` (row reads),
 SRTM ``.hgt`` (big-endian int16, 1201² or 3601², georeferenced from the file name),
 ``.npz`` (a named array), raw binary (explicit shape and dtype), and the synthetic generator.
 """
@@ -100,6 +100,44 @@ class ArraySource(RasterSource):
         return self.arr[r0:r1, c0:c1]
 
 
+class BinaryFileSource(RasterSource):
+    """A C-ordered 2-D array at a byte offset of a file (``.npy`` body, raw binary), read by
+    plain file reads of whole rows — unlike a memory map, pages read once do not stay in the
+    process's resident memory."""
+
+    def __init__(self, path: Path, shape: tuple[int, int], dtype, offset: int, name: str):
+        self.path, self.offset, self.name = path, int(offset), name
+        self.rows, self.cols = (int(v) for v in shape)
+        self.dtype = np.dtype(dtype)
+        self._f = open(path, "rb")  # noqa: SIM115 - lives as long as the source
+
+    def _raw(self, r0, r1, c0, c1):
+        row = self.cols * self.dtype.itemsize
+        self._f.seek(self.offset + r0 * row)
+        buf = self._f.read((r1 - r0) * row)
+        if len(buf) != (r1 - r0) * row:
+            raise OSError(f"file ends early: wanted {(r1 - r0) * row} bytes at row {r0}")
+        return np.frombuffer(buf, self.dtype).reshape(r1 - r0, self.cols)[:, c0:c1]
+
+
+def _npy_source(p: Path) -> RasterSource:
+    try:
+        with open(p, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = read_header(f)
+            offset = f.tell()
+    except ValueError as e:
+        raise IngestError(f"{p}: not a readable .npy file ({e})") from None
+    if len(shape) != 2:
+        raise IngestError(f"{p}: expected a 2-D elevation array, got shape {shape}; give a single band")
+    if fortran:
+        return ArraySource(np.load(p, mmap_mode="r"), p.name)
+    if not (np.issubdtype(dtype, np.floating) or np.issubdtype(dtype, np.integer)):
+        raise IngestError(f"{p}: dtype {dtype} is not numeric")
+    return BinaryFileSource(p, shape, dtype, offset, p.name)
+
+
 class GeoTiffSource(RasterSource):
     def __init__(self, path: Path, band: int = 1):
         import rasterio
@@ -165,10 +203,7 @@ def open_source(path, *, nodata=None, array: str | None = None, shape: tuple[int
     if suffix in (".tif", ".tiff", ".gtiff", ".vrt", ".img", ".asc"):
         src = GeoTiffSource(p)
     elif suffix == ".npy":
-        try:
-            src = ArraySource(np.load(p, mmap_mode="r"), p.name)
-        except ValueError as e:
-            raise IngestError(f"{p}: not a readable .npy file ({e})") from None
+        src = _npy_source(p)
     elif suffix == ".hgt":
         src = HgtSource(p)
     elif suffix == ".npz":
@@ -190,7 +225,7 @@ def open_source(path, *, nodata=None, array: str | None = None, shape: tuple[int
         want = shape[0] * shape[1] * np.dtype(dtype).itemsize
         if p.stat().st_size != want:
             raise IngestError(f"{p}: is {p.stat().st_size} bytes, but --shape {shape[0]}x{shape[1]} --dtype {dtype} needs {want}")
-        src = ArraySource(np.memmap(p, dtype=np.dtype(dtype), mode="r", shape=shape), p.name)
+        src = BinaryFileSource(p, shape, dtype, 0, p.name)
     else:
         raise IngestError(f"{p}: unknown input format {suffix or '(no extension)'}; use .tif/.tiff, .npy, .npz, .hgt or raw (.raw/.bin with --shape and --dtype)")
     if nodata is not None:

@@ -36,10 +36,10 @@ FORMAT = "massview-terrain"
 FORMAT_VERSION = 1
 
 
-def _compressor():
+def _compressor(typesize: int = 4):
     from zarr.codecs import BloscCodec
 
-    return BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=4)
+    return BloscCodec(cname="zstd", clevel=3, shuffle="shuffle" if typesize > 1 else "noshuffle", typesize=typesize)
 
 
 def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, overwrite: bool = False):
@@ -71,7 +71,7 @@ def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, ov
                        compressors=_compressor(), fill_value=np.nan)
         if color:
             g.create_array(f"color/{lv}", shape=(nb, nb, M, M, 3), chunks=(1, 1, M, M, 3), dtype="uint8",
-                           compressors=_compressor(), fill_value=0)
+                           compressors=_compressor(1), fill_value=0)
         g.create_array(f"blocks/{lv}/done", shape=(nb, nb), chunks=(nb, nb), dtype="uint8", fill_value=0)
     return g, False
 
@@ -139,6 +139,19 @@ class TerrainStore:
             raise BlockNotFoundError(f"{self.path}: block (level {level}, {i}, {j}) is missing ({self.chunk_path(level, i, j)}); "
                                      "re-run prepare with --overwrite")
         return b
+
+    def get_block_row(self, level: int, i: int) -> np.ndarray:
+        """All blocks of block row ``i`` at ``level`` (nb, M, M), read in one call (zarr decodes
+        the chunks concurrently); failures are re-raised per block with its name."""
+        self._check_key(level, i, 0)
+        try:
+            row = np.asarray(self._heights[level][i])
+        except Exception:  # noqa: BLE001 - find and name the bad block
+            return np.stack([self.get_block(level, i, j) for j in range(self.layout.blocks(level))])
+        if np.isnan(row).any():
+            j = int(np.argwhere(np.isnan(row).any(axis=(1, 2)))[0, 0])
+            self.get_block(level, i, j)  # raises BlockNotFoundError naming it
+        return row
 
     def get_color(self, level: int, i: int, j: int) -> np.ndarray | None:
         if not self.has_color:

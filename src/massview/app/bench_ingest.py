@@ -1,0 +1,91 @@
+"""``massview bench ingest``: prepare a synthetic DEM and report throughput, compression, peak RSS.
+
+The DEM (default 16385², 1 GiB of float32) is generated once into ``--workdir`` as ``.npy``.
+Then, in the same run:
+
+* baseline: a plain copy of the same bytes (read in 64 MiB pieces, write to a file) — the
+  disk floor for touching the data once;
+* ``massview prepare terrain`` in a child process, whose peak resident memory is read from
+  the kernel (``wait4`` rusage).
+
+Printed: input MB/s of prepare, its ratio to the copy baseline, the height compression
+ratio, the store size, and peak RSS against the 1 GiB target. Nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["run"]
+
+
+def _copy_baseline(src: Path, dst: Path) -> float:
+    t0 = time.perf_counter()
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        while True:
+            buf = f.read(64 << 20)
+            if not buf:
+                break
+            g.write(buf)
+        g.flush()
+        os.fsync(g.fileno())
+    dt = time.perf_counter() - t0
+    dst.unlink()
+    return dt
+
+
+def run(args) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from .terrain_cmds import progress_bar, store_info
+
+    console = Console()
+    work = Path(args.workdir)
+    work.mkdir(parents=True, exist_ok=True)
+    dem = work / f"synthetic_{args.size}_seed{args.seed}.npy"
+    if not dem.exists():
+        from ..data.terrain.synthetic import write_synthetic
+
+        console.print(f"generating {dem} (once; kept for later runs) ...")
+        t0 = time.perf_counter()
+        with progress_bar() as prog:
+            write_synthetic(dem, args.size, args.seed, "npy", lambda a, t: prog("generate", a, t))
+        console.print(f"generated in {time.perf_counter() - t0:.1f} s")
+    nbytes = dem.stat().st_size
+    copy_s = _copy_baseline(dem, work / "copy.tmp")
+    store = work / f"synthetic_{args.size}.zarr"
+    shutil.rmtree(store, ignore_errors=True)
+    cmd = [sys.executable, "-m", "massview", "prepare", "terrain", str(dem), "-o", str(store), "--block", str(args.block)]
+    if args.no_color:
+        cmd.append("--no-color")
+    console.print("running: " + " ".join(cmd[2:]))
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd)
+    _, status, usage = os.wait4(proc.pid, 0)
+    prep_s = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        console.print(f"[red]prepare failed (exit {proc.returncode})[/]")
+        return proc.returncode
+    rss = usage.ru_maxrss * 1024
+    info = store_info(store)
+    t = Table(title=f"ingest of a {args.size}² float32 DEM ({nbytes / 2**30:.2f} GiB), block {args.block}")
+    t.add_column("figure")
+    t.add_column("value", justify="right")
+    t.add_row("prepare time", f"{prep_s:.1f} s")
+    t.add_row("prepare throughput", f"{nbytes / 1e6 / prep_s:.1f} MB/s")
+    t.add_row("copy baseline (same bytes)", f"{copy_s:.1f} s, {nbytes / 1e6 / copy_s:.1f} MB/s")
+    t.add_row("prepare ÷ copy time", f"{prep_s / copy_s:.1f}×")
+    t.add_row("height compression ratio", f"{info['compression_ratio']:.3f}")
+    t.add_row("store on disk (heights + colour + metadata)", f"{info['disk_bytes'] / 2**20:.0f} MiB")
+    t.add_row("peak RSS of prepare", f"{rss / 2**20:.0f} MiB ({'under' if rss < 2**30 else 'OVER'} the 1 GiB target)")
+    console.print(t)
+    if not args.keep:
+        shutil.rmtree(store, ignore_errors=True)
+    return 0
