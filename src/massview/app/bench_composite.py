@@ -35,7 +35,7 @@ def worker(args) -> int:
     comm = world()
     rank, n = comm.Get_rank(), comm.Get_size()
     w, h = parse_size(args.size)
-    system = open_system("builtin:objects")
+    system = open_system("builtin:objects")  # noqa: the objects scene needs no config
     cam = load_path("orbit", *system.bounds).camera(0.15, w, h)
     cfg = RenderConfig(width=w, height=h)
     image = system.render(Task(rank, cam.viewport, data_range=sort_last_ranges(n)[rank]), cam, cfg, FrameStats(0, rank))

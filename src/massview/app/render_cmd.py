@@ -37,7 +37,7 @@ def _tile_dir(out: Path, cfg: RenderConfig, rank: int, nranks: int) -> Path:
 def run_render(comm, scene: str, cfg: RenderConfig, out: Path, quiet: bool = False) -> dict | None:
     """Render ``cfg.frames`` frames of ``cfg.path``; returns the summary on rank 0."""
     rank, n = comm.Get_rank(), comm.Get_size()
-    system = open_system(scene, cfg.egl_device)
+    system = open_system(scene, cfg)
     kind, mode = parse_decomposition(cfg.decomposition, system.sort_last_modes)
     cameras = load_path(cfg.path, *system.bounds).cameras(cfg.frames, cfg.width, cfg.height) if rank == 0 else None
     is_display = any(r == rank for r, _ in display_tiles(cfg, n))
@@ -78,6 +78,8 @@ def run_render(comm, scene: str, cfg: RenderConfig, out: Path, quiet: bool = Fal
             progress.stop()
         if stats_file:
             stats_file.close()
+    if hasattr(system, "close"):
+        system.close()
     if rank != 0:
         return None
     summary = summarize(

@@ -42,6 +42,9 @@ class RenderConfig:
     reference: bool = False
     color_by_rank: bool = False
     tau: float = 1.0
+    cache_mb: int = 256  # terrain: RAM block cache budget (MiB)
+    gpu_mb: int = 256  # terrain: GL block pool budget (MiB)
+    loading: str = "async"  # terrain: "async" (never wait) or "complete" (wait for every needed block)
     egl_device: int | None = None
     fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
 
@@ -50,6 +53,10 @@ class RenderConfig:
             raise ConfigError(f"--frames must be at least 1, got {self.frames}")
         if self.radix_k < 2:
             raise ConfigError(f"--radix-k must be at least 2, got {self.radix_k}")
+        if self.loading not in ("async", "complete"):
+            raise ConfigError(f"--loading must be async or complete, got {self.loading!r}")
+        if self.cache_mb < 1 or self.gpu_mb < 1:
+            raise ConfigError("--cache-mb and --gpu-mb must be at least 1")
         if not self.tau > 0:
             raise ConfigError(f"--tau (pixel tolerance) must be positive, got {self.tau}")
 

@@ -13,7 +13,7 @@ from mpi4py import MPI
 
 from ..core.stats import FrameStats
 
-__all__ = ["exchange", "measure_bandwidth", "max_over_ranks"]
+__all__ = ["exchange", "measure_bandwidth", "max_over_ranks", "agree_all", "any_rank"]
 
 _TAG_SIZE = 0x4D56
 _TAG_DATA = 0x4D57
@@ -66,3 +66,17 @@ def measure_bandwidth(comm, nbytes: int = 8 << 20, repeat: int = 5) -> float:
 def max_over_ranks(comm, value: float) -> float:
     """The maximum of ``value`` over all ranks (e.g. a stage time: the slowest rank sets it)."""
     return comm.allreduce(value, op=MPI.MAX)
+
+
+def agree_all(comm, flags: np.ndarray) -> np.ndarray:
+    """Element-wise AND of a boolean array over all ranks (e.g. blocks resident everywhere)."""
+    if comm.Get_size() == 1:
+        return flags
+    mine = np.ascontiguousarray(flags, dtype=np.uint8)
+    out = np.empty_like(mine)
+    comm.Allreduce(mine, out, op=MPI.BAND)
+    return out.astype(bool)
+
+
+def any_rank(comm, flag: bool) -> bool:
+    return bool(comm.allreduce(bool(flag), op=MPI.LOR))

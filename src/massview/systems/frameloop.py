@@ -64,6 +64,8 @@ def render_frame(comm, system, cfg: RenderConfig, camera: Camera | None, frame: 
     stats = FrameStats(frame=frame, rank=rank)
     with stats.stage("total"):
         camera = comm.bcast(camera, root=0)
+        if hasattr(system, "prepare_frame"):  # per-frame LOD shared by all ranks (terrain)
+            system.prepare_frame(comm, camera, cfg, stats)
         with stats.stage("lod"):
             tasks = comm.bcast(system.plan(camera, cfg, n) if rank == 0 else None, root=0)
         _check_fault(cfg, rank, frame)
