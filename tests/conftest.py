@@ -49,3 +49,11 @@ def serial_small(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("serial")
     run_cli("render", SMALL_SCENE, "--frames", 2, "--size", SMALL_SIZE, "--out", out, "-q")
     return out
+
+
+@pytest.fixture(scope="session")
+def terrain_store(tmp_path_factory) -> Path:
+    """A 2049² synthetic terrain store (4 levels of 257² blocks), built once per session."""
+    out = tmp_path_factory.mktemp("terrain") / "t.zarr"
+    run_cli("generate", "terrain", out, "--size", 2049, "--seed", 4, "-q")
+    return out
