@@ -5,8 +5,9 @@ Then, in the same run:
 
 * baseline: a plain copy of the same bytes (read in 64 MiB pieces, write to a file) — the
   disk floor for touching the data once;
-* ``massview prepare terrain`` in a child process, whose peak resident memory is read from
-  the kernel (``wait4`` rusage).
+* ``massview prepare terrain`` in a child process, which reports its own peak resident
+  memory (``VmHWM`` of /proc/self/status) at exit. (``wait4``'s ``ru_maxrss`` would not do:
+  Linux carries the parent's high-water mark over fork and exec.)
 
 Printed: input MB/s of prepare, its ratio to the copy baseline, the height compression
 ratio, the store size, and peak RSS against the 1 GiB target. Nothing is asserted.
@@ -49,13 +50,11 @@ def run(args) -> int:
     work = Path(args.workdir)
     work.mkdir(parents=True, exist_ok=True)
     dem = work / f"synthetic_{args.size}_seed{args.seed}.npy"
-    if not dem.exists():
-        from ..data.terrain.synthetic import write_synthetic
-
+    if not dem.exists():  # in a child process: this one must stay small (see _peak_rss)
         console.print(f"generating {dem} (once; kept for later runs) ...")
         t0 = time.perf_counter()
-        with progress_bar() as prog:
-            write_synthetic(dem, args.size, args.seed, "npy", lambda a, t: prog("generate", a, t))
+        subprocess.run([sys.executable, "-m", "massview", "generate", "terrain", str(dem), "--size", str(args.size),
+                        "--seed", str(args.seed)], check=True)
         console.print(f"generated in {time.perf_counter() - t0:.1f} s")
     nbytes = dem.stat().st_size
     copy_s = _copy_baseline(dem, work / "copy.tmp")
@@ -65,15 +64,14 @@ def run(args) -> int:
     if args.no_color:
         cmd.append("--no-color")
     console.print("running: " + " ".join(cmd[2:]))
+    rss_file = work / "prepare.peak_rss"
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd)
-    _, status, usage = os.wait4(proc.pid, 0)
+    proc = subprocess.run(cmd, env=dict(os.environ, MASSVIEW_PEAK_RSS_FILE=str(rss_file)))
     prep_s = time.perf_counter() - t0
-    proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
         console.print(f"[red]prepare failed (exit {proc.returncode})[/]")
         return proc.returncode
-    rss = usage.ru_maxrss * 1024
+    rss = int(rss_file.read_text())
     info = store_info(store)
     t = Table(title=f"ingest of a {args.size}² float32 DEM ({nbytes / 2**30:.2f} GiB), block {args.block}")
     t.add_column("figure")

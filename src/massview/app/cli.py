@@ -119,6 +119,14 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--repeat", type=_positive, default=5, help="timed repetitions per case (default 5)")
     bc.add_argument("--codec", default="blosc2", choices=tuple(CODECS))
     bc.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
+    bt = bsub.add_parser("terrain", help="decompositions x ranks (triangles, imbalance, LOD time) and LOD vs a plain mesh")
+    bt.add_argument("store")
+    bt.add_argument("--ranks", default="1,2,3,4")
+    bt.add_argument("--size", default="1280x1024")
+    bt.add_argument("--frames", type=_positive, default=6)
+    bt.add_argument("--tau", type=float, default=1.0)
+    bt.add_argument("--max-plain", type=int, default=40_000_000, help="largest plain mesh to draw as the baseline (triangles)")
+    bt.add_argument("--skip-parallel", action="store_true", help="only the one-rank LOD vs plain-mesh comparison")
     bi = bsub.add_parser("ingest", help="prepare a synthetic DEM: MB/s, compression ratio, peak RSS")
     bi.add_argument("--size", type=_positive, default=16385, help="samples per side (default 16385: 1 GiB float32)")
     bi.add_argument("--seed", type=int, default=1)
@@ -198,6 +206,10 @@ def cmd_report(args) -> int:
 
 
 def cmd_bench(args, argv) -> int:
+    if args.bench == "terrain":
+        from . import bench_terrain
+
+        return bench_terrain.run(args)
     if args.bench == "ingest":
         from . import bench_ingest
 
@@ -209,8 +221,26 @@ def cmd_bench(args, argv) -> int:
     return bench_composite.run(args)
 
 
+def _report_peak_rss() -> None:
+    """With MASSVIEW_PEAK_RSS_FILE set, write this process's peak RSS (bytes) there at exit."""
+    import atexit
+    import os
+
+    path = os.environ.get("MASSVIEW_PEAK_RSS_FILE")
+    if not path:
+        return
+
+    def write():
+        with open("/proc/self/status") as f:
+            kb = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+        Path(path).write_text(str(kb * 1024))
+
+    atexit.register(write)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    _report_peak_rss()
     args = build_parser().parse_args(argv)
     try:
         if args.command == "render":

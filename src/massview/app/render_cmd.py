@@ -80,6 +80,7 @@ def run_render(comm, scene: str, cfg: RenderConfig, out: Path, quiet: bool = Fal
             stats_file.close()
     if hasattr(system, "close"):
         system.close()
+    rss = comm.gather(_peak_rss(), root=0)
     if rank != 0:
         return None
     summary = summarize(
@@ -93,6 +94,7 @@ def run_render(comm, scene: str, cfg: RenderConfig, out: Path, quiet: bool = Fal
         tile_targets=cfg.tile_targets,
         codec=cfg.codec,
         renderer=system.renderer,
+        peak_rss_mib_per_rank=[round(v / 2**20, 1) for v in rss],
     )
     if cfg.reference:
         per_frame = {}
@@ -103,6 +105,15 @@ def run_render(comm, scene: str, cfg: RenderConfig, out: Path, quiet: bool = Fal
         summary["diff_fraction"] = max((v[1] / v[2] for v in per_frame.values() if v[2]), default=0.0)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def _peak_rss() -> int:
+    """This process's peak resident memory in bytes (VmHWM), 0 where /proc is missing."""
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmHWM:"))
+    except (OSError, StopIteration):
+        return 0
 
 
 def _stderr_console():

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..core.errors import MassviewError, ParallelError
 
-__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "guarded"]
+__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded"]
 
 _JOB_VARS = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "HYDRA_CONTROL_FD", "MASSVIEW_UNDER_MPI")
 
@@ -82,3 +82,10 @@ def guarded(comm, fn, *args, **kw):
         if size > 1:
             comm.Abort(130 if isinstance(e, KeyboardInterrupt) else 1)
         raise SystemExit(130 if isinstance(e, KeyboardInterrupt) else 1) from None
+
+
+def self_comm():
+    """MPI.COMM_SELF: a one-rank communicator for serial tools and benchmarks."""
+    from mpi4py import MPI
+
+    return MPI.COMM_SELF

@@ -20,7 +20,7 @@ import numpy as np
 from ..core.errors import ConfigError
 from .context import load_shader
 
-__all__ = ["VERTEX_BYTES", "pack_block", "BlockPool", "TerrainRenderer"]
+__all__ = ["VERTEX_BYTES", "pack_block", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
 
 VERTEX_DTYPE = np.dtype([("h", "<f4"), ("n", "<f2", 2), ("c", "u1", 4)])
 VERTEX_BYTES = VERTEX_DTYPE.itemsize
@@ -186,3 +186,37 @@ class TerrainRenderer:
         for o in (self.vao, self._ibo, self._indirect, self.prog):
             if o is not None:
                 o.release()
+
+
+class PlainMeshRenderer:
+    """The baseline without LOD: the finest level as one static indexed mesh (what a user
+    would draw without a terrain system). Shares the terrain shaders and block packing."""
+
+    def __init__(self, ctx: moderngl.Context, heights: np.ndarray, color: np.ndarray | None, spacing, vscale: float):
+        rows, cols = heights.shape
+        self.ctx = ctx
+        self.triangles = 2 * (rows - 1) * (cols - 1)
+        verts = pack_block(heights, color, spacing[0], spacing[1], vscale)
+        self.vbo = ctx.buffer(verts.tobytes())
+        self.inst = ctx.buffer(np.array([0, 0, 1, 0], np.int32).tobytes())
+        r, c = np.meshgrid(np.arange(rows - 1, dtype=np.uint32), np.arange(cols - 1, dtype=np.uint32), indexing="ij")
+        a = (r * cols + c).ravel()
+        idx = np.stack([a, a + cols, a + 1, a + 1, a + cols, a + cols + 1], 1).ravel()
+        self.ibo = ctx.buffer(idx.tobytes())
+        self.prog = ctx.program(vertex_shader=load_shader("terrain.vert.glsl"), fragment_shader=load_shader("terrain.frag.glsl"))
+        self.prog["u_M"].value = cols  # one "block" row = one grid row
+        self.prog["u_scale"].value = (float(spacing[0]), float(spacing[1]), float(vscale))
+        self.prog["u_light"].value = tuple(_LIGHT)
+        self.prog["u_extent"].value = (float(cols - 1), float(rows - 1))
+        self.vao = ctx.vertex_array(self.prog, [(self.vbo, "f 2f2 4f1", "in_h", "in_n", "in_color"), (self.inst, "4i/i", "in_slot")],
+                                    index_buffer=self.ibo, index_element_size=4)
+
+    def draw(self, mvp: np.ndarray) -> int:
+        self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, dtype="f4").tobytes())
+        self.prog["u_tint"].value = (0.0, 0.0, 0.0, 0.0)
+        self.vao.render(moderngl.TRIANGLES)
+        return self.triangles
+
+    def release(self) -> None:
+        for o in (self.vao, self.ibo, self.vbo, self.inst, self.prog):
+            o.release()

@@ -1,0 +1,120 @@
+"""``massview bench terrain STORE``: decompositions × rank counts, and LOD vs a plain mesh.
+
+Part 1 (parallel): for the ``turn`` and ``zoom`` paths, every decomposition at 1–4 ranks is
+rendered as a real ``massview render`` job; printed per case: triangles per rank, imbalance
+(max/mean), LOD time and front size (patches) per frame.
+
+Part 2 (one rank, one process, same GL context, same cameras and image size): the K-patch
+LOD (LOD selection + draw) against drawing the store's finest level as one plain indexed
+mesh. Printed: triangles and frame time of each and their ratios. The plain mesh must fit in
+memory: it is skipped above ``--max-plain`` triangles.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..core.config import RenderConfig, parse_size
+from ..core.paths import load_path
+from ..core.stats import FrameStats, read_stats
+from ..core.task import Task
+from ..parallel.runtime import relaunch, self_comm
+
+__all__ = ["run"]
+
+DECOMPS = ["sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd",
+           "sort-last:kpatch", "sort-last:linear", "sort-last:quadtree"]
+
+
+def _parallel(args, console, table_cls) -> None:
+    counts = [int(v) for v in args.ranks.split(",") if v.strip()]
+    t = table_cls(title=f"parallel terrain: {args.store}, {args.size}, {args.frames} frames, τ = {args.tau}")
+    for c in ("path", "decomposition", "ranks", "triangles per rank (k)", "imbalance", "LOD ms", "front patches", "frame ms"):
+        t.add_column(c, justify="right")
+    with tempfile.TemporaryDirectory() as tmp:
+        for path in ("turn", "zoom"):
+            for n in counts:
+                for d in (DECOMPS if n > 1 else DECOMPS[:1]):
+                    out = Path(tmp) / f"{path}_{d.replace(':', '_')}_{n}"
+                    argv = ["render", str(args.store), "--decomposition", d, "--path", path, "--frames", str(args.frames),
+                            "--size", args.size, "--tau", str(args.tau), "--loading", "complete", "--out", str(out), "-q"]
+                    rc = relaunch(argv, n)
+                    if rc != 0:
+                        console.print(f"[red]{path} {d} {n} ranks failed (exit {rc})[/]")
+                        continue
+                    s = json.loads((out / "summary.json").read_text())
+                    recs = read_stats(out / "stats.jsonl")
+                    front = np.mean([r["counters"].get("front_patches", 0) for r in recs])
+                    t.add_row(path, d if n > 1 else "(1 rank)", str(n), ", ".join(f"{v / 1e3:.0f}" for v in s["triangles_per_rank"]),
+                              f"{s['imbalance']:.3f}", f"{s['stage_ms_mean']['lod']:.1f}", f"{front:.0f}", f"{s['mean_frame_ms']:.0f}")
+    console.print(t)
+
+
+def _vs_plain(args, console, table_cls) -> None:
+    from ..data.terrain import TerrainStore
+    from ..render.terrain import PlainMeshRenderer
+    from ..systems.terrain import TerrainSystem
+
+    st = TerrainStore(args.store)
+    lay = st.layout
+    plain_tris = 2 * (lay.rows - 1) * (lay.cols - 1)
+    if plain_tris > args.max_plain:
+        console.print(f"[yellow]plain-mesh baseline skipped: the finest level is {plain_tris / 1e6:.0f} M triangles "
+                      f"(> --max-plain {args.max_plain / 1e6:.0f} M); run this part on a smaller store[/]")
+        return
+    w, h = parse_size(args.size)
+    sysm = TerrainSystem(args.store, loading="complete")
+    comm = self_comm()
+    ctx, _, _, view = sysm._renderers()
+    M = lay.M
+    full = np.empty((lay.S, lay.S), np.float32)
+    color = np.empty((lay.S, lay.S, 3), np.uint8)
+    for i in range(lay.blocks(0)):
+        for j in range(lay.blocks(0)):
+            full[i * (M - 1): i * (M - 1) + M, j * (M - 1): j * (M - 1) + M] = st.get_block(0, i, j)
+            c = st.get_color(0, i, j)
+            if c is not None:
+                color[i * (M - 1): i * (M - 1) + M, j * (M - 1): j * (M - 1) + M] = c
+    plain = PlainMeshRenderer(ctx, full[: lay.rows, : lay.cols], color[: lay.rows, : lay.cols] if st.has_color else None,
+                              st.spacing, st.vertical_scale)
+    del full, color
+    cfg = RenderConfig(width=w, height=h, tau=args.tau, loading="complete")
+    t = table_cls(title=f"one rank: K-patch LOD (τ = {args.tau}) vs the finest level as one plain mesh, {w}x{h}")
+    for c in ("path", "LOD triangles", "plain triangles", "plain ÷ LOD triangles", "LOD ms (select + draw)", "plain draw ms", "plain ÷ LOD time"):
+        t.add_column(c, justify="right")
+    for path in ("turn", "zoom"):
+        cams = load_path(path, *sysm.bounds).cameras(args.frames, w, h)
+        lod_ms, lod_tris, plain_ms = [], [], []
+        for cam in cams:
+            sysm.prepare_frame(comm, cam, cfg, FrameStats(0, 0))  # loads complete (not timed)
+            st_ = FrameStats(0, 0)
+            t0 = time.perf_counter()
+            sysm.prepare_frame(comm, cam, cfg, st_)
+            sysm.render(Task(0, cam.viewport), cam, cfg, st_)
+            lod_ms.append((time.perf_counter() - t0) * 1e3)
+            lod_tris.append(st_.triangles)
+            ps = FrameStats(0, 0)
+            t0 = time.perf_counter()
+            view.render(cam, cam.viewport, plain.draw, ps)
+            plain_ms.append((time.perf_counter() - t0) * 1e3)
+        lt, lm, pm = np.mean(lod_tris), np.mean(lod_ms), np.mean(plain_ms)
+        t.add_row(path, f"{lt / 1e3:.0f} k", f"{plain_tris / 1e6:.1f} M", f"{plain_tris / max(lt, 1):.1f}×", f"{lm:.0f}", f"{pm:.0f}", f"{pm / lm:.1f}×")
+    plain.release()
+    sysm.close()
+    console.print(t)
+
+
+def run(args) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console(width=None if Console().is_terminal else 150)
+    if not args.skip_parallel:
+        _parallel(args, console, Table)
+    _vs_plain(args, console, Table)
+    return 0
