@@ -155,19 +155,19 @@ class ParametricPath(CameraPath):
         top = self.hi[2]
         s = self._size
         if self.name == "turn":  # stand above the middle, turn a full circle, looking down-out
-            eye = np.array([c[0], c[1], top + 0.08 * s])
+            eye = np.array([c[0], c[1], top + 0.02 * s])
             a = 2 * math.pi * t
-            tgt = eye + np.array([math.cos(a), math.sin(a), -0.35]) * s * 0.3
+            tgt = eye + np.array([math.cos(a), math.sin(a), -0.12]) * s * 0.3
         elif self.name == "zoom":  # descend toward the middle along an oblique line
             far = np.array([c[0] - 0.6 * ext[0], c[1] - 0.6 * ext[1], top + 0.9 * s])
-            near = np.array([c[0] - 0.05 * ext[0], c[1] - 0.05 * ext[1], top + 0.03 * s])
+            near = np.array([c[0] - 0.05 * ext[0], c[1] - 0.05 * ext[1], top + 0.006 * s])
             u = t * t * (3 - 2 * t)
             eye = far + (near - far) * u
             tgt = np.array([c[0] + 0.05 * ext[0], c[1] + 0.05 * ext[1], c[2]])
         elif self.name == "forward":  # fly straight along +x at low altitude
             x = self.lo[0] + ext[0] * (0.05 + 0.7 * t)
-            eye = np.array([x, c[1], top + 0.06 * s])
-            tgt = eye + np.array([1.0, 0.0, -0.25]) * s * 0.2
+            eye = np.array([x, c[1], top + 0.015 * s])
+            tgt = eye + np.array([1.0, 0.0, -0.12]) * s * 0.2
         elif self.name == "orbit":  # circle the whole scene looking at its middle
             a = 2 * math.pi * t
             r = 0.75 * s
@@ -177,14 +177,14 @@ class ParametricPath(CameraPath):
             def at(u):
                 x = self.lo[0] + ext[0] * (0.1 + 0.8 * u)
                 y = c[1] + 0.3 * ext[1] * math.sin(2 * math.pi * u)
-                z = top + s * (0.05 + 0.04 * math.cos(2 * math.pi * u))
+                z = top + s * (0.012 + 0.008 * math.cos(2 * math.pi * u))
                 return np.array([x, y, z])
             eye = at(t)
             ahead = at(min(t + 0.05, 1.0)) if t < 0.95 else eye + (eye - at(t - 0.05))
             d = ahead - eye
             d[2] = 0
             d /= max(np.linalg.norm(d), 1e-12)
-            tgt = eye + d * s * 0.2 + np.array([0, 0, -0.07 * s])
+            tgt = eye + d * s * 0.2 + np.array([0, 0, -0.035 * s])
         return eye, look_at_quaternion(eye, tgt)
 
 

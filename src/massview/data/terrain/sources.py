@@ -109,12 +109,12 @@ class BinaryFileSource(RasterSource):
         self.path, self.offset, self.name = path, int(offset), name
         self.rows, self.cols = (int(v) for v in shape)
         self.dtype = np.dtype(dtype)
-        self._f = open(path, "rb")  # noqa: SIM115 - lives as long as the source
 
     def _raw(self, r0, r1, c0, c1):
         row = self.cols * self.dtype.itemsize
-        self._f.seek(self.offset + r0 * row)
-        buf = self._f.read((r1 - r0) * row)
+        with open(self.path, "rb") as f:  # one open per window: nothing held between reads
+            f.seek(self.offset + r0 * row)
+            buf = f.read((r1 - r0) * row)
         if len(buf) != (r1 - r0) * row:
             raise OSError(f"file ends early: wanted {(r1 - r0) * row} bytes at row {r0}")
         return np.frombuffer(buf, self.dtype).reshape(r1 - r0, self.cols)[:, c0:c1]
