@@ -11,6 +11,7 @@ the ranks they were given. Errors print as one message, no traceback, and exit n
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -80,6 +81,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_render_args(r)
     rep = sub.add_parser("report", help="summary table and report.png of a render folder")
     rep.add_argument("dir", type=Path)
+    dm = sub.add_parser("demo", help="the main job on built-in data: terrain flyover on local ranks, video and report")
+    dm.add_argument("--ranks", type=_positive, default=2, help="local ranks (default 2)")
+    dm.add_argument("--frames", type=_positive, default=90, help="frames of the flyover (default 90: 3 s of video)")
+    dm.add_argument("--terrain-size", type=_positive, default=4097, help="samples per side of the synthetic terrain (default 4097)")
+    dm.add_argument("--cache-dir", default=os.environ.get("MASSVIEW_CACHE", "~/.cache/massview"), help="where the demo terrain is kept")
+    dm.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     gen = sub.add_parser("generate", help="generate synthetic data")
     gsub = gen.add_subparsers(dest="what", required=True, metavar="WHAT")
     gt = gsub.add_parser("terrain", help="a synthetic DEM (ridged multifractal), generated tile by tile")
@@ -249,6 +256,10 @@ def main(argv: list[str] | None = None) -> int:
             return cmd_report(args)
         if args.command == "bench":
             return cmd_bench(args, argv)
+        if args.command == "demo":
+            from .demo import run_demo
+
+            return run_demo(args)
         if args.command in ("generate", "prepare", "info", "verify"):
             from . import terrain_cmds
 

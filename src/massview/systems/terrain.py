@@ -63,6 +63,7 @@ class TerrainSystem:
         self.front: Front | None = None
         self._wanted: set = set()
         self._zrange = self.store.attrs.get("height_range") or [0.0, 1.0]
+        self._counted = dict(self.cache.counters)  # cache counters at the last frame's report
 
     # -- data ---------------------------------------------------------------------------
     def _load(self, key):
@@ -115,7 +116,6 @@ class TerrainSystem:
         """Uploads, residency agreement and the LOD front (same on every rank)."""
         _, pool, _, _ = self._renderers()
         self.cache.begin_frame()
-        before = dict(self.cache.counters)
         top = (self.lay.L, 0, 0)
         with stats.stage("lod"):
             for attempt in range(1000):
@@ -138,7 +138,6 @@ class TerrainSystem:
                         out[sel] = grids[level][bi[sel], bj[sel]]
                     return out
 
-                self._wanted_before = len(self._wanted)
                 front = select_front(self.h, camera, cfg.tau, resident, self._request) if grids[top[0]][0, 0] else None
                 missing = front is None or front.deferred > 0
                 if self.loading != "complete" or not any_rank(comm, missing):
@@ -148,9 +147,11 @@ class TerrainSystem:
                 raise ConfigError("the block cache cannot hold the blocks this view needs; raise --cache-mb/--gpu-mb or --tau")
         self.front = front if front is not None else Front(*(np.zeros(0, np.int64) for _ in range(13)))
         pool.touch(self._front_keys())
-        after = self.cache.counters
-        stats.count("blocks_loaded", after["loads"] - before["loads"])
-        stats.count("cache_hits", after["hits"] - before["hits"])
+        now = dict(self.cache.counters)  # loads finish between frames: count since the last report
+        stats.count("blocks_loaded", now["loads"] - self._counted["loads"])
+        stats.count("cache_hits", now["hits"] - self._counted["hits"])
+        stats.count("bytes_loaded", now["bytes_loaded"] - self._counted["bytes_loaded"])
+        self._counted = now
         stats.count("deferred_splits", self.front.deferred)
         stats.count("front_patches", len(self.front))
 

@@ -1,0 +1,85 @@
+"""``massview demo``: the main job on built-in data, end to end.
+
+1. a synthetic 4097² terrain store (heights exaggerated 2.5×) is generated once and cached (``--cache-dir``, default
+   ``~/.cache/massview``), about 10 s;
+2. the ``flyover`` path is rendered at 1280×720 on local ranks in ``sort-last:kpatch`` with
+   binary-swap compositing (loading ``complete``, so every frame has its full detail);
+3. ``frames/``, ``demo.mp4`` (H.264 through imageio-ffmpeg's bundled ffmpeg), ``stats.jsonl``,
+   ``summary.json`` and ``report.png`` are written to ``--out``, and a short summary printed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+__all__ = ["run_demo", "write_video"]
+
+
+def write_video(frames_dir: Path, out: Path, fps: int = 30) -> Path:
+    import imageio_ffmpeg
+    import numpy as np
+    from PIL import Image
+
+    files = sorted(frames_dir.glob("*.png"))
+    if not files:
+        raise FileNotFoundError(f"no frames in {frames_dir}")
+    with Image.open(files[0]) as im:
+        size = im.size
+    w = imageio_ffmpeg.write_frames(str(out), size, fps=fps, codec="libx264", pix_fmt_out="yuv420p", quality=7,
+                                    macro_block_size=8, ffmpeg_log_level="error")
+    w.send(None)
+    for f in files:
+        with Image.open(f) as im:
+            w.send(np.ascontiguousarray(np.asarray(im.convert("RGB"))))
+    w.close()
+    return out
+
+
+def run_demo(args) -> int:
+    from rich.console import Console
+
+    from ..parallel.runtime import relaunch
+    from .report import load_run, print_summary, write_report
+    from .terrain_cmds import progress_bar
+
+    console = Console(stderr=True)
+    cache = Path(os.path.expanduser(args.cache_dir))
+    store = cache / f"demo_terrain_{args.terrain_size}.zarr"
+    if not (store / "zarr.json").exists() or not _complete(store):
+        console.print(f"[bold]1/3[/] generating the demo terrain ({args.terrain_size}² samples) into {store} (once) ...")
+        from ..data.terrain import prepare_terrain
+        from ..data.terrain.synthetic import SyntheticSource
+
+        cache.mkdir(parents=True, exist_ok=True)
+        with progress_bar() as prog:
+            prepare_terrain(SyntheticSource(args.terrain_size, 1), store, vertical_scale=2.5, overwrite=True, progress=prog)
+    else:
+        console.print(f"[bold]1/3[/] using the cached demo terrain {store}")
+    out = Path(args.out)
+    console.print(f"[bold]2/3[/] rendering {args.frames} frames of the flyover at 1280x720 on {args.ranks} ranks (sort-last:kpatch, binary-swap) ...")
+    argv = ["render", str(store), "--decomposition", "sort-last:kpatch", "--compositor", "binary-swap", "--path", "flyover",
+            "--frames", str(args.frames), "--size", "1280x720", "--loading", "complete", "--out", str(out), "-q"]
+    from .cli import main as cli_main
+
+    rc = relaunch(argv, args.ranks) if args.ranks > 1 else cli_main(argv)
+    if rc != 0:
+        return rc
+    console.print("[bold]3/3[/] writing demo.mp4 and report.png ...")
+    video = write_video(out / "frames", out / "demo.mp4")
+    summary, records = load_run(out)
+    report = write_report(out, records, summary)
+    print_summary(summary)
+    print(f"fps {summary['fps']}, {summary['triangles_per_frame'] / 1e3:.0f} k triangles per frame, "
+          f"imbalance {summary['imbalance']}, {summary['bytes_per_frame'] / 1e6:.2f} MB per frame on the wire")
+    print(f"wrote {out}/frames/ ({summary['frames']} PNG), {video}, {out}/stats.jsonl, {out}/summary.json, {report}")
+    return 0
+
+
+def _complete(store: Path) -> bool:
+    try:
+        return bool(json.loads((store / "zarr.json").read_text())["attributes"].get("complete"))
+    except (OSError, KeyError, ValueError):
+        return False
