@@ -79,6 +79,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
     r = sub.add_parser("render", help="render a camera path on N ranks")
     _add_render_args(r)
+    v = sub.add_parser("view", help="live parallel rendering in the browser")
+    _add_render_args(v)
+    v.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0 picks a free one)")
+    v.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
+    v.set_defaults(size="960x540", out=None)
     rep = sub.add_parser("report", help="summary table and report.png of a render folder")
     rep.add_argument("dir", type=Path)
     dm = sub.add_parser("demo", help="the main job on built-in data: terrain flyover on local ranks, video and report")
@@ -196,6 +201,22 @@ def cmd_render(args, argv) -> int:
     return 0
 
 
+def cmd_view(args, argv) -> int:
+    from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
+
+    cfg = render_config(args)
+    if not (0 <= args.port <= 65535):
+        raise ConfigError(f"--port must be in 0..65535, got {args.port}")
+    if not in_mpi_job():
+        _validate_render(args, cfg, args.ranks or 1)
+        if (args.ranks or 1) > 1:
+            return relaunch(argv, args.ranks)
+    comm = world()
+    from .view_cmd import run_view
+
+    return guarded(comm, run_view, comm, args, cfg)
+
+
 def _launched_by_us() -> bool:
     import os
 
@@ -252,6 +273,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "render":
             return cmd_render(args, argv)
+        if args.command == "view":
+            return cmd_view(args, argv)
         if args.command == "report":
             return cmd_report(args)
         if args.command == "bench":

@@ -51,10 +51,12 @@ def relaunch(argv: list[str], nranks: int) -> int:
     """Run ``python -m massview argv...`` on ``nranks`` local ranks; returns the exit status."""
     cmd = [find_mpiexec(), "-n", str(nranks), sys.executable, "-m", "massview", *argv]
     env = dict(os.environ, MASSVIEW_UNDER_MPI="1")
-    try:
-        return subprocess.run(cmd, env=env).returncode
-    except KeyboardInterrupt:
-        return 130
+    proc = subprocess.Popen(cmd, env=env)
+    while True:
+        try:
+            return proc.wait()
+        except KeyboardInterrupt:  # mpiexec got the Ctrl-C too and forwards it: let the ranks finish
+            continue
 
 
 def world():

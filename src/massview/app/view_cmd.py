@@ -1,0 +1,98 @@
+"""``massview view STORE --ranks N``: live parallel rendering streamed to a browser.
+
+Rank 0 serves the page (127.0.0.1 unless ``--host`` says otherwise) and holds the camera and
+settings the browser controls; every frame it broadcasts them, all ranks render the frame
+with the chosen decomposition and compositor, and rank 0 streams the composited image as JPEG
+with per-frame figures (fps, triangles per rank, imbalance, bytes per frame). Closing the page
+does not stop the job; Ctrl-C (SIGINT to the ranks) stops every rank at the next frame.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import signal
+import sys
+import time
+from collections import deque
+
+import numpy as np
+
+from ..core.config import RenderConfig
+from ..core.paths import load_path
+from ..parallel.composite import COMPOSITORS
+from ..parallel.decompose import SORT_FIRST_LAYOUTS, parse_decomposition
+from ..parallel.exchange import any_rank
+from ..systems import open_system, render_frame
+
+__all__ = ["run_view"]
+
+
+def _jpeg(tile, quality: int = 80) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(tile.color[..., :3]).save(buf, format="JPEG", quality=quality)
+    return buf.getvalue()
+
+
+def run_view(comm, args, cfg: RenderConfig) -> int:
+    rank, n = comm.Get_rank(), comm.Get_size()
+    system = open_system(args.scene, cfg)
+    stop = {"flag": False}
+
+    def on_sigint(signum, frame):
+        stop["flag"] = True
+
+    signal.signal(signal.SIGINT, on_sigint)
+    signal.signal(signal.SIGTERM, on_sigint)
+    server = state = None
+    if rank == 0:
+        from .viewer import ViewerServer, ViewerState
+
+        logging.basicConfig(level=logging.WARNING, format="massview viewer: %(message)s", stream=sys.stderr)
+        lo, hi = system.bounds
+        start = load_path("flyover", lo, hi).camera(0.0, cfg.width, cfg.height)
+        modes = [f"sort-first:{m}" for m in SORT_FIRST_LAYOUTS] + (
+            [f"sort-last:{m}" for m in system.sort_last_modes] if system.sort_last_modes else ["sort-last"])
+        kind, mode = parse_decomposition(cfg.decomposition, system.sort_last_modes)
+        settings = {"decomposition": f"{kind}:{mode}" if mode else kind,
+                    "compositor": cfg.compositor, "tau": cfg.tau, "color_by_rank": cfg.color_by_rank}
+        base_speed = float(np.linalg.norm((hi - lo)[:2])) * 0.02
+        state = ViewerState(start, settings, {"decomposition": modes, "compositor": list(COMPOSITORS)}, base_speed)
+        server = ViewerServer(state, args.host, args.port)
+        server.start()
+        print(f"massview: serving http://{args.host}:{server.port}/ on {n} rank{'s' if n > 1 else ''} (Ctrl-C stops)", flush=True)
+    times: deque = deque(maxlen=20)
+    frame = 0
+    try:
+        while True:
+            snap = state.snapshot() if rank == 0 else None
+            snap = comm.bcast(snap, root=0)
+            if any_rank(comm, stop["flag"] or snap["stop"]):
+                break
+            fcfg = RenderConfig(**{**cfg.to_json(), **snap["settings"], "grid": cfg.grid})
+            t0 = time.perf_counter()
+            res = render_frame(comm, system, fcfg, snap["camera"], frame)
+            recs = comm.gather(res.stats.to_json(), root=0)
+            times.append(time.perf_counter() - t0)
+            if rank == 0:
+                tri = [r["triangles"] for r in sorted(recs, key=lambda r: r["rank"])]
+                mean = float(np.mean(tri)) if tri else 0.0
+                server.publish(_jpeg(res.tile), {
+                    "frame": frame, "fps": len(times) / sum(times), "triangles_per_rank": tri,
+                    "imbalance": (max(tri) / mean) if mean > 0 else 1.0, "bytes_per_frame": sum(r["bytes_sent"] for r in recs),
+                    "decomposition": fcfg.decomposition, "compositor": fcfg.compositor, "tau": fcfg.tau,
+                    "color_by_rank": fcfg.color_by_rank, "position": state.position(), "rejected": state.rejected,
+                    "clients": server.clients})
+                if server.clients == 0:
+                    time.sleep(0.05)  # nobody watching: keep the ranks idle-ish, stay responsive
+            frame += 1
+    finally:
+        if hasattr(system, "close"):
+            system.close()
+        if server is not None:
+            server.stop()
+    if rank == 0:
+        print(f"massview: viewer stopped after {frame} frames", flush=True)
+    return 0
