@@ -246,3 +246,25 @@ def test_existing_complete_store_needs_overwrite(tmp_path):
         prepare(a, tmp_path, "o.zarr")
     prepare(a * 2, tmp_path, "o.zarr", overwrite=True)
     assert np.array_equal(finest(TerrainStore(tmp_path / "o.zarr"))[:100, :100], a * 2)
+
+
+def test_orthophoto_colours_the_pyramid(tmp_path):
+    import rasterio
+
+    a = synthetic_heights(0, 200, 0, 300, 300, 3)
+    np.save(tmp_path / "d.npy", a)
+    rgb = np.random.default_rng(2).integers(0, 256, (3, 200, 300), dtype=np.uint8)
+    from rasterio.transform import from_origin
+
+    with rasterio.open(tmp_path / "o.tif", "w", driver="GTiff", width=300, height=200, count=3, dtype="uint8",
+                       transform=from_origin(0, 0, 1, 1)) as ds:
+        ds.write(rgb)
+    run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", tmp_path / "c.zarr", "--color", tmp_path / "o.tif", "--block", "129", "-q")
+    s = TerrainStore(tmp_path / "c.zarr")
+    assert s.attrs["color"] == "orthophoto"
+    c = s.get_color(0, 0, 1)  # rows 0..128, cols 128..256 of the same grid
+    assert np.array_equal(c, np.moveaxis(rgb, 0, -1)[0:129, 128:257])
+    coarse = s.get_color(1, 0, 0)  # level 1 samples every other pixel
+    assert np.array_equal(coarse[:50, :50], np.moveaxis(rgb, 0, -1)[0:100:2, 0:100:2])
+    with pytest.raises(IngestError, match="not an RGB image"):
+        prepare_terrain(ArraySource(a, "x"), tmp_path / "bad.zarr", block=129, ortho=open_source(tmp_path / "d.npy"))

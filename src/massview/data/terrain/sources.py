@@ -140,10 +140,14 @@ def _npy_source(p: Path) -> RasterSource:
 
 class GeoTiffSource(RasterSource):
     def __init__(self, path: Path, band: int = 1):
+        import warnings
+
         import rasterio
 
         try:
-            self.ds = rasterio.open(path)
+            with warnings.catch_warnings():  # a plain (non-georeferenced) TIFF is fine: transform None
+                warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+                self.ds = rasterio.open(path)
         except rasterio.errors.RasterioIOError as e:
             raise IngestError(f"{path}: cannot open as a raster ({e})") from None
         if band > self.ds.count:
