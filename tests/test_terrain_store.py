@@ -257,7 +257,7 @@ def test_orthophoto_colours_the_pyramid(tmp_path):
     from rasterio.transform import from_origin
 
     with rasterio.open(tmp_path / "o.tif", "w", driver="GTiff", width=300, height=200, count=3, dtype="uint8",
-                       transform=from_origin(0, 0, 1, 1)) as ds:
+                       transform=from_origin(500, 900, 2, 2)) as ds:
         ds.write(rgb)
     run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", tmp_path / "c.zarr", "--color", tmp_path / "o.tif", "--block", "129", "-q")
     s = TerrainStore(tmp_path / "c.zarr")

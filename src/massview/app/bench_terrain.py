@@ -4,7 +4,9 @@ Part 1 (parallel): for the ``turn`` and ``zoom`` paths, every decomposition at 1
 rendered as a real ``massview render`` job; printed per case: triangles per rank, imbalance
 (max/mean), LOD time and front size (patches) per frame.
 
-Part 2 (one rank, one process, same GL context, same cameras and image size): the K-patch
+Part 2: LOD selection time against front size (τ = 1, 0.5, 0.25 on three paths).
+
+Part 3 (one rank, one process, same GL context, same cameras and image size): the K-patch
 LOD (LOD selection + draw) against drawing the store's finest level as one plain indexed
 mesh. Printed: triangles and frame time of each and their ratios. The plain mesh must fit in
 memory: it is skipped above ``--max-plain`` triangles.
@@ -109,6 +111,30 @@ def _vs_plain(args, console, table_cls) -> None:
     console.print(t)
 
 
+def _lod_timing(args, console, table_cls) -> None:
+    """LOD selection time against front size (all data resident), over τ and three paths."""
+    from ..data.terrain import TerrainStore
+    from ..lod.kpatch import PatchHierarchy, select_front
+
+    st = TerrainStore(args.store)
+    h = PatchHierarchy(st.layout, *st.lod_arrays(), spacing=st.spacing, vscale=st.vertical_scale)
+    w, hh = parse_size(args.size)
+    t = table_cls(title=f"LOD selection time vs front size, {w}x{hh} (best of 3, one core)")
+    for c in ("path", "τ", "front patches", "select ms", "µs per patch"):
+        t.add_column(c, justify="right")
+    lo, hi = h.bounds()
+    for path, at in (("zoom", 1.0), ("flyover", 0.5), ("forward", 0.5)):
+        cam = load_path(path, lo, hi).camera(at, w, hh)
+        for tau in (1.0, 0.5, 0.25):
+            best, f = float("inf"), None
+            for _ in range(3):
+                t0 = time.perf_counter()
+                f = select_front(h, cam, tau)
+                best = min(best, time.perf_counter() - t0)
+            t.add_row(path, f"{tau}", f"{len(f)}", f"{best * 1e3:.1f}", f"{best * 1e6 / max(len(f), 1):.2f}")
+    console.print(t)
+
+
 def run(args) -> int:
     from rich.console import Console
     from rich.table import Table
@@ -116,5 +142,6 @@ def run(args) -> int:
     console = Console(width=None if Console().is_terminal else 150)
     if not args.skip_parallel:
         _parallel(args, console, Table)
+    _lod_timing(args, console, Table)
     _vs_plain(args, console, Table)
     return 0
