@@ -118,12 +118,14 @@ class TerrainSystem:
         self.cache.begin_frame()
         top = (self.lay.L, 0, 0)
         with stats.stage("lod"):
-            for attempt in range(1000):
+            stalled, best = 0, -1
+            while True:
                 if not pool.resident[top[0]][0, 0]:
                     self._wanted.add(top)
                     self.cache.request(top, float("inf"))
                 keep = self._front_keys()
-                stats.count("blocks_uploaded", self._upload_ready(keep))
+                uploaded = self._upload_ready(keep)
+                stats.count("blocks_uploaded", uploaded)
                 flat = np.concatenate([g.ravel() for g in pool.resident])
                 agreed = agree_all(comm, flat)
                 grids, o = [], 0
@@ -142,9 +144,14 @@ class TerrainSystem:
                 missing = front is None or front.deferred > 0
                 if self.loading != "complete" or not any_rank(comm, missing):
                     break
+                # complete loading: wait for the requested blocks; give up when the front stops
+                # growing (blocks only cycle through budgets too small for this view)
+                size = len(front) if front is not None else 0
+                stalled, best = (0, size) if size > best else (stalled + 1, best)
+                if stalled > 5:
+                    raise ConfigError("--loading complete: the blocks this view needs do not fit the budgets "
+                                      f"(--cache-mb {self.cache.budget >> 20}, --gpu-mb {self.gpu_bytes >> 20}); raise them or --tau")
                 self._wait_for_loads()
-            else:
-                raise ConfigError("the block cache cannot hold the blocks this view needs; raise --cache-mb/--gpu-mb or --tau")
         self.front = front if front is not None else Front(*(np.zeros(0, np.int64) for _ in range(13)))
         pool.touch(self._front_keys())
         now = dict(self.cache.counters)  # loads finish between frames: count since the last report
