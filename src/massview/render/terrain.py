@@ -46,6 +46,17 @@ def pack_block(h: np.ndarray, color: np.ndarray | None, dx: float, dy: float, vs
     return out
 
 
+def _terrain_program(ctx: moderngl.Context, row_length: int, spacing, vscale: float, rows: int, cols: int):
+    """The terrain shader program with its constant uniforms (``row_length`` = samples per
+    vertex-grid row: M for block slots, the grid width for a plain mesh)."""
+    prog = ctx.program(vertex_shader=load_shader("terrain.vert.glsl"), fragment_shader=load_shader("terrain.frag.glsl"))
+    prog["u_M"].value = row_length
+    prog["u_scale"].value = (float(spacing[0]), float(spacing[1]), float(vscale))
+    prog["u_light"].value = tuple(_LIGHT)
+    prog["u_extent"].value = (float(cols - 1), float(rows - 1))
+    return prog
+
+
 class BlockPool:
     """Fixed GL slots for resident blocks, LRU; ``resident[level]`` is a (nb, nb) bool grid."""
 
@@ -102,11 +113,7 @@ class BlockPool:
 class TerrainRenderer:
     def __init__(self, ctx: moderngl.Context, pool: BlockPool, k: int, spacing, vscale: float, extent: tuple[int, int]):
         self.ctx, self.pool, self.k = ctx, pool, k
-        self.prog = ctx.program(vertex_shader=load_shader("terrain.vert.glsl"), fragment_shader=load_shader("terrain.frag.glsl"))
-        self.prog["u_M"].value = pool.M
-        self.prog["u_scale"].value = (float(spacing[0]), float(spacing[1]), float(vscale))
-        self.prog["u_light"].value = tuple(_LIGHT)
-        self.prog["u_extent"].value = (float(extent[1] - 1), float(extent[0] - 1))
+        self.prog = _terrain_program(ctx, pool.M, spacing, vscale, extent[0], extent[1])
         self._patterns: dict[tuple, int] = {}
         self._pattern_data: list[np.ndarray] = []
         self._ibo = None
@@ -203,11 +210,7 @@ class PlainMeshRenderer:
         a = (r * cols + c).ravel()
         idx = np.stack([a, a + cols, a + 1, a + 1, a + cols, a + cols + 1], 1).ravel()
         self.ibo = ctx.buffer(idx.tobytes())
-        self.prog = ctx.program(vertex_shader=load_shader("terrain.vert.glsl"), fragment_shader=load_shader("terrain.frag.glsl"))
-        self.prog["u_M"].value = cols  # one "block" row = one grid row
-        self.prog["u_scale"].value = (float(spacing[0]), float(spacing[1]), float(vscale))
-        self.prog["u_light"].value = tuple(_LIGHT)
-        self.prog["u_extent"].value = (float(cols - 1), float(rows - 1))
+        self.prog = _terrain_program(ctx, cols, spacing, vscale, rows, cols)  # one grid row = one "block" row
         self.vao = ctx.vertex_array(self.prog, [(self.vbo, "f 2f2 4f1", "in_h", "in_n", "in_color"), (self.inst, "4i/i", "in_slot")],
                                     index_buffer=self.ibo, index_element_size=4)
 

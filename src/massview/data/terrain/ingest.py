@@ -125,9 +125,9 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     prev_row = None
     filled = int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0
     for bi in range(nb0):
-        if flags[bi].all():
-            prev_row = np.asarray(heights0[bi, :, -1, :]).reshape(nb0, -1)
-            prev_row = np.concatenate([prev_row[:, :-1].ravel(), prev_row[-1, -1:]]) if nb0 else prev_row
+        if flags[bi].all():  # done in an earlier run: rebuild its last row from the stored blocks
+            last = np.asarray(heights0[bi, :, -1, :])  # (nb0, M); neighbours share their border sample
+            prev_row = np.concatenate([last[:, :-1].ravel(), last[-1, -1:]])
             prog("level 0", nb0, nb0 * nb0)
             continue
         strip, nfill = _read_strip(src, lay, bi, prev_row)
