@@ -32,7 +32,7 @@ import numpy as np
 from ..core.camera import Camera
 from ..data.terrain.layout import TerrainLayout
 
-__all__ = ["PatchHierarchy", "Front", "select_front", "patch_boxes", "refine_uniform", "watertight_problems"]
+__all__ = ["PatchHierarchy", "Front", "select_front", "patch_boxes", "lookup_blocks", "refine_uniform", "watertight_problems"]
 
 Resident = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (level, bi, bj) -> bool
 Request = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]  # (level, bi, bj, priority)
@@ -152,6 +152,16 @@ class Front:
     def take(self, idx) -> "Front":
         f = {k: getattr(self, k)[idx] for k in ("ax", "ay", "lx", "ly", "rx", "ry", "depth", "level", "bi", "bj", "stride", "zmin", "zmax")}
         return Front(**f, deferred=self.deferred)
+
+
+def lookup_blocks(grids: list[np.ndarray], level: np.ndarray, bi: np.ndarray, bj: np.ndarray) -> np.ndarray:
+    """``grids[level[n]][bi[n], bj[n]]`` for every n: per-block values kept as one (nb, nb)
+    grid per pyramid level (residency flags, GL slots ...)."""
+    out = np.empty(len(level), grids[0].dtype if grids else bool)
+    for lv in np.unique(level):
+        sel = level == lv
+        out[sel] = grids[lv][bi[sel], bj[sel]]
+    return out
 
 
 def _draw_level(lay: TerrainLayout, depth: np.ndarray) -> np.ndarray:

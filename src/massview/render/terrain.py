@@ -18,6 +18,7 @@ import moderngl
 import numpy as np
 
 from ..core.errors import ConfigError
+from ..lod.kpatch import lookup_blocks, refine_uniform
 from .context import load_shader
 
 __all__ = ["VERTEX_BYTES", "pack_block", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
@@ -123,8 +124,6 @@ class TerrainRenderer:
 
     def _pattern_ids(self, offs: np.ndarray) -> np.ndarray:
         """Index-pattern id per row of (n, 6) vertex offsets (block samples, from the anchor)."""
-        from ..lod.kpatch import refine_uniform
-
         uniq, inv = np.unique(offs, axis=0, return_inverse=True)
         ids = np.empty(len(uniq), np.int64)
         changed = False
@@ -157,10 +156,8 @@ class TerrainRenderer:
         if n == 0:
             return 0
         M = self.pool.M
-        slots = np.empty(n, np.int64)
-        for lv in np.unique(front.level):
-            sel = front.level == lv
-            slots[sel] = self.pool.slot_of[lv][front.bi[sel], front.bj[sel]]
+
+        slots = lookup_blocks(self.pool.slot_of, front.level, front.bi, front.bj)
         if (slots < 0).any():
             raise RuntimeError("a patch's block is not resident in the GL pool (the LOD must only select resident blocks)")
         step = 2 ** front.level.astype(np.int64)

@@ -27,7 +27,7 @@ from ..data.cache import BlockCache
 from ..data.terrain import TerrainStore
 from ..data.terrain.colors import shade_block
 from ..lod.cull import boxes_in_frustum, screen_rects
-from ..lod.kpatch import Front, PatchHierarchy, patch_boxes, select_front
+from ..lod.kpatch import Front, PatchHierarchy, lookup_blocks, patch_boxes, select_front
 from ..parallel.decompose import parse_decomposition, sort_first_tiles, sort_last_ranges
 from ..parallel.exchange import agree_all, any_rank
 from ..render.context import create_context, renderer_string
@@ -134,11 +134,7 @@ class TerrainSystem:
                     o += g.size
 
                 def resident(lv, bi, bj, grids=grids):
-                    out = np.zeros(len(lv), bool)
-                    for level in np.unique(lv):
-                        sel = lv == level
-                        out[sel] = grids[level][bi[sel], bj[sel]]
-                    return out
+                    return lookup_blocks(grids, lv, bi, bj)
 
                 front = select_front(self.h, camera, cfg.tau, resident, self._request) if grids[top[0]][0, 0] else None
                 missing = front is None or front.deferred > 0
