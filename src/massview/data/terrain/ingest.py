@@ -29,7 +29,8 @@ import numpy as np
 from ...core.errors import IngestError
 from .colors import shade_block
 from .layout import TerrainLayout
-from .meta import DiamondAccumulator, block_errors_from, vertex_deltas
+from .deviation import DeviationAccumulator, coarse_lattice
+from .meta import DiamondAccumulator, block_errors_from, saturate, vertex_deltas
 from .sources import RasterSource
 from .store import TerrainStore, create_store
 
@@ -186,7 +187,8 @@ def compute_metadata(store: TerrainStore, prog: Progress, write_color: bool = Fa
                      vertical_scale: float = 1.0) -> Metadata:
     """Read every block once and derive all metadata (also what ``verify`` recomputes)."""
     lay = store.layout
-    acc = DiamondAccumulator(lay)
+    acc = DiamondAccumulator(lay)  # square z-ranges (level 0)
+    dev = DeviationAccumulator(lay, coarse_lattice(store))  # exact K-patch errors (level 0)
     minmax, dmax = [], []
     total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
     for lv in range(lay.levels):
@@ -200,14 +202,14 @@ def compute_metadata(store: TerrainStore, prog: Progress, write_color: bool = Fa
                 mm[i, j] = b.min(), b.max()
                 d = vertex_deltas(b)
                 dm[i, j] = max(float(x.max()) if x.size else 0.0 for x in d)
-                acc.add_block(lv, i, j, b, d)
+                if lv == 0:
+                    acc.add_block(lv, i, j, b, d)
+                    dev.add_block(i, j, b)
             prog("metadata", nb, total)
         minmax.append(mm)
         dmax.append(dm)
-    top = store.get_block(lay.L, 0, 0)
-    for lv in range(lay.L + 1, lay.J):
-        acc.add_block(lv, 0, 0, top[:: 2 ** (lv - lay.L), :: 2 ** (lv - lay.L)])
-    sq, dg, zmin, zmax = acc.finish()
+    _, _, zmin, zmax = acc.finish()
+    sq, dg = saturate(dev.sq, dev.dg)
     zlo, zhi = float(minmax[-1][..., 0].min()), float(minmax[-1][..., 1].max())
     if write_color:
         _write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
