@@ -15,7 +15,7 @@ import os
 import sys
 from pathlib import Path
 
-from ..core.config import RenderConfig, parse_size
+from ..core.config import RenderConfig, parse_size, parse_sun
 from ..core.errors import ConfigError, MassviewError
 from ..core.paths import BUILTIN_PATHS
 from ..parallel.composite import COMPOSITORS
@@ -68,6 +68,10 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gpu-mb", type=int, default=256, help="terrain: GL block pool per rank, MiB (default 256)")
     p.add_argument("--loading", choices=("async", "complete"), default="async",
                    help="terrain: async = never wait for data, draw coarser meanwhile (default); complete = wait until every block the view needs is loaded")
+    p.add_argument("--exaggeration", type=float, default=1.0, help="terrain: vertical exaggeration at view time (default 1)")
+    p.add_argument("--sun", default="315,45", help="terrain: sun AZIMUTH,ALTITUDE in degrees, as gdaldem (default 315,45)")
+    p.add_argument("--colormap", default="auto", help="terrain: a matplotlib colormap, hypsometric, ortho, none (grey) or auto (default)")
+    p.add_argument("--haze", type=float, default=1.0, help="terrain: aerial perspective strength, 0 = off (default 1)")
     p.add_argument("--reference", action="store_true", help="also render each frame on one rank and report max_abs_diff and diff_fraction")
     p.add_argument("--out", "-o", type=Path, default=Path("out/render"), help="output folder (default out/render)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary table")
@@ -156,6 +160,7 @@ def render_config(args) -> RenderConfig:
         width=w, height=h, frames=args.frames, path=args.path, grid=args.grid, wall=args.wall,
         tile_targets=args.tile_targets, reference=args.reference, color_by_rank=args.color_by_rank, fault=args.fault,
         tau=args.tau, cache_mb=args.cache_mb, gpu_mb=args.gpu_mb, loading=args.loading,
+        exaggeration=args.exaggeration, sun=parse_sun(args.sun), colormap=args.colormap, haze=args.haze,
     )
 
 

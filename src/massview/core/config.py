@@ -8,12 +8,13 @@ every rank. Nothing below the app reads the environment itself.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import asdict, dataclass, fields
 
 from .errors import ConfigError
 
-__all__ = ["RenderConfig", "parse_size"]
+__all__ = ["RenderConfig", "parse_size", "parse_sun"]
 
 
 def parse_size(spec: str) -> tuple[int, int]:
@@ -45,6 +46,10 @@ class RenderConfig:
     cache_mb: int = 256  # terrain: RAM block cache budget (MiB)
     gpu_mb: int = 256  # terrain: GL block pool budget (MiB)
     loading: str = "async"  # terrain: "async" (never wait) or "complete" (wait for every needed block)
+    exaggeration: float = 1.0  # terrain: vertical exaggeration at view time (the LOD bound accounts for it)
+    sun: tuple[float, float] = (315.0, 45.0)  # terrain: sun azimuth (° clockwise from north), altitude (°), as gdaldem
+    colormap: str = "auto"  # terrain: matplotlib colormap name, hypsometric, ortho, none (grey), auto (ortho if any)
+    haze: float = 1.0  # terrain: aerial perspective strength (0 = off; 1 = 63 % towards the sky across the terrain)
     egl_device: int | None = None
     fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
 
@@ -59,6 +64,19 @@ class RenderConfig:
             raise ConfigError("--cache-mb and --gpu-mb must be at least 1")
         if not self.tau > 0:
             raise ConfigError(f"--tau (pixel tolerance) must be positive, got {self.tau}")
+        self._check_shading()
+
+    def _check_shading(self) -> None:
+        if not (math.isfinite(self.exaggeration) and self.exaggeration > 0):
+            raise ConfigError(f"--exaggeration must be a positive number, got {self.exaggeration}")
+        sun = tuple(self.sun) if isinstance(self.sun, (tuple, list)) else ()
+        if len(sun) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in sun) or not 0 <= sun[1] <= 90:
+            raise ConfigError(f"--sun must be AZIMUTH,ALTITUDE in degrees with 0 ≤ altitude ≤ 90 (e.g. 315,45), got {self.sun!r}")
+        object.__setattr__(self, "sun", (float(sun[0]) % 360.0, float(sun[1])))
+        if not (isinstance(self.colormap, str) and self.colormap):
+            raise ConfigError(f"--colormap must name a colour ramp, got {self.colormap!r}")
+        if not (math.isfinite(self.haze) and self.haze >= 0):
+            raise ConfigError(f"--haze must be 0 (off) or a positive strength, got {self.haze}")
 
     @classmethod
     def from_env(cls, env=None, **explicit) -> "RenderConfig":
@@ -76,3 +94,12 @@ class RenderConfig:
 
     def to_json(self) -> dict:
         return asdict(self)
+
+
+def parse_sun(spec: str) -> tuple[float, float]:
+    """``"AZIMUTH,ALTITUDE"`` (degrees) → (azimuth, altitude)."""
+    try:
+        az, alt = (float(v) for v in str(spec).split(","))
+    except ValueError:
+        raise ConfigError(f"--sun {spec!r}: expected AZIMUTH,ALTITUDE in degrees, e.g. 315,45") from None
+    return az, alt

@@ -2,12 +2,17 @@
 
 * :func:`pack_block` turns a block of heights (+ colour) into interleaved vertices:
   float32 height, float16 normal x/y, RGBA8 colour — 12 bytes per sample.
-* :class:`BlockPool` keeps resident blocks once each in one GL vertex buffer of fixed slots
-  (its byte budget / (M²·12)), evicting least-recently used slots.
+* :class:`BlockPool` keeps resident blocks once each in fixed slots (its byte budget / slot
+  bytes), evicting least-recently used slots: the vertices in one GL vertex buffer, the block's
+  shading maps (slopes + height, :mod:`massview.data.terrain.colors`) and orthophoto colour in
+  one layer each of two texture arrays.
 * K-patch index patterns are static: one per patch shape (orientation × sample step),
   generated once by uniform refinement and shared by all blocks; a patch is drawn with
   ``baseVertex`` = its block slot and anchor sample, ``baseInstance`` = the slot.
-* :meth:`TerrainRenderer.draw` issues the whole front as one ``glMultiDrawElementsIndirect``.
+* :meth:`TerrainRenderer.draw` paints the sky, then issues the whole front as one
+  ``glMultiDrawElementsIndirect``. Shading is per pixel and independent of the geometric LOD:
+  a page table (one texel per block of every level: its slot, or -1) lets the fragment stage
+  read the shading pyramid at the level matching the pixel footprint (terrain.frag.glsl).
 """
 
 from __future__ import annotations
@@ -19,9 +24,10 @@ import numpy as np
 
 from ..core.errors import ConfigError
 from ..lod.kpatch import lookup_blocks, refine_uniform
+from .colormaps import Shading
 from .context import load_shader
 
-__all__ = ["VERTEX_BYTES", "pack_block", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
+__all__ = ["VERTEX_BYTES", "pack_block", "pack_payload", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
 
 VERTEX_DTYPE = np.dtype([("h", "<f4"), ("n", "<f2", 2), ("c", "u1", 4)])
 VERTEX_BYTES = VERTEX_DTYPE.itemsize
@@ -29,11 +35,17 @@ _LIGHT = np.array([-0.45, 0.35, 0.82])
 _LIGHT = (_LIGHT / np.linalg.norm(_LIGHT)).astype("f4")
 
 
-def pack_block(h: np.ndarray, color: np.ndarray | None, dx: float, dy: float, vscale: float) -> np.ndarray:
+def pack_block(h: np.ndarray, color: np.ndarray | None, dx: float, dy: float, vscale: float,
+               slopes: np.ndarray | None = None) -> np.ndarray:
     """(M·M,) interleaved vertices of a block; ``dx, dy`` are world metres between its samples.
-    Normals from central differences of the scaled heights (world frame: y = −row)."""
-    gy, gx = np.gradient(h.astype(np.float32) * vscale, dy, dx)
-    nx, ny = -gx, gy  # d/dy_world = −d/drow
+    Normals from ``slopes`` (M, M, 2: ∂h/∂x east, ∂h/∂y north, the store's seamless shading
+    maps) when given, else from central differences of the block (world frame: y = −row)."""
+    if slopes is not None:
+        gx, gy = (np.asarray(slopes[..., c], np.float32) * vscale for c in (0, 1))
+        nx, ny = -gx, -gy
+    else:
+        gy, gx = np.gradient(h.astype(np.float32) * vscale, dy, dx)
+        nx, ny = -gx, gy  # d/dy_world = −d/drow
     inv = 1.0 / np.sqrt(nx * nx + ny * ny + 1.0)
     out = np.empty(h.size, VERTEX_DTYPE)
     out["h"] = h.ravel()
@@ -47,28 +59,39 @@ def pack_block(h: np.ndarray, color: np.ndarray | None, dx: float, dy: float, vs
     return out
 
 
-def _terrain_program(ctx: moderngl.Context, row_length: int, spacing, vscale: float, rows: int, cols: int):
-    """The terrain shader program with its constant uniforms (``row_length`` = samples per
-    vertex-grid row: M for block slots, the grid width for a plain mesh)."""
-    prog = ctx.program(vertex_shader=load_shader("terrain.vert.glsl"), fragment_shader=load_shader("terrain.frag.glsl"))
-    prog["u_M"].value = row_length
-    prog["u_scale"].value = (float(spacing[0]), float(spacing[1]), float(vscale))
-    prog["u_light"].value = tuple(_LIGHT)
-    prog["u_extent"].value = (float(cols - 1), float(rows - 1))
-    return prog
+def pack_payload(vertices: np.ndarray, shade: np.ndarray, ortho: np.ndarray | None) -> np.ndarray:
+    """One uint8 array per block for the RAM cache: vertices, float16 (M, M, 3) shading maps,
+    and (M, M, 3) uint8 orthophoto colour when there is one."""
+    parts = [vertices.view(np.uint8).ravel(), np.ascontiguousarray(shade, np.float16).view(np.uint8).ravel()]
+    if ortho is not None:
+        parts.append(np.ascontiguousarray(ortho, np.uint8).ravel())
+    return np.concatenate(parts)
+
+
+def _program(ctx: moderngl.Context, vert: str, frag: str) -> moderngl.Program:
+    fs = load_shader(frag)
+    if "sky_color" in fs:
+        fs += load_shader("sky.glsl")
+    return ctx.program(vertex_shader=load_shader(vert), fragment_shader=fs)
 
 
 class BlockPool:
     """Fixed GL slots for resident blocks, LRU; ``resident[level]`` is a (nb, nb) bool grid."""
 
-    def __init__(self, ctx: moderngl.Context, M: int, levels: int, top: int, budget_bytes: int):
-        self.M = M
-        self.slot_bytes = M * M * VERTEX_BYTES
-        self.capacity = int(budget_bytes // self.slot_bytes)
+    def __init__(self, ctx: moderngl.Context, M: int, levels: int, top: int, budget_bytes: int, ortho: bool = False):
+        self.M, self.has_ortho = M, ortho
+        self.vertex_bytes, self.shade_bytes = M * M * VERTEX_BYTES, M * M * 6
+        self.slot_bytes = self.vertex_bytes + self.shade_bytes + (M * M * 4 if ortho else 0)
+        self.capacity = min(int(budget_bytes // self.slot_bytes), int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256)))
         if self.capacity < 1:
             raise ConfigError(f"GL budget {budget_bytes} bytes is smaller than one block ({self.slot_bytes} bytes); raise --gpu-mb")
-        self.vbo = ctx.buffer(reserve=self.capacity * self.slot_bytes)
+        self.vbo = ctx.buffer(reserve=self.capacity * self.vertex_bytes)
         self.inst = ctx.buffer(reserve=self.capacity * 16)
+        self.shade = ctx.texture_array((M, M, self.capacity), 3, dtype="f2")
+        self.ortho = ctx.texture_array((M, M, self.capacity if ortho else 1), 3, dtype="f1")
+        for t in (self.shade, self.ortho):
+            t.filter = (moderngl.LINEAR, moderngl.LINEAR)
+            t.repeat_x = t.repeat_y = False
         self.slots: OrderedDict[tuple, int] = OrderedDict()
         self.free = list(range(self.capacity - 1, -1, -1))
         self.resident = [np.zeros((2 ** (top - lv), 2 ** (top - lv)), bool) for lv in range(levels)]
@@ -79,8 +102,9 @@ class BlockPool:
     def gpu_bytes(self) -> int:
         return self.capacity * (self.slot_bytes + 16)
 
-    def upload(self, key: tuple[int, int, int], vertices: np.ndarray, origin: tuple[int, int], step: int, keep: set) -> bool:
-        """Put a block in a slot (evicting the LRU block not in ``keep``); False when full."""
+    def upload(self, key: tuple[int, int, int], payload: np.ndarray, origin: tuple[int, int], step: int, keep: set) -> bool:
+        """Put a block (a :func:`pack_payload` array) in a slot, evicting the LRU block not in
+        ``keep``; False when full."""
         if key in self.slots:
             self.slots.move_to_end(key)
             return True
@@ -93,7 +117,11 @@ class BlockPool:
             self.slot_of[victim[0]][victim[1], victim[2]] = -1
             self.free.append(s)
         s = self.free.pop()
-        self.vbo.write(vertices.tobytes(), offset=s * self.slot_bytes)
+        M, vb, sb = self.M, self.vertex_bytes, self.shade_bytes
+        self.vbo.write(payload[:vb].tobytes(), offset=s * vb)
+        self.shade.write(payload[vb:vb + sb].tobytes(), viewport=(0, 0, s, M, M, 1))
+        if self.has_ortho:
+            self.ortho.write(payload[vb + sb:].tobytes(), viewport=(0, 0, s, M, M, 1))
         self.inst.write(np.array([origin[1], origin[0], step, s], np.int32).tobytes(), offset=s * 16)
         self.slots[key] = s
         self.resident[key[0]][key[1], key[2]] = True
@@ -106,21 +134,90 @@ class BlockPool:
             if k in self.slots:
                 self.slots.move_to_end(k)
 
+    def page_table(self, agreed: list[np.ndarray] | None = None) -> np.ndarray:
+        """(Σ nb_l, nb_0) int32: the slot of every block whose residency every rank agrees on
+        (``agreed`` grids; default: this pool's), else -1; level l starts at row Σ_{l'<l} nb_l'."""
+        nb0 = self.slot_of[0].shape[0]
+        out = np.full((sum(g.shape[0] for g in self.slot_of), nb0), -1, np.int32)
+        r = 0
+        for lv, slots in enumerate(self.slot_of):
+            ok = (agreed[lv] if agreed is not None else self.resident[lv]) & (slots >= 0)
+            n = slots.shape[0]
+            out[r:r + n, :n] = np.where(ok, slots, -1)
+            r += n
+        return out
+
     def release(self) -> None:
-        self.vbo.release()
-        self.inst.release()
+        for o in (self.vbo, self.inst, self.shade, self.ortho):
+            o.release()
 
 
 class TerrainRenderer:
-    def __init__(self, ctx: moderngl.Context, pool: BlockPool, k: int, spacing, vscale: float, extent: tuple[int, int]):
+    """Draws fronts from ``pool`` with per-pixel shading. ``base`` is the lowest scaled height
+    (exaggeration pivots on it), ``world_size`` the terrain's horizontal diagonal (haze scale)."""
+
+    def __init__(self, ctx: moderngl.Context, pool: BlockPool, k: int, spacing, vscale: float, extent: tuple[int, int],
+                 base: float = 0.0, world_size: float = 1.0):
         self.ctx, self.pool, self.k = ctx, pool, k
-        self.prog = _terrain_program(ctx, pool.M, spacing, vscale, extent[0], extent[1])
+        self.vscale, self.base, self.world_size = float(vscale), float(base), float(world_size)
+        prog = self.prog = _program(ctx, "terrain.vert.glsl", "terrain.frag.glsl")
+        prog["u_M"].value = pool.M
+        prog["u_scale"].value = (float(spacing[0]), float(spacing[1]), float(vscale))
+        prog["u_extent"].value = (float(extent[1] - 1), float(extent[0] - 1))
+        top = len(pool.slot_of) - 1
+        prog["u_top"].value = top
+        rows = np.cumsum([0] + [g.shape[0] for g in pool.slot_of])[:-1]
+        prog["u_pagerow"].value = tuple(int(v) for v in rows) + (0,) * (16 - len(rows))
+        for name, unit in (("u_shade", 0), ("u_ortho", 1), ("u_pages", 2), ("u_ramp", 3)):
+            prog[name].value = unit
+        self.sky = _program(ctx, "sky.vert.glsl", "sky.frag.glsl")
+        self._sky_vao = ctx.vertex_array(self.sky, [])
+        nb0 = pool.slot_of[0].shape[0]
+        self._pages = ctx.texture((nb0, sum(g.shape[0] for g in pool.slot_of)), 1, dtype="i4")
+        self._pages.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self._ramp = ctx.texture((256, 1), 3, dtype="f1")
+        self._ramp.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        self._ramp.repeat_x = self._ramp.repeat_y = False
+        self.set_pages(pool.page_table())
+        self.set_shading(Shading())
         self._patterns: dict[tuple, int] = {}
         self._pattern_data: list[np.ndarray] = []
         self._ibo = None
         self.vao = None
         self._indirect = None
         self.tris_per_patch = 4**k
+
+    def set_pages(self, table: np.ndarray) -> None:
+        """Which blocks the fragment stage may read (:meth:`BlockPool.page_table`)."""
+        self._pages.write(np.ascontiguousarray(table, np.int32).tobytes())
+
+    def set_shading(self, sh: Shading) -> None:
+        from .colormaps import SKY_HORIZON, SKY_ZENITH, ramp
+
+        if getattr(self, "shading", None) == sh:
+            return
+        self.shading = sh
+        p = self.prog
+        p["u_exag"].value = (self.base, float(sh.exaggeration))
+        p["u_slope_scale"].value = self.vscale * float(sh.exaggeration)
+        p["u_sun"].value = sh.sun_vector()
+        p["u_light"].value = (0.40, 0.75)
+        p["u_mode"].value = 1 if sh.colormap == "ortho" and self.pool.has_ortho else (2 if sh.colormap in ("none", "ortho") else 0)
+        p["u_haze"].value = float(sh.haze) / max(self.world_size, 1e-9)
+        self._ramp.write(ramp(sh.colormap).tobytes())
+        for prog in (self.prog, self.sky):
+            prog["u_sky_horizon"].value = SKY_HORIZON
+            prog["u_sky_zenith"].value = SKY_ZENITH
+
+    def draw_sky(self, mvp: np.ndarray, eye) -> None:
+        """The sky gradient over the whole target; depth stays at the far plane."""
+        self.sky["u_inv_mvp"].write(np.ascontiguousarray(np.linalg.inv(mvp).T, dtype="f4").tobytes())
+        self.sky["u_eye"].value = tuple(float(v) for v in eye)
+        self.ctx.depth_mask = False
+        self.ctx.disable(moderngl.DEPTH_TEST)
+        self._sky_vao.render(moderngl.TRIANGLES, vertices=3)
+        self.ctx.depth_mask = True
+        self.ctx.enable(moderngl.DEPTH_TEST)
 
     def _pattern_ids(self, offs: np.ndarray) -> np.ndarray:
         """Index-pattern id per row of (n, 6) vertex offsets (block samples, from the anchor)."""
@@ -147,11 +244,12 @@ class TerrainRenderer:
         self._ibo = self.ctx.buffer(np.concatenate(self._pattern_data).tobytes() if self._pattern_data else np.zeros(3, np.uint32).tobytes())
         self.vao = self.ctx.vertex_array(
             self.prog,
-            [(self.pool.vbo, "f 2f2 4f1", "in_h", "in_n", "in_color"), (self.pool.inst, "4i/i", "in_slot")],
+            [(self.pool.vbo, "f 8x", "in_h"), (self.pool.inst, "4i/i", "in_slot")],
             index_buffer=self._ibo, index_element_size=4)
 
-    def draw(self, front, mvp: np.ndarray, tint=(0.0, 0.0, 0.0, 0.0)) -> int:
-        """Draw every patch of ``front`` (all blocks must be resident); returns triangles."""
+    def draw(self, front, mvp: np.ndarray, tint=(0.0, 0.0, 0.0, 0.0), eye=(0.0, 0.0, 0.0)) -> int:
+        """Sky, then every patch of ``front`` (all blocks must be resident); returns triangles."""
+        self.draw_sky(mvp, eye)
         n = len(front)
         if n == 0:
             return 0
@@ -183,18 +281,23 @@ class TerrainRenderer:
         self._indirect.write(data)
         self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, dtype="f4").tobytes())
         self.prog["u_tint"].value = tuple(tint)
+        self.prog["u_eye"].value = tuple(float(v) for v in eye)
+        self.pool.shade.use(0)
+        self.pool.ortho.use(1)
+        self._pages.use(2)
+        self._ramp.use(3)
         self.vao.render_indirect(self._indirect, mode=moderngl.TRIANGLES, count=n)
         return n * self.tris_per_patch
 
     def release(self) -> None:
-        for o in (self.vao, self._ibo, self._indirect, self.prog):
+        for o in (self.vao, self._ibo, self._indirect, self.prog, self._sky_vao, self.sky, self._pages, self._ramp):
             if o is not None:
                 o.release()
 
 
 class PlainMeshRenderer:
     """The baseline without LOD: the finest level as one static indexed mesh (what a user
-    would draw without a terrain system). Shares the terrain shaders and block packing."""
+    would draw without a terrain system), with per-vertex lighting; shares the block packing."""
 
     def __init__(self, ctx: moderngl.Context, heights: np.ndarray, color: np.ndarray | None, spacing, vscale: float):
         rows, cols = heights.shape
@@ -207,7 +310,11 @@ class PlainMeshRenderer:
         a = (r * cols + c).ravel()
         idx = np.stack([a, a + cols, a + 1, a + 1, a + cols, a + cols + 1], 1).ravel()
         self.ibo = ctx.buffer(idx.tobytes())
-        self.prog = _terrain_program(ctx, cols, spacing, vscale, rows, cols)  # one grid row = one "block" row
+        prog = self.prog = _program(ctx, "terrain_plain.vert.glsl", "terrain_plain.frag.glsl")
+        prog["u_M"].value = cols  # one grid row = one "block" row
+        prog["u_scale"].value = (float(spacing[0]), float(spacing[1]), float(vscale))
+        prog["u_light"].value = tuple(_LIGHT)
+        prog["u_extent"].value = (float(cols - 1), float(rows - 1))
         self.vao = ctx.vertex_array(self.prog, [(self.vbo, "f 2f2 4f1", "in_h", "in_n", "in_color"), (self.inst, "4i/i", "in_slot")],
                                     index_buffer=self.ibo, index_element_size=4)
 

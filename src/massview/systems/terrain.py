@@ -25,13 +25,14 @@ from ..core.stats import FrameStats
 from ..core.task import Task
 from ..data.cache import BlockCache
 from ..data.terrain import TerrainStore
-from ..data.terrain.colors import shade_block
 from ..lod.cull import boxes_in_frustum, screen_rects
 from ..lod.kpatch import Front, PatchHierarchy, lookup_blocks, patch_boxes, select_front
+from ..lod.texlod import shading_blocks
 from ..parallel.decompose import parse_decomposition, sort_first_tiles, sort_last_ranges
 from ..parallel.exchange import agree_all, any_rank
 from ..render.context import create_context, renderer_string
-from ..render.terrain import BlockPool, TerrainRenderer, pack_block
+from ..render.colormaps import Shading
+from ..render.terrain import BlockPool, TerrainRenderer, pack_block, pack_payload
 from ..render.view import ViewRenderer
 
 __all__ = ["TerrainSystem", "SORT_LAST_MODES"]
@@ -56,24 +57,38 @@ class TerrainSystem:
         self.store = TerrainStore(path)
         self.spec = str(path)
         lay = self.lay = self.store.layout
-        self.h = PatchHierarchy(lay, *self.store.lod_arrays(), spacing=self.store.spacing, vscale=self.store.vertical_scale)
+        self._lod = self.store.lod_arrays()
+        self._minmax = [self.store.block_minmax(lv) for lv in range(lay.levels)]
+        self.h = self._hierarchy(1.0)
+        self._tex: set = set()  # shading blocks the current view wants
         self.cache = BlockCache(self._load, cache_bytes, workers=2)
         self.gpu_bytes, self.loading, self._egl_device = gpu_bytes, loading, egl_device
         self._gl = None
         self.front: Front | None = None
         self._wanted: set = set()
-        self._zrange = self.store.attrs.get("height_range") or [0.0, 1.0]
         self._counted = dict(self.cache.counters)  # cache counters at the last frame's report
 
     # -- data ---------------------------------------------------------------------------
+    def _hierarchy(self, exaggeration: float) -> PatchHierarchy:
+        h = getattr(self, "h", None)
+        if h is None or h.exaggeration != exaggeration:
+            h = PatchHierarchy(self.lay, *self._lod, spacing=self.store.spacing, vscale=self.store.vertical_scale,
+                               exaggeration=exaggeration)
+        return h
+
     def _load(self, key):
         lv, i, j = key
         h = self.store.get_block(lv, i, j)
         dx, dy = self.store.spacing
-        color = self.store.get_color(lv, i, j)
-        if color is None:
-            color = shade_block(h, dx * 2**lv, dy * 2**lv, *self._zrange, self.store.vertical_scale)
-        return pack_block(h, color, dx * 2**lv, dy * 2**lv, self.store.vertical_scale)
+        color, shade = self.store.get_color(lv, i, j), self.store.get_shade(lv, i, j)
+        verts = pack_block(h, color, dx * 2**lv, dy * 2**lv, self.store.vertical_scale, slopes=shade[..., :2])
+        return pack_payload(verts, shade, color)
+
+    def shading(self, cfg: RenderConfig) -> Shading:
+        cmap = cfg.colormap
+        if cmap == "auto":
+            cmap = "ortho" if self.store.has_color else "hypsometric"
+        return Shading(cfg.exaggeration, tuple(cfg.sun), cmap, cfg.haze)
 
     @property
     def bounds(self):
@@ -82,9 +97,11 @@ class TerrainSystem:
     def _renderers(self):
         if self._gl is None:
             ctx = create_context(self._egl_device)
-            pool = BlockPool(ctx, self.lay.M, self.lay.levels, self.lay.L, self.gpu_bytes)
-            self._gl = (ctx, pool, TerrainRenderer(ctx, pool, self.lay.k, self.store.spacing, self.store.vertical_scale,
-                                                   (self.lay.rows, self.lay.cols)), ViewRenderer(ctx))
+            pool = BlockPool(ctx, self.lay.M, self.lay.levels, self.lay.L, self.gpu_bytes, ortho=self.store.has_color)
+            lo, hi = self.h.bounds()
+            terrain = TerrainRenderer(ctx, pool, self.lay.k, self.store.spacing, self.store.vertical_scale,
+                                      (self.lay.rows, self.lay.cols), base=self.h.base, world_size=float(np.hypot(*(hi - lo)[:2])))
+            self._gl = (ctx, pool, terrain, ViewRenderer(ctx))
         return self._gl
 
     @property
@@ -114,8 +131,11 @@ class TerrainSystem:
     # -- per frame ----------------------------------------------------------------------
     def prepare_frame(self, comm, camera: Camera, cfg: RenderConfig, stats: FrameStats) -> None:
         """Uploads, residency agreement and the LOD front (same on every rank)."""
-        _, pool, _, _ = self._renderers()
+        _, pool, terrain, _ = self._renderers()
+        self.h = self._hierarchy(cfg.exaggeration)
+        terrain.set_shading(self.shading(cfg))
         self.cache.begin_frame()
+        self._want_shading(camera)
         top = (self.lay.L, 0, 0)
         with stats.stage("lod"):
             stalled, best = 0, -1
@@ -123,7 +143,7 @@ class TerrainSystem:
                 if not pool.resident[top[0]][0, 0]:
                     self._wanted.add(top)
                     self.cache.request(top, float("inf"))
-                keep = self._front_keys()
+                keep = self._front_keys() | self._tex
                 uploaded = self._upload_ready(keep)
                 stats.count("blocks_uploaded", uploaded)
                 flat = np.concatenate([g.ravel() for g in pool.resident])
@@ -138,8 +158,15 @@ class TerrainSystem:
 
                 front = select_front(self.h, camera, cfg.tau, resident, self._request) if grids[top[0]][0, 0] else None
                 missing = front is None or front.deferred > 0
-                if self.loading != "complete" or not any_rank(comm, missing):
+                if self.loading != "complete" or not any_rank(comm, missing or self._shading_missing(grids)):
                     break
+                if not any_rank(comm, missing):  # only shading blocks missing: wait while they keep arriving
+                    have = self._shading_count(grids)
+                    if have <= getattr(self, "_tex_have", -1):
+                        break
+                    self._tex_have = have
+                    self._wait_for_loads()
+                    continue
                 # complete loading: wait for the requested blocks; give up when the front stops
                 # growing (blocks only cycle through budgets too small for this view)
                 size = len(front) if front is not None else 0
@@ -148,8 +175,10 @@ class TerrainSystem:
                     raise ConfigError("--loading complete: the blocks this view needs do not fit the budgets "
                                       f"(--cache-mb {self.cache.budget >> 20}, --gpu-mb {self.gpu_bytes >> 20}); raise them or --tau")
                 self._wait_for_loads()
+        self._tex_have = -1
         self.front = front if front is not None else Front(*(np.zeros(0, np.int64) for _ in range(13)))
-        pool.touch(self._front_keys())
+        terrain.set_pages(pool.page_table(grids))
+        pool.touch(self._front_keys() | self._tex)
         now = dict(self.cache.counters)  # loads finish between frames: count since the last report
         stats.count("blocks_loaded", now["loads"] - self._counted["loads"])
         stats.count("cache_hits", now["hits"] - self._counted["hits"])
@@ -157,6 +186,24 @@ class TerrainSystem:
         self._counted = now
         stats.count("deferred_splits", self.front.deferred)
         stats.count("front_patches", len(self.front))
+
+    def _want_shading(self, camera: Camera) -> None:
+        """Request the shading-pyramid blocks this view samples (after the geometry's)."""
+        h = self.h
+        lv, bi, bj, prio = shading_blocks(self._minmax, self.lay.M, self.store.spacing,
+                                          lambda z: h.base + h.exaggeration * (z * h.vs - h.base), camera)
+        self._tex = set(zip(lv.tolist(), bi.tolist(), bj.tolist()))
+        _, pool, _, _ = self._renderers()
+        for key, p in zip(zip(lv.tolist(), bi.tolist(), bj.tolist()), prio.tolist()):
+            if not pool.resident[key[0]][key[1], key[2]]:
+                self._wanted.add(key)
+                self.cache.request(key, 1e-6 * p)
+
+    def _shading_count(self, grids) -> int:
+        return sum(bool(grids[k[0]][k[1], k[2]]) for k in self._tex)
+
+    def _shading_missing(self, grids) -> bool:
+        return self._shading_count(grids) < len(self._tex)
 
     def _front_keys(self) -> set:
         f = self.front
@@ -216,10 +263,11 @@ class TerrainSystem:
             part = self.front.take(idx)
         stats.count("patches", len(part))
         stats.count("blocks_drawn", len(set(zip(part.level.tolist(), part.bi.tolist(), part.bj.tolist()))))
-        return view.render(camera, task.viewport, lambda mvp: terrain.draw(part, mvp, tint), stats, cfg.tile_targets)
+        return view.render(camera, task.viewport, lambda mvp: terrain.draw(part, mvp, tint, camera.position), stats, cfg.tile_targets)
 
     def render_reference(self, camera: Camera, cfg: RenderConfig) -> Image:
-        ref_cfg = RenderConfig(width=cfg.width, height=cfg.height, tau=cfg.tau)
+        ref_cfg = RenderConfig(width=cfg.width, height=cfg.height, tau=cfg.tau, exaggeration=cfg.exaggeration, sun=cfg.sun,
+                               colormap=cfg.colormap, haze=cfg.haze)
         return self.render(Task(0, camera.viewport), camera, ref_cfg, FrameStats(-1, 0))
 
     def close(self) -> None:

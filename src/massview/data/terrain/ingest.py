@@ -10,8 +10,9 @@ continues where it stopped and a half-written store never opens as a good one):
    the outer border only, cut into blocks. The shared row between strips is taken from the
    strip above, so borders are bit-identical in both blocks.
 2. **levels 1..L** by vertex decimation of 2 × 2 child blocks.
-3. **metadata** (and computed colour): every block is read back once; min/max, dropped-sample
-   errors, K-patch diamond errors and square z-ranges (:mod:`meta`).
+3. **metadata** (and orthophoto colour): every block is read back once; min/max, dropped-sample
+   errors, square z-ranges (:mod:`meta`) and exact K-patch diamond errors (:mod:`deviation`);
+4. **shading pyramid** (:mod:`colors`): slopes and height fractions, seamless and mip-filtered.
 
 Peak memory is one strip (M × padded width float32, 17 MB at 16k) plus the diamond arrays.
 """
@@ -27,7 +28,7 @@ from typing import Callable
 import numpy as np
 
 from ...core.errors import IngestError
-from .colors import shade_block
+from .colors import write_shading
 from .layout import TerrainLayout
 from .deviation import DeviationAccumulator, coarse_lattice
 from .meta import DiamondAccumulator, block_errors_from, saturate, vertex_deltas
@@ -115,7 +116,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
              "transform": list(src.transform) if src.transform else None,
              "nodata": {"value": None if src.nodata is None else float(src.nodata), "filled": 0},
              "source": src.name, "source_dtype": str(src.dtype), "color": None}
-    g, resumed = create_store(out, lay, attrs, color is not None, overwrite)
+    g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite)
     prog = progress or (lambda phase, adv, total: None)
     nb0 = lay.blocks(0)
 
@@ -156,8 +157,9 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
 
     # 3. metadata and colour --------------------------------------------------------------
     store = TerrainStore(out, require_complete=False)
-    meta = compute_metadata(store, prog, write_color=color is not None, ortho=ortho, vertical_scale=vertical_scale)
+    meta = compute_metadata(store, prog, write_color=ortho is not None, ortho=ortho, vertical_scale=vertical_scale)
     write_metadata(g, lay, meta)
+    write_shading(store, g, meta.zlo, meta.zhi, prog)
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
@@ -220,18 +222,12 @@ def _write_colors(store: TerrainStore, lay: TerrainLayout, zlo: float, zhi: floa
     import zarr
 
     g = zarr.open_group(str(store.path), mode="r+")
-    dx, dy = store.spacing
     total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
     for lv in range(lay.levels):
         nb = lay.blocks(lv)
         dst = g[f"color/{lv}"]
         for i in range(nb):
-            if ortho is not None:
-                rgb = [_ortho_block(ortho, lay, lv, i, j) for j in range(nb)]
-            else:
-                row = store.get_block_row(lv, i)
-                rgb = [shade_block(row[j], dx * 2**lv, dy * 2**lv, zlo, zhi, vscale) for j in range(nb)]
-            dst[i] = np.stack(rgb)
+            dst[i] = np.stack([_ortho_block(ortho, lay, lv, i, j) for j in range(nb)])
             prog("colour", nb, total)
 
 

@@ -2,22 +2,28 @@
 
 Layout (readable with plain zarr; ``M`` = block size, ``nb_l = 2^(L-l)``)::
 
-    attrs: format "massview-terrain", format_version 1, complete (bool), M, K, levels,
+    attrs: format "massview-terrain", format_version 2, complete (bool), M, K, levels,
            rows, cols (input samples), padded (S), spacing [dx, dy] (metres), vertical_scale,
            crs (WKT or null), transform (GDAL 6-tuple or null), nodata {value, filled},
            source, height_range [min, max], color ("computed" | "orthophoto" | null)
     heights/<l>     float32 (nb_l, nb_l, M, M), chunk (1, 1, M, M), blosc zstd+shuffle:
                     block (i, j) = finest samples rows (i(M-1)+r)2^l, cols (j(M-1)+c)2^l
-    color/<l>       uint8 (nb_l, nb_l, M, M, 3), chunk (1, 1, M, M, 3)     [optional]
+    shade/<l>       float16 (nb_l, nb_l, M, M, 3), chunk (1, 1, M, M, 3): slope ∂h/∂x, ∂h/∂y
+                    (per metre, x east, y north) and height fraction, mip-filtered (colors.py)
+    color/<l>       uint8 (nb_l, nb_l, M, M, 3), chunk (1, 1, M, M, 3)     [orthophoto only]
     blocks/<l>/minmax   float32 (nb_l, nb_l, 2)   min and max height of the block
     blocks/<l>/error    float32 (nb_l, nb_l)      saturated geometric error (height units)
     blocks/<l>/done     uint8 (nb_l, nb_l)        1 once the block is written (resume)
-    lod/square_error/<j>  float32 (2^j, 2^j)            saturated K-patch square-diamond error
+    lod/square_error/<j>  float32 (2^j, 2^j)            saturated K-patch square-diamond error: a
+                          bound on |drawn patch − finest samples| under it (deviation.py)
     lod/edge_error/<j>    float32 (2, 2^j+1, 2^j+1)     edge diamonds: [0] horizontal, [1] vertical
     lod/zmin/<j>, lod/zmax/<j>  float32 (2^j, 2^j)      height range of each level-j square
 
 Samples beyond ``rows``/``cols`` are padding (edge-replicated) and are not drawn. A store is
 only opened when ``complete`` is true, which ``prepare`` sets after everything is written.
+
+Version 2 (this one) made the K-patch errors exact bounds and added ``shade/``; a version-1
+store is refused with a message naming ``massview upgrade STORE``, which rewrites both in place.
 """
 
 from __future__ import annotations
@@ -30,10 +36,10 @@ import numpy as np
 from ...core.errors import BlockNotFoundError, CorruptBlockError, StoreError
 from .layout import TerrainLayout
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "dir_size"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "create_shade_arrays", "dir_size"]
 
 FORMAT = "massview-terrain"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 def _compressor(typesize: int = 4):
@@ -73,7 +79,16 @@ def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, ov
             g.create_array(f"color/{lv}", shape=(nb, nb, M, M, 3), chunks=(1, 1, M, M, 3), dtype="uint8",
                            compressors=_compressor(1), fill_value=0)
         g.create_array(f"blocks/{lv}/done", shape=(nb, nb), chunks=(nb, nb), dtype="uint8", fill_value=0)
+    create_shade_arrays(g, layout)
     return g, False
+
+
+def create_shade_arrays(g, layout: TerrainLayout) -> None:
+    M = layout.M
+    for lv in range(layout.levels):
+        nb = layout.blocks(lv)
+        g.create_array(f"shade/{lv}", shape=(nb, nb, M, M, 3), chunks=(1, 1, M, M, 3), dtype="float16",
+                       compressors=_compressor(2), fill_value=0, overwrite=True)
 
 
 def dir_size(path: Path) -> int:
@@ -83,7 +98,7 @@ def dir_size(path: Path) -> int:
 class TerrainStore:
     """Read access to a complete terrain store. ``get_block`` is thread-safe."""
 
-    def __init__(self, path, require_complete: bool = True):
+    def __init__(self, path, require_complete: bool = True, upgrading: bool = False):
         import zarr
 
         self.path = Path(path)
@@ -98,11 +113,17 @@ class TerrainStore:
             raise StoreError(f"{self.path}: not a massview terrain store (format attribute is {self.attrs.get('format')!r})")
         if self.attrs.get("format_version", 0) > FORMAT_VERSION:
             raise StoreError(f"{self.path}: format version {self.attrs['format_version']} is newer than this massview ({FORMAT_VERSION}); upgrade massview")
+        if self.attrs.get("format_version", 0) < FORMAT_VERSION and not upgrading:
+            raise StoreError(f"{self.path}: format version {self.attrs.get('format_version', 0)} was written by an older massview "
+                             f"(its LOD errors are not true screen-space bounds and it has no shading pyramid); "
+                             f"run `massview upgrade {self.path}` to bring it to version {FORMAT_VERSION} in place, "
+                             "or re-run `massview prepare terrain` with --overwrite")
         if require_complete and not self.attrs.get("complete"):
             raise StoreError(f"{self.path}: store is incomplete (prepare was interrupted); re-run the same `massview prepare terrain` command to finish it")
         self.layout = TerrainLayout(int(self.attrs["rows"]), int(self.attrs["cols"]), int(self.attrs["M"]), int(self.attrs["K"]))
         self._heights = [self.group[f"heights/{lv}"] for lv in range(self.layout.levels)]
-        self.has_color = "color" in self.group and self.attrs.get("color") is not None
+        self.has_color = "color" in self.group and self.attrs.get("color") == "orthophoto"
+        self.has_shade = "shade" in self.group and not upgrading
         self._color = [self.group[f"color/{lv}"] for lv in range(self.layout.levels)] if self.has_color else None
 
     @property
@@ -161,6 +182,16 @@ class TerrainStore:
             return np.asarray(self._color[level][i, j])
         except Exception as e:  # noqa: BLE001
             raise CorruptBlockError(f"{self.path}: colour block (level {level}, {i}, {j}) does not decode ({e})") from None
+
+    def get_shade(self, level: int, i: int, j: int) -> np.ndarray:
+        """Shading maps of block (level, i, j): float16 (M, M, 3) = slope x, slope y, height
+        fraction (see :mod:`colors`)."""
+        self._check_key(level, i, j)
+        try:
+            return np.asarray(self.group[f"shade/{level}"][i, j])
+        except Exception as e:  # noqa: BLE001
+            raise CorruptBlockError(f"{self.path}: shading block (level {level}, {i}, {j}) does not decode ({e}); "
+                                    "re-run `massview upgrade` or prepare with --overwrite") from None
 
     def block_minmax(self, level: int) -> np.ndarray:
         return np.asarray(self.group[f"blocks/{level}/minmax"][...])

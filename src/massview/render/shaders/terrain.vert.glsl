@@ -4,25 +4,23 @@
 // (fetched at baseInstance = slot) gives the block origin and sample step in finest-sample
 // units. World coordinates come from exact integer sample indices, so a vertex shared by
 // two patches (in two blocks or levels) gets bit-identical coordinates: no cracks.
+// Heights are exaggerated about the base: z = base + Z·(h·vertical_scale − base).
 uniform mat4 u_mvp;
 uniform int u_M;
 uniform vec3 u_scale;   // dx, dy (metres per finest sample), vertical scale
+uniform vec2 u_exag;    // base (scaled height units), exaggeration Z
 in float in_h;
-in vec2 in_n;
-in vec4 in_color;
 in ivec4 in_slot;       // origin col, origin row, step, slot index
-out vec3 v_normal;
-out vec4 v_color;
 out vec2 v_grid;
+out vec3 v_world;
 void main() {
     int local = gl_VertexID - in_slot.w * u_M * u_M;
     int r = local / u_M;
     int c = local - r * u_M;
     int gx = in_slot.x + c * in_slot.z;
     int gy = in_slot.y + r * in_slot.z;
-    vec3 p = vec3(float(gx) * u_scale.x, -float(gy) * u_scale.y, in_h * u_scale.z);
+    vec3 p = vec3(float(gx) * u_scale.x, -float(gy) * u_scale.y, u_exag.x + u_exag.y * (in_h * u_scale.z - u_exag.x));
     gl_Position = u_mvp * vec4(p, 1.0);
-    v_normal = vec3(in_n, sqrt(max(1.0 - dot(in_n, in_n), 0.0)));
-    v_color = in_color;
     v_grid = vec2(float(gx), float(gy));
+    v_world = p;
 }

@@ -1,0 +1,56 @@
+"""View-time terrain shading parameters and colour ramps.
+
+:class:`Shading` holds what a user may change while viewing (no re-ingest): vertical
+exaggeration, the sun (GDAL's convention: azimuth in degrees clockwise from north, altitude in
+degrees above the horizon), the colour ramp and the haze strength. Ramps are 256-entry RGB
+tables over the store's height range: ``hypsometric`` (massview's own lowland-green to snow
+ramp), any matplotlib colormap name, ``ortho`` (the store's orthophoto) or ``none`` (uniform
+grey, shading alone).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.errors import ConfigError
+
+__all__ = ["Shading", "ramp", "SPECIAL_COLORMAPS"]
+
+SPECIAL_COLORMAPS = ("hypsometric", "ortho", "none")
+_STOPS = np.array([0.0, 0.18, 0.42, 0.7, 0.88, 1.0])
+_RGB = np.array([[64, 112, 70], [110, 150, 82], [186, 172, 120], [140, 122, 104], [170, 165, 160], [245, 245, 250]], np.float32)
+SKY_HORIZON = (0.80, 0.86, 0.92)
+SKY_ZENITH = (0.28, 0.45, 0.72)
+
+
+@dataclass(frozen=True)
+class Shading:
+    exaggeration: float = 1.0
+    sun: tuple[float, float] = (315.0, 45.0)
+    colormap: str = "hypsometric"
+    haze: float = 1.0
+
+    def sun_vector(self) -> tuple[float, float, float]:
+        """Unit vector towards the sun in world axes (x east, y north, z up)."""
+        az, alt = (math.radians(v) for v in self.sun)
+        return (math.sin(az) * math.cos(alt), math.cos(az) * math.cos(alt), math.sin(alt))
+
+
+def ramp(name: str) -> np.ndarray:
+    """(256, 3) uint8 colour table for ``name`` (grey for ``ortho``/``none``)."""
+    t = np.linspace(0.0, 1.0, 256)
+    if name in ("ortho", "none"):
+        return np.full((256, 3), 209, np.uint8)
+    if name == "hypsometric":
+        return np.stack([np.interp(t, _STOPS, _RGB[:, c]) for c in range(3)], axis=-1).astype(np.uint8)
+    import matplotlib
+
+    try:
+        cmap = matplotlib.colormaps[name]
+    except KeyError:
+        raise ConfigError(f"--colormap {name!r} is not a matplotlib colormap; use one of {', '.join(SPECIAL_COLORMAPS)} "
+                          "or a matplotlib name such as terrain, gist_earth, viridis, cividis") from None
+    return (np.asarray(cmap(t))[:, :3] * 255 + 0.5).astype(np.uint8)
