@@ -92,3 +92,49 @@ def screen_errors(h: PatchHierarchy, camera, front, heights: np.ndarray) -> np.n
     q, dq = camera.project(world(s))
     vis = (dp > camera.near) & (dq > camera.near) & (p[:, 0] >= 0) & (p[:, 0] <= camera.width) & (p[:, 1] >= 0) & (p[:, 1] <= camera.height)
     return np.linalg.norm(p - q, axis=1)[vis]
+
+
+class Solo:
+    """The one-rank communicator the systems' collectives accept."""
+
+    def Get_size(self):
+        return 1
+
+    def Get_rank(self):
+        return 0
+
+    def allreduce(self, v, op=None):
+        return v
+
+
+def render_view(system, camera, **cfg):
+    """One frame of ``system`` (a TerrainSystem) through its real GL path: an Image."""
+    from massview.core.config import RenderConfig
+    from massview.core.stats import FrameStats
+    from massview.core.task import Task
+
+    cfg = RenderConfig(width=camera.width, height=camera.height, loading="complete", **cfg)
+    system.prepare_frame(Solo(), camera, cfg, FrameStats(0, 0))
+    return system.render(Task(0, camera.viewport), camera, cfg, FrameStats(0, 0))
+
+
+def unproject(camera, depth: np.ndarray) -> np.ndarray:
+    """World (h, w, 3) points of every pixel centre at its depth-buffer value (GL [0, 1])."""
+    h, w = depth.shape
+    px, py = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    ndc = np.stack([px / w * 2 - 1, 1 - py / h * 2, depth.astype(np.float64) * 2 - 1, np.ones_like(px)], axis=-1)
+    p = ndc @ np.linalg.inv(camera.view_projection()).T
+    return p[..., :3] / p[..., 3:]
+
+
+def luminance(color: np.ndarray) -> np.ndarray:
+    c = color[..., :3].astype(np.float64)
+    return 0.299 * c[..., 0] + 0.587 * c[..., 1] + 0.114 * c[..., 2]
+
+
+def isolated_bright(lum: np.ndarray, threshold: float = 60.0) -> int:
+    """Pixels brighter than the median of their 3 × 3 neighbourhood by more than ``threshold``."""
+    p = np.pad(lum, 1, mode="edge")
+    h, w = lum.shape
+    stack = np.stack([p[dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3)])
+    return int(np.count_nonzero(lum - np.median(stack, axis=0) > threshold))

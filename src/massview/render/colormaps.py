@@ -17,12 +17,12 @@ import numpy as np
 
 from ..core.errors import ConfigError
 
-__all__ = ["Shading", "ramp", "SPECIAL_COLORMAPS"]
+__all__ = ["Shading", "ramp", "paint_sky", "SPECIAL_COLORMAPS"]
 
 SPECIAL_COLORMAPS = ("hypsometric", "ortho", "none")
 _STOPS = np.array([0.0, 0.18, 0.42, 0.7, 0.88, 1.0])
 _RGB = np.array([[64, 112, 70], [110, 150, 82], [186, 172, 120], [140, 122, 104], [170, 165, 160], [245, 245, 250]], np.float32)
-SKY_HORIZON = (0.80, 0.86, 0.92)
+SKY_HORIZON = (0.80, 0.86, 0.92)  # sky gradient, also the colour aerial perspective fades to (sky.glsl)
 SKY_ZENITH = (0.28, 0.45, 0.72)
 
 
@@ -54,3 +54,28 @@ def ramp(name: str) -> np.ndarray:
         raise ConfigError(f"--colormap {name!r} is not a matplotlib colormap; use one of {', '.join(SPECIAL_COLORMAPS)} "
                           "or a matplotlib name such as terrain, gist_earth, viridis, cividis") from None
     return (np.asarray(cmap(t))[:, :3] * 255 + 0.5).astype(np.uint8)
+
+
+def paint_sky(camera, img):
+    """``img`` (an Image of the final frame or a tile of it) with its background pixels (depth
+    1) painted with the sky gradient along each pixel's view ray — done once on the assembled
+    pixels, so compositing and image codecs keep treating the background as empty."""
+    bg = img.depth >= 1.0
+    if not bg.any():
+        return img
+    vp = img.viewport
+    t = math.tan(math.radians(camera.fovy) / 2)
+    px = (vp.x + np.arange(vp.w) + 0.5) / camera.width * 2 - 1
+    py = 1 - (vp.y + np.arange(vp.h) + 0.5) / camera.height * 2
+    rot = np.asarray(camera.view_matrix())[:3, :3].T  # camera-to-world
+    dz = (py[:, None] * t * rot[2, 1] + px[None, :] * t * camera.width / camera.height * rot[2, 0] - rot[2, 2])
+    norm = np.sqrt((px[None, :] * t * camera.width / camera.height) ** 2 + (py[:, None] * t) ** 2 + 1.0)
+    e = dz / norm  # sine of the ray's elevation
+    hor, zen = np.array(SKY_HORIZON), np.array(SKY_ZENITH)
+    up = hor + (zen - hor) * np.sqrt(np.clip(e, 0, 1))[..., None]
+    down = hor * (1 - 0.2 * np.sqrt(np.clip(-e, 0, 1)))[..., None]
+    rgb = (np.where((e >= 0)[..., None], up, down) * 255 + 0.5).astype(np.uint8)
+    color = img.color.copy()
+    color[bg, :3] = rgb[bg]
+    color[bg, 3] = 255
+    return type(img)(color, img.depth, vp)

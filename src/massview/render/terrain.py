@@ -1,15 +1,15 @@
 """Drawing terrain K-patches (RASTeR's rendering side).
 
-* :func:`pack_block` turns a block of heights (+ colour) into interleaved vertices:
-  float32 height, float16 normal x/y, RGBA8 colour — 12 bytes per sample.
+* :func:`pack_payload` packs a block for the pool: float32 heights (the vertices: position
+  comes from the sample index), float16 shading maps, orthophoto colour if any.
 * :class:`BlockPool` keeps resident blocks once each in fixed slots (its byte budget / slot
-  bytes), evicting least-recently used slots: the vertices in one GL vertex buffer, the block's
+  bytes), evicting least-recently used slots: the heights in one GL vertex buffer, the block's
   shading maps (slopes + height, :mod:`massview.data.terrain.colors`) and orthophoto colour in
   one layer each of two texture arrays.
 * K-patch index patterns are static: one per patch shape (orientation × sample step),
   generated once by uniform refinement and shared by all blocks; a patch is drawn with
   ``baseVertex`` = its block slot and anchor sample, ``baseInstance`` = the slot.
-* :meth:`TerrainRenderer.draw` paints the sky, then issues the whole front as one
+* :meth:`TerrainRenderer.draw` issues the whole front as one
   ``glMultiDrawElementsIndirect``. Shading is per pixel and independent of the geometric LOD:
   a page table (one texel per block of every level: its slot, or -1) lets the fragment stage
   read the shading pyramid at the level matching the pixel footprint (terrain.frag.glsl).
@@ -59,10 +59,10 @@ def pack_block(h: np.ndarray, color: np.ndarray | None, dx: float, dy: float, vs
     return out
 
 
-def pack_payload(vertices: np.ndarray, shade: np.ndarray, ortho: np.ndarray | None) -> np.ndarray:
-    """One uint8 array per block for the RAM cache: vertices, float16 (M, M, 3) shading maps,
-    and (M, M, 3) uint8 orthophoto colour when there is one."""
-    parts = [vertices.view(np.uint8).ravel(), np.ascontiguousarray(shade, np.float16).view(np.uint8).ravel()]
+def pack_payload(heights: np.ndarray, shade: np.ndarray, ortho: np.ndarray | None) -> np.ndarray:
+    """One uint8 array per block for the RAM cache and the GL pool: float32 (M, M) heights (the
+    vertices), float16 (M, M, 3) shading maps, (M, M, 3) uint8 orthophoto colour if any."""
+    parts = [np.ascontiguousarray(heights, np.float32).view(np.uint8).ravel(), np.ascontiguousarray(shade, np.float16).view(np.uint8).ravel()]
     if ortho is not None:
         parts.append(np.ascontiguousarray(ortho, np.uint8).ravel())
     return np.concatenate(parts)
@@ -80,7 +80,7 @@ class BlockPool:
 
     def __init__(self, ctx: moderngl.Context, M: int, levels: int, top: int, budget_bytes: int, ortho: bool = False):
         self.M, self.has_ortho = M, ortho
-        self.vertex_bytes, self.shade_bytes = M * M * VERTEX_BYTES, M * M * 6
+        self.vertex_bytes, self.shade_bytes = M * M * 4, M * M * 6
         self.slot_bytes = self.vertex_bytes + self.shade_bytes + (M * M * 4 if ortho else 0)
         self.capacity = min(int(budget_bytes // self.slot_bytes), int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256)))
         if self.capacity < 1:
@@ -170,8 +170,6 @@ class TerrainRenderer:
         prog["u_pagerow"].value = tuple(int(v) for v in rows) + (0,) * (16 - len(rows))
         for name, unit in (("u_shade", 0), ("u_ortho", 1), ("u_pages", 2), ("u_ramp", 3)):
             prog[name].value = unit
-        self.sky = _program(ctx, "sky.vert.glsl", "sky.frag.glsl")
-        self._sky_vao = ctx.vertex_array(self.sky, [])
         nb0 = pool.slot_of[0].shape[0]
         self._pages = ctx.texture((nb0, sum(g.shape[0] for g in pool.slot_of)), 1, dtype="i4")
         self._pages.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -205,19 +203,25 @@ class TerrainRenderer:
         p["u_mode"].value = 1 if sh.colormap == "ortho" and self.pool.has_ortho else (2 if sh.colormap in ("none", "ortho") else 0)
         p["u_haze"].value = float(sh.haze) / max(self.world_size, 1e-9)
         self._ramp.write(ramp(sh.colormap).tobytes())
-        for prog in (self.prog, self.sky):
-            prog["u_sky_horizon"].value = SKY_HORIZON
-            prog["u_sky_zenith"].value = SKY_ZENITH
+        p["u_sky_horizon"].value = SKY_HORIZON
+        p["u_sky_zenith"].value = SKY_ZENITH
 
-    def draw_sky(self, mvp: np.ndarray, eye) -> None:
-        """The sky gradient over the whole target; depth stays at the far plane."""
-        self.sky["u_inv_mvp"].write(np.ascontiguousarray(np.linalg.inv(mvp).T, dtype="f4").tobytes())
-        self.sky["u_eye"].value = tuple(float(v) for v in eye)
-        self.ctx.depth_mask = False
-        self.ctx.disable(moderngl.DEPTH_TEST)
-        self._sky_vao.render(moderngl.TRIANGLES, vertices=3)
-        self.ctx.depth_mask = True
-        self.ctx.enable(moderngl.DEPTH_TEST)
+    def world_vertices(self, key: tuple[int, int, int]) -> np.ndarray:
+        """(M·M, 3) float32 world positions the vertex stage gives the samples of resident block
+        ``key`` (transform feedback through terrain.vert.glsl with the current uniforms)."""
+        pool, M = self.pool, self.pool.M
+        s = pool.slots[key]
+        prog = self.ctx.program(vertex_shader=load_shader("terrain.vert.glsl"), varyings=["v_world"])
+        for name in ("u_M", "u_scale", "u_exag"):
+            prog[name].value = self.prog[name].value
+        inst = self.ctx.buffer(np.frombuffer(pool.inst.read(16, offset=s * 16), np.int32).tobytes())
+        vao = self.ctx.vertex_array(prog, [(pool.vbo, "f", "in_h"), (inst, "4i/i", "in_slot")])
+        out = self.ctx.buffer(reserve=M * M * 12)
+        vao.transform(out, mode=moderngl.POINTS, vertices=M * M, first=s * M * M)
+        pos = np.frombuffer(out.read(), np.float32).reshape(M * M, 3).copy()
+        for o in (out, vao, inst, prog):
+            o.release()
+        return pos
 
     def _pattern_ids(self, offs: np.ndarray) -> np.ndarray:
         """Index-pattern id per row of (n, 6) vertex offsets (block samples, from the anchor)."""
@@ -244,12 +248,12 @@ class TerrainRenderer:
         self._ibo = self.ctx.buffer(np.concatenate(self._pattern_data).tobytes() if self._pattern_data else np.zeros(3, np.uint32).tobytes())
         self.vao = self.ctx.vertex_array(
             self.prog,
-            [(self.pool.vbo, "f 8x", "in_h"), (self.pool.inst, "4i/i", "in_slot")],
+            [(self.pool.vbo, "f", "in_h"), (self.pool.inst, "4i/i", "in_slot")],
             index_buffer=self._ibo, index_element_size=4)
 
     def draw(self, front, mvp: np.ndarray, tint=(0.0, 0.0, 0.0, 0.0), eye=(0.0, 0.0, 0.0)) -> int:
-        """Sky, then every patch of ``front`` (all blocks must be resident); returns triangles."""
-        self.draw_sky(mvp, eye)
+        """Draw every patch of ``front`` (all blocks must be resident); returns triangles. The sky
+        behind is painted on the final image (:func:`massview.render.colormaps.paint_sky`)."""
         n = len(front)
         if n == 0:
             return 0
@@ -290,7 +294,7 @@ class TerrainRenderer:
         return n * self.tris_per_patch
 
     def release(self) -> None:
-        for o in (self.vao, self._ibo, self._indirect, self.prog, self._sky_vao, self.sky, self._pages, self._ramp):
+        for o in (self.vao, self._ibo, self._indirect, self.prog, self._pages, self._ramp):
             if o is not None:
                 o.release()
 

@@ -77,6 +77,8 @@ def render_frame(comm, system, cfg: RenderConfig, camera: Camera | None, frame: 
         else:
             piece = image
         tile = deliver(comm, piece, display_tiles(cfg, n), stats, cfg.codec)
+        if tile is not None and hasattr(system, "finish"):  # display-side touches on final pixels (terrain: sky)
+            tile = system.finish(camera, cfg, tile)
     result = FrameResult(stats, tile)
     if tile is not None:
         if sink is not None:

@@ -31,8 +31,8 @@ from ..lod.texlod import shading_blocks
 from ..parallel.decompose import parse_decomposition, sort_first_tiles, sort_last_ranges
 from ..parallel.exchange import agree_all, any_rank
 from ..render.context import create_context, renderer_string
-from ..render.colormaps import Shading
-from ..render.terrain import BlockPool, TerrainRenderer, pack_block, pack_payload
+from ..render.colormaps import Shading, paint_sky
+from ..render.terrain import BlockPool, TerrainRenderer, pack_payload
 from ..render.view import ViewRenderer
 
 __all__ = ["TerrainSystem", "SORT_LAST_MODES"]
@@ -79,10 +79,8 @@ class TerrainSystem:
     def _load(self, key):
         lv, i, j = key
         h = self.store.get_block(lv, i, j)
-        dx, dy = self.store.spacing
         color, shade = self.store.get_color(lv, i, j), self.store.get_shade(lv, i, j)
-        verts = pack_block(h, color, dx * 2**lv, dy * 2**lv, self.store.vertical_scale, slopes=shade[..., :2])
-        return pack_payload(verts, shade, color)
+        return pack_payload(h, shade, color)
 
     def shading(self, cfg: RenderConfig) -> Shading:
         cmap = cfg.colormap
@@ -265,10 +263,14 @@ class TerrainSystem:
         stats.count("blocks_drawn", len(set(zip(part.level.tolist(), part.bi.tolist(), part.bj.tolist()))))
         return view.render(camera, task.viewport, lambda mvp: terrain.draw(part, mvp, tint, camera.position), stats, cfg.tile_targets)
 
+    def finish(self, camera: Camera, cfg: RenderConfig, img: Image) -> Image:
+        """The final pixels (after compositing and delivery): the sky behind the terrain."""
+        return paint_sky(camera, img)
+
     def render_reference(self, camera: Camera, cfg: RenderConfig) -> Image:
         ref_cfg = RenderConfig(width=cfg.width, height=cfg.height, tau=cfg.tau, exaggeration=cfg.exaggeration, sun=cfg.sun,
                                colormap=cfg.colormap, haze=cfg.haze)
-        return self.render(Task(0, camera.viewport), camera, ref_cfg, FrameStats(-1, 0))
+        return self.finish(camera, cfg, self.render(Task(0, camera.viewport), camera, ref_cfg, FrameStats(-1, 0)))
 
     def close(self) -> None:
         self.cache.close()
