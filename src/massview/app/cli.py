@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from ..core.config import RenderConfig, parse_size, parse_sun
+from . import upgrade_cmds
 from ..core.errors import ConfigError, MassviewError
 from ..core.paths import BUILTIN_PATHS
 from ..parallel.composite import COMPOSITORS
@@ -150,6 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
     bi.add_argument("--workdir", default="out/bench", help="where the DEM is generated once and the store written")
     bi.add_argument("--no-color", action="store_true")
     bi.add_argument("--keep", action="store_true", help="keep the store afterwards")
+    upgrade_cmds.add_parsers(sub)
     return ap
 
 
@@ -288,6 +290,8 @@ def main(argv: list[str] | None = None) -> int:
             from .demo import run_demo
 
             return run_demo(args)
+        if args.command == "upgrade":
+            return upgrade_cmds.cmd_upgrade(args)
         if args.command in ("generate", "prepare", "info", "verify"):
             from . import terrain_cmds
 

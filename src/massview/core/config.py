@@ -49,7 +49,7 @@ class RenderConfig:
     exaggeration: float = 1.0  # terrain: vertical exaggeration at view time (the LOD bound accounts for it)
     sun: tuple[float, float] = (315.0, 45.0)  # terrain: sun azimuth (° clockwise from north), altitude (°), as gdaldem
     colormap: str = "auto"  # terrain: matplotlib colormap name, hypsometric, ortho, none (grey), auto (ortho if any)
-    haze: float = 1.0  # terrain: aerial perspective strength (0 = off; 1 = 63 % towards the sky across the terrain)
+    haze: float = 1.0  # terrain: aerial perspective strength (0 = off; 1 = 30 % towards the sky across the terrain)
     egl_device: int | None = None
     fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
 

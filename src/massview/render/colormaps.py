@@ -31,7 +31,7 @@ class Shading:
     exaggeration: float = 1.0
     sun: tuple[float, float] = (315.0, 45.0)
     colormap: str = "hypsometric"
-    haze: float = 1.0
+    haze: float = 1.0  # 1: 30 % of the way to the sky colour across the terrain's diagonal
 
     def sun_vector(self) -> tuple[float, float, float]:
         """Unit vector towards the sun in world axes (x east, y north, z up)."""
@@ -73,8 +73,7 @@ def paint_sky(camera, img):
     e = dz / norm  # sine of the ray's elevation
     hor, zen = np.array(SKY_HORIZON), np.array(SKY_ZENITH)
     up = hor + (zen - hor) * np.sqrt(np.clip(e, 0, 1))[..., None]
-    down = hor * (1 - 0.2 * np.sqrt(np.clip(-e, 0, 1)))[..., None]
-    rgb = (np.where((e >= 0)[..., None], up, down) * 255 + 0.5).astype(np.uint8)
+    rgb = (up * 255 + 0.5).astype(np.uint8)
     color = img.color.copy()
     color[bg, :3] = rgb[bg]
     color[bg, 3] = 255

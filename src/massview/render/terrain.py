@@ -199,9 +199,9 @@ class TerrainRenderer:
         p["u_exag"].value = (self.base, float(sh.exaggeration))
         p["u_slope_scale"].value = self.vscale * float(sh.exaggeration)
         p["u_sun"].value = sh.sun_vector()
-        p["u_light"].value = (0.40, 0.75)
+        p["u_light"].value = (0.30, 0.95)
         p["u_mode"].value = 1 if sh.colormap == "ortho" and self.pool.has_ortho else (2 if sh.colormap in ("none", "ortho") else 0)
-        p["u_haze"].value = float(sh.haze) / max(self.world_size, 1e-9)
+        p["u_haze"].value = 0.35 * float(sh.haze) / max(self.world_size, 1e-9)  # haze 1: 30 % at the diagonal
         self._ramp.write(ramp(sh.colormap).tobytes())
         p["u_sky_horizon"].value = SKY_HORIZON
         p["u_sky_zenith"].value = SKY_ZENITH

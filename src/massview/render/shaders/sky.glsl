@@ -3,5 +3,5 @@ uniform vec3 u_sky_horizon;
 uniform vec3 u_sky_zenith;
 vec3 sky_color(vec3 dir) {
     float e = dir.z / max(length(dir), 1e-20);
-    return e >= 0.0 ? mix(u_sky_horizon, u_sky_zenith, sqrt(e)) : mix(u_sky_horizon, 0.8 * u_sky_horizon, sqrt(-e));
+    return mix(u_sky_horizon, u_sky_zenith, sqrt(max(e, 0.0)));
 }

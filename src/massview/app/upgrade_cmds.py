@@ -1,0 +1,28 @@
+"""``massview upgrade STORE``: bring a terrain store written by an older massview to the
+current format in place (exact LOD error bounds, shading pyramid); heights are untouched."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+__all__ = ["add_parsers", "cmd_upgrade"]
+
+
+def add_parsers(subparsers) -> None:
+    p = subparsers.add_parser("upgrade", help="upgrade a terrain store from an older massview format, in place")
+    p.add_argument("store")
+    p.add_argument("--quiet", "-q", action="store_true")
+
+
+def cmd_upgrade(args) -> int:
+    from ..data.terrain.upgrade import upgrade_store
+    from .terrain_cmds import progress_bar
+
+    t0 = time.perf_counter()
+    with progress_bar(args.quiet) as prog:
+        changed = upgrade_store(args.store, prog)
+    if not args.quiet:
+        what = f"upgraded in {time.perf_counter() - t0:.1f} s" if changed else "is current already"
+        print(f"terrain store {args.store} {what}", file=sys.stderr)
+    return 0
