@@ -117,6 +117,10 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--array", default=None, help="array name inside an .npz")
     pt.add_argument("--shape", default=None, help="ROWSxCOLS of a raw binary input")
     pt.add_argument("--dtype", default=None, help="dtype of a raw binary input, e.g. float32, <i2, >u2")
+    pt.add_argument("--spacing", default=None, metavar="DX[,DY]",
+                    help="sample spacing for inputs without a georeference (.npy, .npz, raw, plain TIFF), in the CRS's units "
+                         "(metres without --crs); default: FILE.json beside the input, else 1 m (with a warning)")
+    pt.add_argument("--crs", default=None, help="CRS of an input without one, e.g. EPSG:32632 (anything rasterio understands)")
     pt.add_argument("--color", default=None, help="orthophoto (RGB GeoTIFF covering the DEM) for the colour pyramid")
     pt.add_argument("--no-color", action="store_true", help="no colour pyramid")
     pt.add_argument("--overwrite", action="store_true", help="rebuild a complete store")
