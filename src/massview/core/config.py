@@ -45,7 +45,7 @@ class RenderConfig:
     tau: float = 1.0
     cache_mb: int = 256  # terrain: RAM block cache budget (MiB)
     gpu_mb: int = 256  # terrain: GL block pool budget (MiB)
-    loading: str = "async"  # terrain: "async" (never wait) or "complete" (wait for every needed block)
+    loading: str = "complete"  # terrain: "complete" (wait for every block the view needs: offline frames) or "async" (never wait: the viewer)
     exaggeration: float = 1.0  # terrain: vertical exaggeration at view time (the LOD bound accounts for it)
     sun: tuple[float, float] = (315.0, 45.0)  # terrain: sun azimuth (° clockwise from north), altitude (°), as gdaldem
     colormap: str = "auto"  # terrain: matplotlib colormap name, hypsometric, ortho, none (grey), auto (ortho if any)
