@@ -261,3 +261,27 @@ def test_old_store_is_refused_with_a_clear_message_and_upgrades(tmp_path, real):
     for a, b in zip(up.lod_arrays(), real.lod_arrays()):
         assert all(np.array_equal(x, y) for x, y in zip(a, b))
     assert np.array_equal(up.get_shade(0, 1, 1), real.get_shade(0, 1, 1))
+
+
+def test_view_time_controls_are_validated():
+    from massview.app.viewer.state import MessageError, ViewerState
+    from massview.core.config import RenderConfig, parse_sun
+    from massview.core.errors import ConfigError
+    from massview.render.colormaps import ramp
+
+    cfg = RenderConfig(exaggeration=2.5, sun=[90, 30], colormap="gist_earth", haze=0)
+    assert cfg.sun == (90.0, 30.0) and RenderConfig.from_env(env={}, **cfg.to_json()) == cfg
+    assert parse_sun("315,45") == (315.0, 45.0)
+    for bad in (dict(exaggeration=0), dict(sun=(0, 95)), dict(haze=-1), dict(colormap="")):
+        with pytest.raises(ConfigError):
+            RenderConfig(**bad)
+    with pytest.raises(ConfigError, match="not a matplotlib colormap"):
+        ramp("no-such-ramp")
+    assert ramp("viridis").shape == (256, 3) and (ramp("none") == ramp("none")[0]).all()
+    st = ViewerState(Camera.look_at((0, 0, 10), (1, 0, 0)), {"tau": 1.0}, {"decomposition": [], "compositor": [],
+                                                                              "colormap": ["auto", "none"]}, 1.0)
+    st.apply('{"type": "settings", "exaggeration": 3, "sun": [200, 20], "colormap": "none", "haze": 0.5}')
+    assert st.settings == {"tau": 1.0, "exaggeration": 3.0, "sun": [200.0, 20.0], "colormap": "none", "haze": 0.5}
+    for bad in ('{"type": "settings", "sun": [10, 95]}', '{"type": "settings", "colormap": "jet"}', '{"type": "settings", "exaggeration": 99}'):
+        with pytest.raises(MessageError):
+            st.apply(bad)

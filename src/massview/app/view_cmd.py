@@ -19,6 +19,7 @@ from collections import deque
 import numpy as np
 
 from ..core.config import RenderConfig
+from .viewer.state import VIEWER_COLORMAPS
 from ..core.paths import load_path
 from ..parallel.composite import COMPOSITORS
 from ..parallel.decompose import SORT_FIRST_LAYOUTS, parse_decomposition
@@ -60,9 +61,11 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
             [f"sort-last:{m}" for m in system.sort_last_modes] if system.sort_last_modes else ["sort-last"])
         kind, mode = parse_decomposition(cfg.decomposition, system.sort_last_modes)
         settings = {"decomposition": f"{kind}:{mode}" if mode else kind,
-                    "compositor": cfg.compositor, "tau": cfg.tau, "color_by_rank": cfg.color_by_rank}
+                    "compositor": cfg.compositor, "tau": cfg.tau, "color_by_rank": cfg.color_by_rank,
+                    "exaggeration": cfg.exaggeration, "sun": list(cfg.sun), "colormap": cfg.colormap, "haze": cfg.haze}
         base_speed = float(np.linalg.norm((hi - lo)[:2])) * 0.02
-        state = ViewerState(start, settings, {"decomposition": modes, "compositor": list(COMPOSITORS)}, base_speed)
+        cmaps = list(dict.fromkeys([cfg.colormap, *VIEWER_COLORMAPS]))
+        state = ViewerState(start, settings, {"decomposition": modes, "compositor": list(COMPOSITORS), "colormap": cmaps}, base_speed)
         server = ViewerServer(state, args.host, args.port)
         server.start()
         print(f"massview: serving http://{args.host}:{server.port}/ on {n} rank{'s' if n > 1 else ''} (Ctrl-C stops)", flush=True)

@@ -6,7 +6,9 @@ Messages (JSON text, at most 64 KiB):
   move components in [-1, 1], look deltas in pixels (|d| ≤ 4000), wheel steps (|n| ≤ 20),
   dt in (0, 1] seconds;
 * ``{"type": "settings", "decomposition": str, "compositor": str, "tau": float,
-  "color_by_rank": bool}`` — any subset; values from the lists the server announced;
+  "color_by_rank": bool, "exaggeration": float, "sun": [azimuth, altitude], "colormap": str,
+  "haze": float}`` — any subset; values from the lists the server announced (terrain shading:
+  exaggeration in [0.1, 20], azimuth in [0, 360], altitude in [0, 90] degrees, haze in [0, 10]);
 * anything else is rejected with a reason (and logged by the server).
 """
 
@@ -20,9 +22,10 @@ import numpy as np
 
 from ...core.camera import Camera, look_at_quaternion
 
-__all__ = ["ViewerState", "MessageError", "MAX_MESSAGE"]
+__all__ = ["ViewerState", "MessageError", "MAX_MESSAGE", "VIEWER_COLORMAPS"]
 
 MAX_MESSAGE = 64 * 1024
+VIEWER_COLORMAPS = ("auto", "hypsometric", "ortho", "none", "terrain", "gist_earth", "cividis", "viridis", "gray")
 
 
 class MessageError(ValueError):
@@ -111,11 +114,29 @@ class ViewerState:
             if not isinstance(msg["color_by_rank"], bool):
                 raise MessageError("color_by_rank must be true or false")
             new["color_by_rank"] = msg["color_by_rank"]
-        unknown = set(msg) - {"type", "decomposition", "compositor", "tau", "color_by_rank"}
+        new.update(self._shading(msg))
+        unknown = set(msg) - {"type", "decomposition", "compositor", "tau", "color_by_rank", "exaggeration", "sun", "colormap", "haze"}
         if unknown:
             raise MessageError(f"unknown setting(s) {', '.join(sorted(unknown))[:80]}")
         with self._lock:
             self.settings.update(new)
+
+    def _shading(self, msg: dict) -> dict:
+        new = {}
+        if "exaggeration" in msg:
+            new["exaggeration"] = _num(msg["exaggeration"], 0.1, 20, "exaggeration")
+        if "haze" in msg:
+            new["haze"] = _num(msg["haze"], 0, 10, "haze")
+        if "sun" in msg:
+            sun = msg["sun"]
+            if not (isinstance(sun, list) and len(sun) == 2):
+                raise MessageError("sun must be [azimuth, altitude] in degrees")
+            new["sun"] = [_num(sun[0], 0, 360, "sun azimuth"), _num(sun[1], 0, 90, "sun altitude")]
+        if "colormap" in msg:
+            if msg["colormap"] not in self.choices.get("colormap", ()):
+                raise MessageError(f"colormap must be one of {', '.join(self.choices.get('colormap', ()))}")
+            new["colormap"] = msg["colormap"]
+        return new
 
     def request_stop(self) -> None:
         with self._lock:

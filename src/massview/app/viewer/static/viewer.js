@@ -45,6 +45,10 @@ function hello(msg) {
   fill($("compositor"), msg.choices.compositor, msg.settings.compositor);
   $("tau").value = msg.settings.tau; $("tauv").textContent = msg.settings.tau;
   $("colorbyrank").checked = !!msg.settings.color_by_rank;
+  if (msg.choices.colormap) fill($("colormap"), msg.choices.colormap, msg.settings.colormap);
+  const shading = { exaggeration: msg.settings.exaggeration, sunaz: (msg.settings.sun || [])[0], sunalt: (msg.settings.sun || [])[1],
+                    haze: msg.settings.haze };
+  for (const [id, v] of Object.entries(shading)) if (v !== undefined) { $(id).value = v; $(id + "v").textContent = v; }
 }
 
 function showStats(s) {
@@ -59,8 +63,18 @@ function send(obj) { if (mv.ws && mv.ws.readyState === 1) mv.ws.send(JSON.string
 
 function settings() {
   send({ type: "settings", decomposition: $("decomposition").value, compositor: $("compositor").value,
-         tau: parseFloat($("tau").value), color_by_rank: $("colorbyrank").checked });
+         tau: parseFloat($("tau").value), color_by_rank: $("colorbyrank").checked, ...shadingSettings() });
 }
+function shadingSettings() {  // terrain shading (view-time): exaggeration, sun, colour ramp, haze
+  if (!mv.hello || !mv.hello.choices.colormap) return {};
+  return { exaggeration: parseFloat($("exaggeration").value), sun: [parseFloat($("sunaz").value), parseFloat($("sunalt").value)],
+           colormap: $("colormap").value, haze: parseFloat($("haze").value) };
+}
+for (const id of ["exaggeration", "sunaz", "sunalt", "haze"]) {
+  $(id).addEventListener("input", () => { $(id + "v").textContent = $(id).value; });
+  $(id).addEventListener("change", settings);
+}
+$("colormap").addEventListener("change", settings);
 for (const id of ["decomposition", "compositor", "colorbyrank"]) $(id).addEventListener("change", settings);
 $("tau").addEventListener("input", () => { $("tauv").textContent = $("tau").value; });
 $("tau").addEventListener("change", settings);
