@@ -66,3 +66,24 @@ def test_camera_and_show(scene):
     assert (img != img[0, 0]).any(axis=2).sum() > 100  # objects drawn, not only background
     with pytest.raises(mv.MassviewError, match="look_at"):
         mv.camera(scene, position=(0, 0, 0))
+
+
+@pytest.mark.mpi
+def test_readme_example_runs_and_equals_the_cli(tmp_path, capsys):
+    """The README's Python API example, run as written; its frames equal `massview render`'s."""
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("## Python API", 1)[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    ns: dict = {}
+    exec(compile(code, "README.md", "exec"), ns)  # noqa: S102 - the documented example itself
+    assert "(240, 320, 3)" in capsys.readouterr().out
+    assert isinstance(ns["res"], mv.RenderResult) and ns["res"].summary["ranks"] == 2
+    run_cli("render", "builtin:objects?n=400", "--path", "orbit", "--frames", 2, "--size", "320x240", "--out", tmp_path, "-q")
+    for f in range(2):
+        assert np.array_equal(ns["res"].images[f], load_png(tmp_path / "frames" / f"{f:05d}.png"))
+    assert np.array_equal(ns["img"], load_png(tmp_path / "frames" / "00001.png"))
+    assert ns["res"].images[0].dtype == np.uint8 and hasattr(mv.show(ns["img"]), "_repr_png_")
+    ns["scene"].close()
