@@ -187,7 +187,7 @@ class RenderResult:
         return int(self.summary.get("frames", len(self.images or [])))
 
     def _repr_png_(self) -> bytes | None:
-        return show(self.images[0])._repr_png_() if self.images else None
+        return show(self.images[0]).png() if self.images else None
 
 
 def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
