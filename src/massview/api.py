@@ -203,13 +203,13 @@ def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
     return cams, "cameras"
 
 
-def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camera] = "orbit", *, ranks: int | None = None,
+def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camera] | None = None, *, ranks: int | None = None,
            out: str | Path | None = None, depth: bool = False, images: bool = True, progress: bool = False,
            frames: int | None = None, size=None, config: RenderConfig | None = None, **options) -> RenderResult | None:
     """Render a path or cameras on ``ranks`` local ranks (see the module docstring).
 
-    ``what``: a path name or keyframe file (with ``frames`` and ``size``), a :class:`Camera`, or a
-    list of cameras. ``out``: also write ``frames/``, ``stats.jsonl`` and ``summary.json`` there.
+    ``what``: a path name or keyframe file (with ``frames`` and ``size``; default: the ``path``
+    option, ``"orbit"``), a :class:`Camera`, or a list of cameras. ``out``: also write ``frames/``, ``stats.jsonl`` and ``summary.json`` there.
     ``options``: :class:`RenderConfig` fields. Returns a :class:`RenderResult` (``None`` on ranks
     other than 0 when called collectively inside an MPI job).
     """
@@ -229,9 +229,10 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
     nranks = world().Get_size() if in_mpi_job() else int(ranks or 1)
     if nranks < 1:
         raise ConfigError(f"ranks must be at least 1, got {ranks}")
+    what = cfg.path if what is None else what
     if isinstance(what, (str, Path)):  # size and frame count first: check everything before any work
         w, h = _size(size) if size is not None else (cfg.width, cfg.height)
-        cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": int(frames or cfg.frames)})
+        cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": int(frames or cfg.frames), "path": str(what)})
         load_path(str(what), [0, 0, 0], [1, 1, 1])  # a bad name or file is reported now
     out = Path(out) if out is not None else None
     validate(scene.spec, cfg, nranks)
@@ -247,7 +248,7 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
     return _render_job(scene, cfg, cams, label, out, depth, images, progress, nranks)
 
 
-def render_frame(scene: Scene | str | Path, what: Camera | str | Path = "orbit", *, depth: bool = False, **kw):
+def render_frame(scene: Scene | str | Path, what: Camera | str | Path | None = None, *, depth: bool = False, **kw):
     """One frame: (H, W, 3) uint8, or ``(rgb, depth)`` with ``depth=True``. ``what`` is a camera
     or a path (its first camera); other keywords as :func:`render`."""
     res = render(scene, what, depth=depth, frames=kw.pop("frames", 1), **kw)
