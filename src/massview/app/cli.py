@@ -232,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     _report_peak_rss()
     if argv[:1] == ["__job"] and len(argv) == 2:  # a rank of a job started by massview.api.render
-        from ..api import run_job
+        from .render_job import run_job
 
         return run_job(argv[1])
     args = build_parser().parse_args(argv)
