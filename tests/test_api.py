@@ -87,3 +87,35 @@ def test_readme_example_runs_and_equals_the_cli(tmp_path, capsys):
     assert np.array_equal(ns["img"], load_png(tmp_path / "frames" / "00001.png"))
     assert ns["res"].images[0].dtype == np.uint8 and hasattr(mv.show(ns["img"]), "_repr_png_")
     ns["scene"].close()
+
+
+@pytest.mark.mpi
+def test_render_is_collective_inside_an_external_mpi_job(tmp_path, scene):
+    """A script started by mpiexec: every rank calls render, rank 0 gets the frame."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = tmp_path / "job.py"
+    script.write_text(
+        "import sys, numpy as np, massview as mv\n"
+        f"r = mv.render({SMALL_SCENE!r}, 'orbit', frames=1, size=(160, 120), decomposition='sort-first:horizontal')\n"
+        "if r is not None:\n"
+        "    np.save(sys.argv[1], r.images[0]); print('ranks', r.summary['ranks'])\n"
+        "else:\n"
+        "    print('rank without result')\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
+    mpiexec = str(Path(sys.executable).parent / "mpiexec")
+    proc = subprocess.run([mpiexec, "-n", "2", sys.executable, str(script), str(tmp_path / "f.npy")], capture_output=True,
+                          text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "ranks 2" in proc.stdout and "rank without result" in proc.stdout
+    assert np.array_equal(np.load(tmp_path / "f.npy"), mv.render_frame(scene, "orbit", size=(160, 120)))
+
+
+def test_cli_defaults_render_complete_view_async():
+    from massview.app.cli import build_parser
+
+    assert build_parser().parse_args(["render", "x"]).loading == "complete"
+    assert build_parser().parse_args(["view", "x"]).loading == "async"
