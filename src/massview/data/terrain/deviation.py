@@ -75,6 +75,7 @@ class DeviationAccumulator:
 
     def __init__(self, layout: TerrainLayout, coarse: np.ndarray):
         self.lay = layout
+        self._eps = np.float32(0)
         self.coarse = np.asarray(coarse, np.float32)
         J = layout.J
         self.sq = [np.zeros((2**j, 2**j), np.float32) for j in range(J)]
@@ -115,51 +116,66 @@ class DeviationAccumulator:
         r = bi * (lay.M - 1) + np.arange(lay.M)
         c = bj * (lay.M - 1) + np.arange(lay.M)
         valid = np.ascontiguousarray((r[:, None] < lay.rows) & (c[None, :] < lay.cols))
+        self._eps = np.float32(8 * np.finfo(np.float32).eps * float(np.abs(b).max()))  # float32 rounding of z
         for j in range(lay.J):
             win, vwin, corners, fx, fy, v0, u0 = self._windows(b, valid, bi, bj, lay.J - j)
+            if valid.all():
+                vwin = None
             self._add_squares(j, win, vwin, corners, fx, fy, v0, u0)
             self._add_edges(j, win, vwin, corners, fx, fy, v0, u0)
 
     def _add_squares(self, j, win, vwin, corners, fx, fy, v0, u0) -> None:
+        """Square mesh: per lattice square z = c00 + x·(c10 − c00) + y·(c01 − c00) + w·D with
+        D = c00 − c10 − c01 + c11 and w = min(x, y) (diagonal (0,0)-(1,1), u + v even) or
+        max(0, x + y − 1) (the other diagonal): both triangles in one expression."""
         c00, c10, c01, c11, _ = corners
         nv, nu = win.shape[:2]
-        even = ((v0 + np.arange(nv))[:, None] + (u0 + np.arange(nu))[None, :]) % 2 == 0
-        za = c00 + fx * (c10 - c00) + fy * (c11 - c10)  # even, x >= y: (c00, c10, c11)
-        zb = c00 + fy * (c01 - c00) + fx * (c11 - c01)  # even, x <= y: (c00, c01, c11)
-        zc = c00 + fx * (c10 - c00) + fy * (c01 - c00)  # odd, x + y <= 1
-        zd = c11 + (1 - fx) * (c01 - c11) + (1 - fy) * (c10 - c11)  # odd, x + y >= 1
-        de = np.maximum(_closed_max(np.abs(za - win), vwin & (fx >= fy)), _closed_max(np.abs(zb - win), vwin & (fx <= fy)))
-        do = np.maximum(_closed_max(np.abs(zc - win), vwin & (fx + fy <= 1)), _closed_max(np.abs(zd - win), vwin & (fx + fy >= 1)))
-        self._put(self.sq[j], np.where(even, de, do), v0, u0)
+        even = (((v0 + np.arange(nv))[:, None] + (u0 + np.arange(nu))[None, :]) % 2 == 0)[:, :, None, None]
+        w = np.where(even, np.minimum(fx, fy), np.maximum(fx + fy - 1, 0))
+        z = c00 + fx * (c10 - c00) + fy * (c01 - c00) + w * (c00 - c10 - c01 + c11)
+        dev = np.abs(z - win)
+        if vwin is not None:
+            dev = np.where(vwin, dev, 0)
+        self._put(self.sq[j], dev.max(axis=(2, 3)), v0, u0)
 
     def _add_edges(self, j, win, vwin, corners, fx, fy, v0, u0) -> None:
+        """Centred mesh: the four quarter triangles of every lattice square, each evaluated on
+        the half of the square it lies in."""
         c00, c10, c01, c11, cc = corners
-        quarters = (
-            (c00 + fx * (c10 - c00) + fy * (2 * cc - c00 - c10), (fy <= fx) & (fy <= 1 - fx)),  # top
-            (c01 + fx * (c11 - c01) + (1 - fy) * (2 * cc - c01 - c11), (fy >= fx) & (fy >= 1 - fx)),  # bottom
-            (c00 + fy * (c01 - c00) + fx * (2 * cc - c00 - c01), (fx <= fy) & (fx <= 1 - fy)),  # left
-            (c10 + fy * (c11 - c10) + (1 - fx) * (2 * cc - c10 - c11), (fx >= fy) & (fx >= 1 - fy)),  # right
+        hx, hy = fx.shape[-1], fy.shape[-2]
+        ly, lx = (slice(0, hy // 2 + 1), slice(hy // 2, hy)), (slice(0, hx // 2 + 1), slice(hx // 2, hx))
+        if hx != hy or fx[..., 0] != 0 or fx[..., -1] != 1:  # a block inside one lattice square: whole window
+            ly = lx = (slice(None), slice(None))
+        quarters = (  # (rows, cols, formula, closed mask)
+            (ly[0], slice(None), lambda x, y: c00 + x * (c10 - c00) + y * (2 * cc - c00 - c10), lambda x, y: (y <= x) & (y <= 1 - x)),
+            (ly[1], slice(None), lambda x, y: c01 + x * (c11 - c01) + (1 - y) * (2 * cc - c01 - c11), lambda x, y: (y >= x) & (y >= 1 - x)),
+            (slice(None), lx[0], lambda x, y: c00 + y * (c01 - c00) + x * (2 * cc - c00 - c01), lambda x, y: (x <= y) & (x <= 1 - y)),
+            (slice(None), lx[1], lambda x, y: c10 + y * (c11 - c10) + (1 - x) * (2 * cc - c10 - c11), lambda x, y: (x >= y) & (x >= 1 - y)),
         )
-        t4 = np.stack([_closed_max(np.abs(z - win), vwin & m) for z, m in quarters])  # (4, nv, nu)
+        t4 = []
+        for rows, cols, z, m in quarters:
+            x, y, h = fx[..., cols], fy[..., rows, :], win[:, :, rows, cols]
+            mask = m(x, y) if vwin is None else m(x, y) & vwin[:, :, rows, cols]
+            t4.append(_closed_max(np.abs(z(x, y) - h), mask))
+        t4 = np.stack(t4)  # (4, nv, nu)
         f = 2**self.lay.k
         tab = self._tables.get(f)
         if tab is None:
             tab = self._tables[f] = _region_table(f)
         nv, nu = t4.shape[1:]
         dg = self.dg[j]
+        V0, U0 = v0 // f, u0 // f
         if nv >= f:
             nV, nU = nv // f, nu // f
             t = t4.reshape(4, nV, f, nU, f)
-            V0, U0 = v0 // f, u0 // f
             per = [np.where((tab == r)[:, None, :, None, :], t, 0).max(axis=(0, 2, 4)) for r in range(4)]
         else:
             sub = tab[:, v0 % f: v0 % f + nv, u0 % f: u0 % f + nu]
             per = [np.array([[np.where(sub == r, t4, 0).max()]]) for r in range(4)]
             nV = nU = 1
-            V0, U0 = v0 // f, u0 // f
         for (o, dv, du), e in zip(((0, 0, 0), (0, 1, 0), (1, 0, 0), (1, 0, 1)), per):
             sl = dg[o, V0 + dv: V0 + dv + nV, U0 + du: U0 + du + nU]
-            np.maximum(sl, e, out=sl)
+            np.maximum(sl, e + self._eps, out=sl)
 
     def _put(self, grid: np.ndarray, d: np.ndarray, v0: int, u0: int) -> None:
         f = 2**self.lay.k
@@ -170,4 +186,4 @@ class DeviationAccumulator:
         else:
             d = d.max()
             sl = grid[v0 // f: v0 // f + 1, u0 // f: u0 // f + 1]
-        np.maximum(sl, d, out=sl)
+        np.maximum(sl, d + self._eps, out=sl)
