@@ -72,7 +72,8 @@ def paint_sky(camera, img):
     norm = np.sqrt((px[None, :] * t * camera.width / camera.height) ** 2 + (py[:, None] * t) ** 2 + 1.0)
     e = dz / norm  # sine of the ray's elevation
     hor, zen = np.array(SKY_HORIZON), np.array(SKY_ZENITH)
-    up = hor + (zen - hor) * np.sqrt(np.clip(e, 0, 1))[..., None]
+    t = np.clip((e + 0.05) / 0.65, 0, 1)
+    up = hor + (zen - hor) * (t * t * (3 - 2 * t))[..., None]  # smoothstep(-0.05, 0.6, e), as sky.glsl
     rgb = (up * 255 + 0.5).astype(np.uint8)
     color = img.color.copy()
     color[bg, :3] = rgb[bg]
