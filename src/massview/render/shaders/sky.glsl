@@ -1,4 +1,5 @@
-// Sky gradient shared by the sky pass and the terrain's aerial perspective.
+// Sky gradient: the colour aerial perspective fades to (the background itself is painted by
+// massview.render.colormaps.paint_sky with the same formula).
 uniform vec3 u_sky_horizon;
 uniform vec3 u_sky_zenith;
 vec3 sky_color(vec3 dir) {
