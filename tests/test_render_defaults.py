@@ -7,12 +7,12 @@ import pytest
 
 import massview as mv
 from conftest import load_png, run_cli, summary
-from massview.core.image import BACKGROUND_RGBA
 from massview.core.paths import load_path
 
 
-def drawn_fraction(img: np.ndarray) -> float:
-    return float(np.mean(np.any(img != np.array(BACKGROUND_RGBA[:3], np.uint8), axis=2)))
+def terrain_fraction(depth: np.ndarray) -> float:
+    """Pixels with terrain in them (the sky behind the terrain is painted at the far plane)."""
+    return float(np.mean(depth < 1.0))
 
 
 def test_default_render_has_no_frame_with_missing_terrain(tmp_path, terrain_store):
@@ -24,9 +24,10 @@ def test_default_render_has_no_frame_with_missing_terrain(tmp_path, terrain_stor
     scene = mv.open_scene(terrain_store)
     cams = mv.path("zoom", scene, frames=4, size=(320, 240))
     for f in range(4):
-        warm = mv.render(scene, [cams[f], cams[f]]).images[1]
+        res = mv.render(scene, [cams[f], cams[f]], depth=True)
+        warm = res.images[1]
         got = load_png(tmp_path / "frames" / f"{f:05d}.png")
-        assert drawn_fraction(got) > 0.2 and np.array_equal(got, warm), f"frame {f} is not final quality"
+        assert terrain_fraction(res.depths[1]) > 0.2 and np.array_equal(got, warm), f"frame {f} is not final quality"
     scene.close()
     assert summary(tmp_path)["frames"] == 4
 
@@ -57,9 +58,9 @@ def test_keyframes_without_clip_planes_do_not_clip_a_large_scene(tmp_path, large
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     reach = max(np.linalg.norm(corners - p, axis=1).max() for p in fitted.positions)
     assert fitted.far > reach and fitted.near < 0.01 * reach
-    img = mv.render_frame(scene, str(tmp_path / "k.json"), size=(240, 180))
-    old = mv.render_frame(scene, str(_keyframes(tmp_path / "old.json", {"near": 0.1, "far": 10000})), size=(240, 180))
-    assert drawn_fraction(img) > 0.3 and drawn_fraction(img) > 3 * drawn_fraction(old)
+    _, img = mv.render_frame(scene, str(tmp_path / "k.json"), size=(240, 180), depth=True)
+    _, old = mv.render_frame(scene, str(_keyframes(tmp_path / "old.json", {"near": 0.1, "far": 10000})), size=(240, 180), depth=True)
+    assert terrain_fraction(img) > 0.3 and terrain_fraction(img) > 3 * terrain_fraction(old)
     explicit = load_path(str(_keyframes(tmp_path / "e.json", {"near": 2.0, "far": 5e5})), lo, hi)
     assert explicit.clip() == (2.0, 5e5)  # given clip planes are kept
     scene.close()
