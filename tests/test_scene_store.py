@@ -229,10 +229,16 @@ def test_generated_scenes_are_deterministic_hierarchical_and_sound(plant, tmp_pa
 
 
 @pytest.mark.parametrize("kind,size,seed", [("city", 0.04, 1), ("forest", 0.012, 4)])
-def test_city_and_forest(tmp_path, kind, size, seed):
-    a = generate_scene(kind, tmp_path / kind, copies=2, size=size, seed=seed)
-    st = SceneStore(tmp_path / kind)
-    assert a["objects"] == 2 * len(scene_nodes(kind, size, seed)[0])
+def test_city_and_forest(tmp_path, capsys, kind, size, seed):
+    out = tmp_path / kind
+    assert main(["generate", "scene", kind, "--copies", "2", "--size", str(size), "--seed", str(seed), "-o", str(out), "-q"]) == 0
+    assert main(["info", str(out), "--json"]) == 0
+    import json
+
+    info = json.loads(capsys.readouterr().out.split("\n", 1)[1])  # after the "wrote ..." line
+    st = SceneStore(out)
+    assert info["objects"] == st.skeleton.count == 2 * len(scene_nodes(kind, size, seed)[0])
+    assert info["triangles_level0"] == int(st.skeleton.triangles[:, 0].sum())
     if kind == "forest":  # the real-world mesh is scattered among the trees
         assert (st.tables["triangles"][:, 0] == len(_ant().faces)).any()
     assert (st.skeleton.levels > 2).any()
