@@ -19,7 +19,7 @@ def add_generate_parser(gsub) -> None:
     g.add_argument("-o", "--output", required=True, help="scene store folder to write")
     g.add_argument("--copies", type=int, default=1, help="replicas of the scene, each stored as its own geometry (default 1)")
     g.add_argument("--size", type=float, default=1.0,
-                   help="scale of one copy (default 1: plant ~21 600 nodes / 9 M triangles, city ~1100 nodes / 4.5 M, forest ~250 objects / 12 M)")
+                   help="scale of one copy (default 1: plant ~21 600 nodes / 8.4 M triangles, city ~1100 nodes / 4.1 M, forest ~250 objects / 13.7 M)")
     g.add_argument("--seed", type=int, default=1)
     g.add_argument("--simplifier", choices=("fast-simplification", "pyfqmr"), default="fast-simplification")
     g.add_argument("--overwrite", action="store_true", help="rebuild a complete store")
