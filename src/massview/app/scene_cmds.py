@@ -42,7 +42,9 @@ def add_prepare_parser(psub) -> None:
 
 def cmd_generate(args) -> int:
     from ..data.generators.scenes import generate_scene
+    from .outputs import check_output_file
 
+    check_output_file(Path(args.output), "-o")
     with progress_bar(args.quiet) as prog:
         a = generate_scene(args.kind, Path(args.output), copies=args.copies, size=args.size, seed=args.seed,
                            overwrite=args.overwrite, progress=prog, backend=args.simplifier)
@@ -54,7 +56,9 @@ def cmd_generate(args) -> int:
 def cmd_prepare(args) -> int:
     from ..core.errors import ConfigError
     from ..data.scene.ingest import IngestParams, prepare_scene
+    from .outputs import check_output_file
 
+    check_output_file(Path(args.output), "-o")
     if args.object_triangles < 1 or args.levels < 1 or args.levels > 16:
         raise ConfigError("--object-triangles must be positive and --levels between 1 and 16")
     prm = IngestParams(object_triangles=args.object_triangles, object_size=args.object_size or float("inf"), instance=args.instance,
