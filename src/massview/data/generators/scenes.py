@@ -39,7 +39,7 @@ from ..scene.simplify import build_levels, is_closed
 from ..scene.writer import SceneWriter
 from . import shapes
 
-__all__ = ["SCENE_KINDS", "Node", "scene_nodes", "generate_scene", "real_mesh_path"]
+__all__ = ["SCENE_KINDS", "Node", "scene_nodes", "generate_scene", "real_mesh", "real_mesh_path"]
 
 SCENE_KINDS = ("plant", "city", "forest")
 PATH_DEPTH = {"plant": 8, "city": 6, "forest": 3}
@@ -211,6 +211,14 @@ def scene_nodes(kind: str, size: float = 1.0, seed: int = 1) -> tuple[list[Node]
     return _LAYOUTS[kind](size, seed)
 
 
+def real_mesh(name: str = "ant") -> tuple[np.ndarray, np.ndarray]:
+    """(vertices f8 (v,3), triangles i8 (t,3)) of a packaged real-world mesh, as in its file."""
+    import trimesh
+
+    m = trimesh.load(real_mesh_path(name), process=False, force="mesh")
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
 def real_mesh_path(name: str = "ant") -> Path:
     """A small real-world mesh shipped inside a registry package (pyvista's examples), found
     without importing the package; ConfigError when it is not installed."""
@@ -302,13 +310,10 @@ def _shape_parts(key: tuple) -> list:
                   for i, (dx, dy, dz) in enumerate(((0, 0, 0.8), (0.9, 0.4, 0), (-0.7, -0.6, 0.2)))]
         return [trunk, *crowns]
     if k == "real":
-        import trimesh
-
-        m = trimesh.load(real_mesh_path(key[1]), process=False, force="mesh")
-        p = np.asarray(m.vertices, float)
-        p = (p - [(p[:, 0].min() + p[:, 0].max()) / 2, (p[:, 1].min() + p[:, 1].max()) / 2, p[:, 2].min()])
-        t = np.asarray(m.faces, np.int64)
         from ..scene.mesh import vertex_normals
+
+        p, t = real_mesh(key[1])
+        p = (p - [(p[:, 0].min() + p[:, 0].max()) / 2, (p[:, 1].min() + p[:, 1].max()) / 2, p[:, 2].min()])
 
         return [((p, t, vertex_normals(p, t).astype(float)), None)]
     raise ValueError(f"unknown shape {key!r}")
