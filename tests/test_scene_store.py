@@ -90,6 +90,8 @@ def test_structured_inputs_give_their_own_objects_and_instancing_stores_shared_g
     inst = prepare_scene([glb], tmp_path / "inst", IngestParams(instance=True))
     assert (flat["objects"], flat["geometries"], flat["instanced"]) == (4, 4, False)
     assert (inst["objects"], inst["geometries"], inst["instanced"]) == (4, 2, True)
+    both = prepare_scene([obj, glb], tmp_path / "both")  # several inputs become one scene
+    assert (both["objects"], both["triangles"]) == (2 + 4, 3 + flat["triangles"])
     g1, _ = _store_triangles(tmp_path / "flat")
     g2, _ = _store_triangles(tmp_path / "inst")
     np.testing.assert_allclose(_canonical(g1), _canonical(g2), atol=1e-6)
