@@ -115,14 +115,13 @@ def choose_levels(camera: Camera, center: np.ndarray, radius: np.ndarray, levels
     n = len(radius)
     if n == 0:
         return np.zeros(0, np.int64)
-    eye = np.asarray(camera.position)
-    d = np.maximum(np.linalg.norm(center - eye, axis=1) - radius, camera.near)
-    allowed = tau * d / lod_scale(camera)  # world units
-    err = np.asarray(level_error, np.float64)
+    diff = np.asarray(center, np.float64) - np.asarray(camera.position)
+    d = np.maximum(np.sqrt(np.einsum("ij,ij->i", diff, diff)) - radius, camera.near)
+    allowed = (d * (tau / lod_scale(camera))).astype(np.float32)  # world units
+    err = np.asarray(level_error)
     lmax = err.shape[1]
-    ok = (err <= allowed[:, None]) & (np.arange(lmax)[None, :] < np.asarray(levels)[:, None])
-    ok[:, 0] = True
-    return (lmax - 1 - np.argmax(ok[:, ::-1], axis=1)).astype(np.int64)
+    ok = (err <= allowed[:, None]) & (np.arange(lmax, dtype=np.int8)[None, :] < np.asarray(levels, np.int8)[:, None])
+    return (ok * np.arange(lmax, dtype=np.int8)[None, :]).max(axis=1).astype(np.int64)
 
 
 def resolve_levels(desired: np.ndarray, resident: np.ndarray) -> np.ndarray:
