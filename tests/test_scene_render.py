@@ -10,10 +10,11 @@ import time
 import numpy as np
 import pytest
 
+from conftest import run_cli, summary
 from massview.core.camera import Camera
 from massview.core.config import RenderConfig
 from massview.core.paths import load_path
-from massview.core.stats import FrameStats
+from massview.core.stats import FrameStats, read_stats
 from massview.core.task import Task
 from massview.lod.cull import boxes_in_frustum
 from massview.lod.scene import SkeletonCuller, build_group_tree, choose_levels, lod_scale, resolve_levels
@@ -233,16 +234,12 @@ SLOW = [(d, n) for d in SCENE_DECOMPS for n in (2, 3, 4) if (d, n) not in FAST]
 
 @pytest.fixture(scope="session")
 def city_store(tmp_path_factory):
-    from conftest import run_cli
-
     out = tmp_path_factory.mktemp("scene") / "city.zarr"
     run_cli("generate", "scene", "city", "--copies", 1, "--size", "small", "-o", out, "-q")
     return out
 
 
 def _parallel_equals_serial(tmp_path, store, decomposition, ranks, path="orbit", extra=()):
-    from conftest import run_cli, summary
-
     run_cli("render", store, "--ranks", ranks, "--decomposition", decomposition, "--path", path, "--frames", 3,
             "--size", "240x180", "--reference", "--out", tmp_path, "-q", *extra)
     s = summary(tmp_path)
@@ -268,8 +265,6 @@ def test_scene_parallel_equals_serial_all_rank_counts(tmp_path, city_store, deco
 def test_scene_small_budgets_async_stay_exact(tmp_path, city_store):
     """Budgets far below the view: meshes cycle and load meanwhile, frames never wait, and
     every rank still draws the agreed levels (reference matches)."""
-    from massview.core.stats import read_stats
-
     _parallel_equals_serial(tmp_path, city_store, "sort-first:kd", 3, path="walkthrough",
                             extra=("--cache-mb", 2, "--gpu-mb", 2))
     recs = read_stats(tmp_path / "stats.jsonl")
