@@ -234,8 +234,10 @@ SLOW = [(d, n) for d in SCENE_DECOMPS for n in (2, 3, 4) if (d, n) not in FAST]
 
 @pytest.fixture(scope="session")
 def city_store(tmp_path_factory):
+    from massview.data.generators.scenes import generate_scene
+
     out = tmp_path_factory.mktemp("scene") / "city.zarr"
-    run_cli("generate", "scene", "city", "--copies", 1, "--size", "small", "-o", out, "-q")
+    generate_scene("city", out, copies=2, size=0.12)
     return out
 
 
