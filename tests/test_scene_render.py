@@ -268,7 +268,14 @@ def test_scene_small_budgets_async_stay_exact(tmp_path, city_store):
     """Budgets far below the view: meshes cycle and load meanwhile, frames never wait, and
     every rank still draws the agreed levels (reference matches)."""
     _parallel_equals_serial(tmp_path, city_store, "sort-first:kd", 3, path="walkthrough",
-                            extra=("--cache-mb", 2, "--gpu-mb", 2))
+                            extra=("--cache-mb", 2, "--gpu-mb", 2, "--loading", "async"))
     recs = read_stats(tmp_path / "stats.jsonl")
     assert any(r["counters"].get("objects_coarser", 0) + r["counters"].get("objects_missing", 0) > 0 for r in recs)
     assert max(r["counters"]["gpu_used_bytes"] for r in recs) <= 2 << 20
+
+
+def test_scene_complete_loading_with_budgets_too_small_says_so(tmp_path, city_store):
+    proc = run_cli("render", city_store, "--path", "walkthrough", "--frames", 1, "--size", "160x120", "--cache-mb", 1,
+                   "--gpu-mb", 1, "--loading", "complete", "--out", tmp_path, "-q", check=False)
+    assert proc.returncode != 0
+    assert "do not fit the budgets" in proc.stderr and "--gpu-mb" in proc.stderr
