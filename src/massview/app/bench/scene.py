@@ -11,7 +11,8 @@ Part 2 (needs a scene store, e.g. ``massview generate scene plant --copies N``):
 ``--gpu-mb`` per rank, for each rank count, with LOD (``--tau``) and without (τ = 1e-6: level 0
 everywhere). Printed per case: mean frame time, triangles drawn per frame (sum over ranks),
 cache hits and meshes loaded per frame, objects drawn coarser than wanted, peak RSS per rank;
-and the ratios LOD off ÷ LOD on. Frame times on a shared CPU are noisy: compare ratios.
+and the ratios LOD off ÷ LOD on. With ``--loading complete`` the frame time includes waiting
+for loads (the ``lod`` stage); the draw time is the GL work alone. Frame times on a shared CPU are noisy: compare ratios.
 """
 
 from __future__ import annotations
@@ -112,14 +113,17 @@ def _render_case(args, out: Path, nranks: int, tau: float) -> dict | None:
     recs = read_stats(out / "stats.jsonl")
     per_frame = {}
     for rec in recs:
-        f = per_frame.setdefault(rec["frame"], {"tris": 0, "hits": 0, "loads": 0, "coarser": 0, "ms": 0.0})
+        f = per_frame.setdefault(rec["frame"], {"tris": 0, "hits": 0, "loads": 0, "coarser": 0, "ms": 0.0, "draw": 0.0, "lod": 0.0})
         f["tris"] += rec["triangles"]
         f["hits"] += rec["counters"].get("cache_hits", 0)
         f["loads"] += rec["counters"].get("meshes_loaded", 0)
         f["coarser"] += rec["counters"].get("objects_coarser", 0)
         f["ms"] = max(f["ms"], rec["times_ms"]["total"])
+        f["draw"] = max(f["draw"], rec["times_ms"]["draw"])
+        f["lod"] = max(f["lod"], rec["times_ms"]["lod"])
     frames = list(per_frame.values())
-    return {"frame_ms": float(np.mean([f["ms"] for f in frames])), "tris": float(np.mean([f["tris"] for f in frames])),
+    return {"frame_ms": float(np.mean([f["ms"] for f in frames])), "draw_ms": float(np.mean([f["draw"] for f in frames])),
+            "lod_ms": float(np.mean([f["lod"] for f in frames])), "tris": float(np.mean([f["tris"] for f in frames])),
             "hits": float(np.mean([f["hits"] for f in frames])), "loads": float(np.mean([f["loads"] for f in frames])),
             "coarser": float(np.mean([f["coarser"] for f in frames])), "rss": s.get("peak_rss_mib_per_rank", [])}
 
@@ -127,7 +131,7 @@ def _render_case(args, out: Path, nranks: int, tau: float) -> dict | None:
 def _render(args, console, table_cls) -> None:
     t = table_cls(title=f"{args.scene} along walkthrough, {args.size}, {args.frames} frames, sort-last, "
                         f"{args.cache_mb} MiB cache + {args.gpu_mb} MiB GL pool per rank, loading {args.loading}")
-    for c in ("ranks", "LOD", "frame ms", "triangles / frame", "cache hits / frame", "meshes loaded / frame",
+    for c in ("ranks", "LOD", "frame ms", "draw ms", "cull+LOD+load ms", "triangles / frame", "cache hits / frame", "meshes loaded / frame",
               "objects coarser", "peak RSS MiB per rank"):
         t.add_column(c, justify="right")
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench_scene_"))
@@ -142,11 +146,12 @@ def _render(args, console, table_cls) -> None:
                 console.print(f"[red]{n} ranks, LOD {label}: render failed[/]")
                 continue
             res[label] = r
-            t.add_row(str(n), f"{label} (τ = {tau:g})", f"{r['frame_ms']:.0f}", f"{r['tris'] / 1e6:.2f} M", f"{r['hits']:.0f}",
+            t.add_row(str(n), f"{label} (τ = {tau:g})", f"{r['frame_ms']:.0f}", f"{r['draw_ms']:.0f}", f"{r['lod_ms']:.0f}", f"{r['tris'] / 1e6:.2f} M", f"{r['hits']:.0f}",
                       f"{r['loads']:.0f}", f"{r['coarser']:.0f}", ", ".join(f"{v:.0f}" for v in r["rss"]))
         if "on" in res and "off" in res:
             ratios.append(f"{n} rank(s): LOD off ÷ on — triangles {res['off']['tris'] / max(res['on']['tris'], 1):.1f}×, "
-                          f"frame time {res['off']['frame_ms'] / max(res['on']['frame_ms'], 1e-9):.1f}×")
+                          f"frame time {res['off']['frame_ms'] / max(res['on']['frame_ms'], 1e-9):.1f}×, "
+                          f"draw time {res['off']['draw_ms'] / max(res['on']['draw_ms'], 1e-9):.1f}×")
     console.print(t)
     for line in ratios:
         console.print("  " + line)
