@@ -279,3 +279,16 @@ def test_scene_complete_loading_with_budgets_too_small_says_so(tmp_path, city_st
                    "--gpu-mb", 1, "--loading", "complete", "--out", tmp_path, "-q", check=False)
     assert proc.returncode != 0
     assert "do not fit the budgets" in proc.stderr and "--gpu-mb" in proc.stderr
+
+
+def test_culling_through_a_store_group_tree_equals_brute_force(city_store):
+    from massview.data.scene import SceneStore
+
+    st = SceneStore(city_store)
+    sk = st.skeleton
+    culler = SkeletonCuller(st.groups, sk.group, sk.box_lo, sk.box_hi)
+    lo, hi = st.bounds
+    cams = [c for p in ("orbit", "walkthrough", "flyover") for c in load_path(p, lo, hi).cameras(5, 320, 240)]
+    for cam in cams:
+        planes = cam.frustum_planes()
+        assert np.array_equal(culler.visible(planes), boxes_in_frustum(sk.box_lo, sk.box_hi, planes))
