@@ -5,6 +5,7 @@ reference), and parallel == serial for every decomposition on a generated scene 
 from __future__ import annotations
 
 import math
+import os
 import time
 
 import numpy as np
@@ -258,6 +259,7 @@ def test_scene_parallel_equals_serial(tmp_path, city_store, decomposition, ranks
 
 @pytest.mark.mpi
 @pytest.mark.slow
+@pytest.mark.skipif(not os.environ.get("MASSVIEW_FULL_MATRIX"), reason="the full 6 x 3 matrix (~2 min): set MASSVIEW_FULL_MATRIX=1")
 @pytest.mark.parametrize("decomposition,ranks", SLOW)
 def test_scene_parallel_equals_serial_all_rank_counts(tmp_path, city_store, decomposition, ranks):
     _parallel_equals_serial(tmp_path, city_store, decomposition, ranks, path="walkthrough")
