@@ -266,6 +266,14 @@ def test_scene_parallel_equals_serial_all_rank_counts(tmp_path, city_store, deco
 
 
 @pytest.mark.mpi
+def test_scene_wall_tiles_equal_the_serial_image(tmp_path, city_store):
+    """Sort-last over 3 ranks delivered to a 2x1 wall: each display rank's tile equals the
+    same pixels of the serial image (--reference on every display rank)."""
+    _parallel_equals_serial(tmp_path, city_store, "sort-last:visible", 3, path="flyover", extra=("--wall", "2x1"))
+    assert len(list((tmp_path / "wall").iterdir())) == 2
+
+
+@pytest.mark.mpi
 def test_scene_small_budgets_async_stay_exact(tmp_path, city_store):
     """Budgets far below the view: meshes cycle and load meanwhile, frames never wait, and
     every rank still draws the agreed levels (reference matches)."""
