@@ -167,6 +167,8 @@ class SceneSystem:
         if self.cut is not None:
             ok = self.cut.drawn >= 0
             keep |= set(zip(self.geometry[self.cut.vis[ok]].tolist(), self.cut.drawn[ok].tolist()))
+        if self.loading == "complete":
+            self._check_fits(cut, claim)
         stalled, best = 0, -1
         while True:
             stats.count("meshes_uploaded", self._upload_ready(keep))
@@ -183,6 +185,17 @@ class SceneSystem:
                 raise ConfigError("--loading complete: the meshes this view needs do not fit the budgets "
                                   f"(--cache-mb {self.cache.budget >> 20}, --gpu-mb {self.gpu_bytes >> 20}); raise them or --tau")
             self._wait_for_loads()
+
+    def _check_fits(self, cut: Cut, claim: np.ndarray) -> None:
+        """Complete loading: fail at once, naming the budgets, when the wanted meshes cannot
+        fit (a lower bound: 24 of the store's 28 decoded bytes per vertex reach the pool)."""
+        obj, lv = cut.vis[claim], cut.desired[claim]
+        keys, first = np.unique(self.geometry[obj] * self.tris.shape[1] + lv, return_index=True)
+        need = int(np.asarray(self.sk.level_bytes)[obj[first], lv[first]].sum() * 24 // 28)
+        budget = min(self.pool.budget, self.cache.budget)
+        if need > budget:
+            raise ConfigError(f"--loading complete: the meshes this view needs do not fit the budgets (at least {need >> 20} MiB "
+                              f"for --cache-mb {self.cache.budget >> 20}, --gpu-mb {self.gpu_bytes >> 20}); raise them or --tau")
 
     def _request(self, cut: Cut, claim: np.ndarray) -> None:
         """Queue loads for claimed objects not drawn at their desired level: the coarsest level
