@@ -259,7 +259,7 @@ def validate(spec: str, cfg: RenderConfig, nranks: int) -> None:
     from .parallel.decompose import parse_decomposition, parse_wall, sort_first_tiles
     from .systems import scene_kind
 
-    modes = ("kpatch", "linear", "quadtree") if scene_kind(spec) == "terrain" else ()
+    modes = {"terrain": ("kpatch", "linear", "quadtree"), "scene": ("visible", "static")}.get(scene_kind(spec), ())
     parse_decomposition(cfg.decomposition, modes)
     if cfg.decomposition == "sort-first:grid":
         sort_first_tiles("grid", nranks, cfg.width, cfg.height, cfg.grid)
