@@ -234,3 +234,27 @@ def test_roles_rank_map():
         assign_roles(roles, 3)
     with pytest.raises(ConfigError, match="exactly"):
         assign_roles((Role("server", 1), Role("client", 2)), 4)
+
+
+def test_in_memory_table_equals_the_out_of_core_one(stores):
+    from massview.data.terrain.roettger import table_from_grid
+    from test_terrain_store import finest
+
+    st = TerrainStore(stores["real"])
+    a, b = compute_table(st, 3.0), table_from_grid(finest(st), 3.0)
+    assert len(a) == len(b) == st.layout.n - 1 and all(np.array_equal(x, y) for x, y in zip(a, b))
+
+
+@pytest.mark.parametrize("shape,C", [((760, 1000), 4), ((344, 403), 4), ((300, 237), 6), ((300, 237), 1)])
+def test_paper_layout_follows_the_rule_and_covers(shape, C):
+    from massview.systems.roettger_paper import paper_layout
+
+    rows, cols = shape
+    P, origins, D = paper_layout(rows, cols, C, 1025)
+    m = int(np.log2(P - 1))
+    if shape == (760, 1000):
+        assert P == 513 and 2 ** (m - 1) + 1 < 1000 * 2 / C <= 2**m + 1  # the paper's own set-up
+    covered = np.zeros(shape, bool)
+    for oy, ox in origins:
+        covered[oy: oy + P, ox: ox + P] = True
+    assert covered.all() and len(origins) == C and D >= max(o + P for pair in origins for o in pair)

@@ -105,3 +105,11 @@ def test_triangle_budget_holds_on_every_frame(real_store, tmp_path):
     for f, n in got.items():
         assert 0.9 * budget <= n <= budget, (f, n, budget)
         assert drawn[f] == n  # one visualization rank draws exactly what was agreed
+
+
+def test_paper_partition_renders_with_overlapping_portions(real_store, tmp_path):
+    s, recs = _render(real_store, tmp_path, 5, 4, "--paper-partition", "--reference", frames=1)
+    assert s["frames"] == 1 and "max_abs_diff" in s  # reported; the paper's seams are allowed
+    frame = load_png(tmp_path / "frames" / "00000.png")
+    assert np.count_nonzero(frame.max(axis=2) > 60) > 0.05 * frame.shape[0] * frame.shape[1]
+    assert all(r["counters"]["store_bytes_read"] > 0 for r in recs if r["rank"] >= 1)

@@ -41,6 +41,7 @@ from ..parallel.decompose import parse_wall, sort_first_tiles
 from ..parallel.roles import Role, recv_bytes, send_bytes, split_roles, wait_all
 from .frameloop import FrameResult, image_diff
 from .roettger_draw import FanDrawer, gather_layers
+from .roettger_paper import PaperPortion, paper_layout
 from .roettger_portion import LayerInfo, LayerPortion
 
 __all__ = ["RoettgerSystem", "validate", "roles"]
@@ -104,6 +105,8 @@ class RoettgerSystem:
             infos = [LayerInfo.of(s) for s in self.specs]
             span = (infos[0].zrange[1] - infos[0].zrange[0]) * infos[0].vscale
             infos = [LayerInfo(**{**i.__dict__, "zoffset": -k * _LAYER_GAP * span}) for k, i in enumerate(infos)]
+            if cfg.paper_partition:  # the overlapping portions index vertices in a wider grid
+                infos = [LayerInfo(**{**i.__dict__, "dim": paper_layout(i.rows, i.cols, cfg.compute_ranks, i.S)[2]}) for i in infos]
         self.infos = comm.bcast(infos, root=rc.leader("computation"))
         C = cfg.roettger_C if cfg.roettger_C is not None else max(i.C_min for i in self.infos)
         for i in self.infos:
@@ -114,8 +117,11 @@ class RoettgerSystem:
         self.depth0 = partition_depth(len(self.comp_ranks))
         self.bytes_read = 0
         if rc.role == "computation":
-            nodes = portion_nodes(self.depth0, len(self.comp_ranks))[rc.role_rank]
-            self.portions = [LayerPortion(i, nodes, self.depth0) for i in self.infos]
+            if cfg.paper_partition:
+                self.portions = [PaperPortion(i, rc.role_rank, len(self.comp_ranks)) for i in self.infos]
+            else:
+                nodes = portion_nodes(self.depth0, len(self.comp_ranks))[rc.role_rank]
+                self.portions = [LayerPortion(i, nodes, self.depth0) for i in self.infos]
             self.bytes_read = sum(p.bytes_read for p in self.portions)
             self.senders = {v: FanSender(len(self.infos)) for v in self.vis_ranks}
         else:
@@ -266,7 +272,7 @@ class RoettgerSystem:
         for p in self._reference:
             fans, h = p.fans(p.select(camera.position, params))  # Morton order of the whole DEM
             shift = p.n - self.depth0
-            row, col = fans.centre // p.info.S, fans.centre % p.info.S
+            row, col = fans.centre // p.info.index_dim, fans.centre % p.info.index_dim
             layers.append((fans.lengths, fans.index, h, self._owner[row >> shift, col >> shift]))
         return self._drawer.draw(camera, camera.viewport, layers, self.cfg.color_by_rank, FrameStats(-1, 0))
 

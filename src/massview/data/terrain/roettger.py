@@ -29,7 +29,7 @@ from ...core.errors import StoreError
 from .store import TerrainStore
 
 __all__ = ["C_RANGE", "k_factor", "local_d2", "propagate_into", "DEFAULT_C_MIN", "compute_table", "write_table",
-           "prepare_roettger", "RoettgerTable", "has_table"]
+           "prepare_roettger", "RoettgerTable", "has_table", "table_from_grid"]
 
 DEFAULT_C_MIN = 4.0
 C_RANGE = (2.0, 64.0)  # the C for which the level-difference proof holds (lod/roettger.py)
@@ -85,6 +85,26 @@ def _merge(coarse: np.ndarray, r0: int, dc: int, vals: np.ndarray) -> None:
 
 
 VERSION = 1
+
+
+def table_from_grid(h: np.ndarray, C_min: float) -> list[np.ndarray]:
+    """The propagated d2 of depths 0 .. m-2 of an in-memory (2^m+1)² grid (the paper's
+    overlapping portions build their own quadtree this way)."""
+    m = int(np.log2(h.shape[0] - 1))
+    K = k_factor(C_min)
+    out: list = [None] * max(m - 1, 0)
+    pushed = None
+    for t in range(m - 1, -1, -1):
+        s = 2 ** (m - t - 1)
+        cur = local_d2(h[::s, ::s], 2 * s)
+        if pushed is not None:
+            cur = np.maximum(cur, pushed)
+        if t < m - 1:
+            out[t] = cur
+        pushed = np.zeros((2 ** (t - 1),) * 2, np.float32) if t >= 1 else None
+        if pushed is not None:
+            propagate_into(pushed, cur, 0, K)
+    return out
 
 
 def _grid_strips(store: TerrainStore, level: int) -> Iterator[tuple[int, np.ndarray]]:
