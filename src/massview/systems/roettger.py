@@ -80,8 +80,8 @@ def _vis_tiles(cfg: RenderConfig, nvis: int, width: int, height: int) -> list[Vi
 
 
 class RoettgerSystem:
-    """T2 over one or more terrain stores (layers). Call :meth:`setup` on every rank of the
-    run's communicator, then :meth:`render_frame` once per frame on every rank."""
+    """T2 over one or more terrain stores (layers): :meth:`render_frame` once per frame on
+    every rank of the run's communicator (the first call splits the roles and loads the data)."""
 
     sort_last_modes: tuple[str, ...] = ()
 
@@ -95,19 +95,25 @@ class RoettgerSystem:
         self._reference = None
 
     # -- setup ----------------------------------------------------------------------------
+    def _read_infos(self) -> list[LayerInfo]:
+        """Each layer's metadata (store attributes only) with its z offset and index grid."""
+        cfg = self.cfg
+        infos = [LayerInfo.of(s) for s in self.specs]
+        span = (infos[0].zrange[1] - infos[0].zrange[0]) * infos[0].vscale
+        infos = [LayerInfo(**{**i.__dict__, "zoffset": -k * _LAYER_GAP * span}) for k, i in enumerate(infos)]
+        if cfg.paper_partition:  # the overlapping portions index vertices in a wider grid
+            infos = [LayerInfo(**{**i.__dict__, "dim": paper_layout(i.rows, i.cols, cfg.compute_ranks, i.S)[2]}) for i in infos]
+        return infos
+
     def setup(self, comm) -> None:
+        """Split ``comm`` into the two roles and load the data (collective; done by the first
+        :meth:`render_frame` when not called before)."""
         cfg = self.cfg
         self.comm = comm
         self.rc = rc = split_roles(comm, roles(cfg))
         self.vis_ranks, self.comp_ranks = rc.ranks["visualization"], rc.ranks["computation"]
-        infos = None
-        if comm.Get_rank() == rc.leader("computation"):
-            infos = [LayerInfo.of(s) for s in self.specs]
-            span = (infos[0].zrange[1] - infos[0].zrange[0]) * infos[0].vscale
-            infos = [LayerInfo(**{**i.__dict__, "zoffset": -k * _LAYER_GAP * span}) for k, i in enumerate(infos)]
-            if cfg.paper_partition:  # the overlapping portions index vertices in a wider grid
-                infos = [LayerInfo(**{**i.__dict__, "dim": paper_layout(i.rows, i.cols, cfg.compute_ranks, i.S)[2]}) for i in infos]
-        self.infos = comm.bcast(infos, root=rc.leader("computation"))
+        lead = rc.leader("computation")
+        self.infos = comm.bcast(self._read_infos() if comm.Get_rank() == lead else None, root=lead)
         C = cfg.roettger_C if cfg.roettger_C is not None else max(i.C_min for i in self.infos)
         for i in self.infos:
             if C < i.C_min:
@@ -131,7 +137,9 @@ class RoettgerSystem:
 
     @property
     def bounds(self):
-        los, his = zip(*(i.bounds() for i in self.infos))
+        """World box of all layers (from the stores' attributes when not set up yet)."""
+        infos = self.infos or self._read_infos()
+        los, his = zip(*(i.bounds() for i in infos))
         return np.min(los, axis=0), np.max(his, axis=0)
 
     @property
@@ -145,7 +153,12 @@ class RoettgerSystem:
         return RoettgerParams(C=self.C, c=c, depth0=self.depth0)
 
     # -- frame ----------------------------------------------------------------------------
-    def render_frame(self, cfg: RenderConfig, camera: Camera | None, frame: int, sink=None) -> FrameResult:
+    def render_frame(self, comm, cfg: RenderConfig, camera: Camera | None, frame: int, sink=None) -> FrameResult:
+        """One frame on every rank of ``comm`` (``camera`` matters on rank 0, the
+        visualization leader); returns this rank's stats and, on display ranks, its tile."""
+        if self.rc is None:
+            self.setup(comm)
+        self.cfg = cfg
         comm, rc = self.comm, self.rc
         stats = FrameStats(frame=frame, rank=comm.Get_rank())
         stats.count("store_bytes_read", self.bytes_read if self._first else 0)
