@@ -258,3 +258,14 @@ def test_paper_layout_follows_the_rule_and_covers(shape, C):
     for oy, ox in origins:
         covered[oy: oy + P, ox: ox + P] = True
     assert covered.all() and len(origins) == C and D >= max(o + P for pair in origins for o in pair)
+
+
+def test_bad_t2_options_fail_before_any_rank_starts(stores):
+    proc = run_cli("render", stores["real"], "--system", "roettger", "--ranks", "3", "--compute-ranks", "2",
+                   "--roettger-C", "1.5", "-q", check=False)
+    assert proc.returncode != 0 and "[2, 64]" in proc.stderr and "Traceback" not in proc.stderr
+    proc = run_cli("render", stores["real"], "--system", "roettger", "--ranks", "2", "--compute-ranks", "2", "-q", check=False)
+    assert proc.returncode != 0 and "no visualization rank" in proc.stderr
+    proc = run_cli("render", stores["real"], "--system", "roettger", "--ranks", "4", "--compute-ranks", "2", "--wall", "1x1",
+                   "-q", check=False)
+    assert proc.returncode != 0 and "needs 1 visualization ranks" in proc.stderr

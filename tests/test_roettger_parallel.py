@@ -30,16 +30,16 @@ def real_store(tmp_path_factory):
     return p
 
 
-def _render(store, out, ranks, C, *extra, frames=2, path="zoom"):
-    run_cli("render", store, "--system", "roettger", "--ranks", ranks, "--compute-ranks", C, "--frames", frames,
+def _render(store, out, ranks, C, *extra, frames=2, path="zoom", layers=1):
+    run_cli("render", *[store] * layers, "--system", "roettger", "--ranks", ranks, "--compute-ranks", C, "--frames", frames,
             "--size", SIZE, "--path", path, "--out", out, "-q", *extra)
     return summary(out), read_stats(out / "stats.jsonl")
 
 
-@pytest.mark.parametrize("ranks,C,wall", [(2, 1, None), (4, 2, None), (4, 3, None), (6, 4, "2x1"), (4, 2, "1x2")])
-def test_parallel_equals_serial_reference(real_store, tmp_path, ranks, C, wall):
+@pytest.mark.parametrize("ranks,C,wall,layers", [(2, 1, None, 1), (4, 2, None, 1), (4, 3, None, 2), (6, 4, "2x1", 1), (4, 2, "1x2", 1)])
+def test_parallel_equals_serial_reference(real_store, tmp_path, ranks, C, wall, layers):
     extra = ["--reference", "--color-by-rank"] + (["--wall", wall] if wall else [])
-    s, recs = _render(real_store, tmp_path, ranks, C, *extra)
+    s, recs = _render(real_store, tmp_path, ranks, C, *extra, layers=layers)
     assert s["max_abs_diff"] == 0 and s["diff_fraction"] == 0.0, s
     nvis = ranks - C
     if wall:

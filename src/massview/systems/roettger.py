@@ -68,8 +68,18 @@ def validate(scene: str, cfg: RenderConfig, nranks: int) -> None:
         if c * r != vis:
             raise ConfigError(f"--wall {cfg.wall} needs {c * r} visualization ranks (one per tile); the run has {vis} "
                               f"(--ranks {nranks} minus --compute-ranks {cfg.compute_ranks})")
+    depth0 = partition_depth(cfg.compute_ranks)
     for spec in (scene, *cfg.layers):
-        LayerInfo.of(spec)  # a missing store or table fails here with its message
+        info = LayerInfo.of(spec)  # a missing store or table fails here with its message
+        if cfg.roettger_C is not None:
+            RoettgerParams(C=cfg.roettger_C)  # the proven range
+            if cfg.roettger_C < info.C_min:
+                raise ConfigError(f"--roettger-C {cfg.roettger_C:g} is below the C_min {info.C_min:g} the table of {spec} was "
+                                  f"propagated for; use --roettger-C >= {info.C_min:g} or re-run "
+                                  f"`massview prepare roettger {spec} --min-C {cfg.roettger_C:g}`")
+        if depth0 > info.n - 1:
+            raise ConfigError(f"{spec} is too small for {cfg.compute_ranks} computation ranks (partition depth {depth0}, its "
+                              f"quadtree has {info.n} levels); use fewer --compute-ranks")
 
 
 def _vis_tiles(cfg: RenderConfig, nvis: int, width: int, height: int) -> list[Viewport]:
