@@ -269,3 +269,14 @@ def test_bad_t2_options_fail_before_any_rank_starts(stores):
     proc = run_cli("render", stores["real"], "--system", "roettger", "--ranks", "4", "--compute-ranks", "2", "--wall", "1x1",
                    "-q", check=False)
     assert proc.returncode != 0 and "needs 1 visualization ranks" in proc.stderr
+
+
+def test_fan_stream_without_delta_resends_everything():
+    snd, rcv = FanSender(1), FanReceiver(1)
+    keys = np.arange(5, dtype=np.int64) * 16
+    lengths = np.full(5, 6, np.uint32)
+    index = np.arange(30, dtype=np.uint32)
+    for _ in range(2):
+        msg, st = snd.encode([(keys, lengths, index, index.astype(np.float32))], delta=False)
+        held = rcv.apply(np.frombuffer(msg, np.uint8))[0]
+        assert st.new_fans == 5 and np.array_equal(held.index, index)
