@@ -280,3 +280,38 @@ def test_fan_stream_without_delta_resends_everything():
         msg, st = snd.encode([(keys, lengths, index, index.astype(np.float32))], delta=False)
         held = rcv.apply(np.frombuffer(msg, np.uint8))[0]
         assert st.new_fans == 5 and np.array_equal(held.index, index)
+
+
+def test_children_only_propagation_would_break_the_level_rule(stores):
+    """The checker above is not vacuous: Röttger's d2 propagated from children alone (not from
+    the finer nodes touching a node from outside) leaves neighbouring leaves >= 2 levels apart."""
+    from massview.data.terrain.roettger import k_factor, local_d2
+    from massview.lod.roettger import select_leaves
+    from test_terrain_store import finest
+
+    st = TerrainStore(stores["real"])
+    h, n = finest(st), st.layout.n
+    K, d2, pushed = k_factor(2.0), [None] * (n - 1), None
+    for t in range(n - 1, -1, -1):
+        s = 2 ** (n - t - 1)
+        cur = local_d2(h[::s, ::s], 2 * s)
+        cur = cur if pushed is None else np.maximum(cur, pushed)
+        if t < n - 1:
+            d2[t] = cur
+        f = cur * K
+        pushed = np.maximum.reduce([f[0::2, 0::2], f[0::2, 1::2], f[1::2, 0::2], f[1::2, 1::2]]) if t else None
+    w = (st.layout.S - 1) * 1.0
+    worst = 0
+    for eye in ((w / 2, -w / 2, 1500.0), (-0.05 * w, -0.4 * w, 1200.0), (0.3 * w, -0.35 * w, 1100.0)):
+        for c in (0.3, 3.0, 30.0):
+            lv = select_leaves(np.zeros((1, 2), np.int64), n, d2, eye, (1.0, 1.0), 1.0, (236.0, 1076.0),
+                               RoettgerParams(C=2.0, c=c), (st.layout.S, st.layout.S))
+            depth = np.zeros((2 ** n, 2 ** n), np.int64)
+            for t in np.unique(lv.depth):
+                sel = lv.depth == t
+                g = np.full((2 ** int(t),) * 2, -1, np.int64)
+                g[lv.row[sel], lv.col[sel]] = t
+                g = np.repeat(np.repeat(g, 2 ** (n - int(t)), 0), 2 ** (n - int(t)), 1)
+                depth = np.maximum(depth, g)
+            worst = max(worst, np.abs(np.diff(depth, axis=0)).max(), np.abs(np.diff(depth, axis=1)).max())
+    assert worst >= 2
