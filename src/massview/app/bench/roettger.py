@@ -86,12 +86,12 @@ def _t2(workdir: Path, store: Path, layers: int, C: int, V: int, size: str, fram
 
 
 def _parallel_lod_ms(recs: list, V: int) -> float:
-    """Mean over frames of the max over computation ranks of the LOD stage (ms)."""
+    """Median over frames of the max over computation ranks of the LOD stage (ms)."""
     per: dict = {}
     for r in recs:
         if r["rank"] >= V:
             per[r["frame"]] = max(per.get(r["frame"], 0.0), r["times_ms"]["lod"])
-    return float(np.mean(list(per.values())))
+    return float(np.median(list(per.values())))
 
 
 def _sequential(store: Path, layers: int, C: int, size: str, frames: int, draw: bool) -> tuple[float, float]:
@@ -116,17 +116,20 @@ def _sequential(store: Path, layers: int, C: int, size: str, frames: int, draw: 
     lod_ms, frame_ms = [], []
     for cam in cams:
         params = RoettgerParams(C=max(i.C_min for i in infos), c=default_c(1.0, cam.fovy, cam.height), depth0=depth0)
-        t0 = time.perf_counter()
-        out = [(p.fans(p.select(cam.position, params))) for p in portions]
-        t1 = time.perf_counter()
+        best = float("inf")
+        for _ in range(1 if draw else 2):  # LOD only: the faster of two runs (a shared, loaded machine)
+            t0 = time.perf_counter()
+            out = [(p.fans(p.select(cam.position, params))) for p in portions]
+            t1 = time.perf_counter()
+            best = min(best, t1 - t0)
         if drawer is not None:
             layers_ = [(f.lengths, f.index, hh, np.zeros(len(f), np.int64)) for f, hh in out]
             drawer.draw(cam, cam.viewport, layers_, False, FrameStats(0, 0))
-        lod_ms.append((t1 - t0) * 1e3)
+        lod_ms.append(best * 1e3)
         frame_ms.append((time.perf_counter() - t0) * 1e3)
     if drawer is not None:
         drawer.release()
-    return float(np.mean(lod_ms[1:] or lod_ms)), float(np.mean(frame_ms[1:] or frame_ms))
+    return float(np.median(lod_ms)), float(np.mean(frame_ms[1:] or frame_ms))
 
 
 def _speedup(args, workdir, store, layer_counts, res) -> None:
