@@ -260,6 +260,10 @@ def validate(spec: str, cfg: RenderConfig, nranks: int) -> None:
     from .systems import scene_kind
 
     modes = {"terrain": ("kpatch", "linear", "quadtree"), "scene": ("visible", "static")}.get(scene_kind(spec), ())
+    if cfg.system == "roettger":  # T2: roles, wall per visualization rank, the stores' tables
+        from .systems.roettger import validate as validate_roettger
+
+        return validate_roettger(spec, cfg, nranks)
     parse_decomposition(cfg.decomposition, modes)
     if cfg.decomposition == "sort-first:grid":
         sort_first_tiles("grid", nranks, cfg.width, cfg.height, cfg.grid)
