@@ -76,6 +76,19 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", "-o", type=Path, default=Path("out/render"), help="output folder (default out/render)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary table")
     p.add_argument("--fault", default=None, help=argparse.SUPPRESS)
+    _add_roettger_args(p)
+
+
+def _add_roettger_args(p: argparse.ArgumentParser) -> None:
+    """T2 flags (``--system roettger``: computation + visualization ranks)."""
+    p.add_argument("layers", nargs="*", default=[], help="T2: further terrain stores drawn as stacked layers")
+    p.add_argument("--system", choices=("auto", "roettger"), default="auto", help="auto (by scene: T1 for terrain) or roettger (T2)")
+    p.add_argument("--compute-ranks", type=_positive, default=1, help="T2: computation ranks; the other ranks visualize (default 1)")
+    p.add_argument("--paper-partition", action="store_true", help="T2: the paper's overlapping (2^m+1)² portions instead of the exact partition")
+    p.add_argument("--triangle-budget", type=_positive, default=None, help="T2: at most N triangles per frame (≥ 0.9 N when the view has more)")
+    p.add_argument("--roettger-C", type=float, default=None, help="T2: minimum global resolution C in [2, 64] (default: the store table's, 4)")
+    p.add_argument("--roettger-c", type=float, default=None, help="T2: desired global resolution c (default √3/(tau · pixel angle))")
+    p.add_argument("--no-fan-delta", dest="fan_delta", action="store_false", help="T2: resend every visible fan each frame (no change-only messages)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -129,6 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--overwrite", action="store_true", help="rebuild a complete store")
     pt.add_argument("--quiet", "-q", action="store_true")
     add_prepare_parser(psub)
+    from .roettger_cmds import add_parsers as _roettger_parsers
+
+    _roettger_parsers(psub)
     inf = sub.add_parser("info", help="levels, blocks, size on disk, compression, georeference of a store")
     inf.add_argument("store")
     inf.add_argument("--json", action="store_true")
@@ -145,13 +161,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def render_config(args) -> RenderConfig:
+    """The RenderConfig of a render/view command line: every flag whose dest is a RenderConfig
+    field (``--cache-mb`` -> ``cache_mb``) is passed by name, so a new field needs only its flag."""
+    from dataclasses import fields
+
     w, h = parse_size(args.size)
-    return RenderConfig.from_env(
-        decomposition=args.decomposition, compositor=args.compositor, radix_k=args.radix_k, codec=args.codec,
-        width=w, height=h, frames=args.frames, path=args.path, grid=args.grid, wall=args.wall,
-        tile_targets=args.tile_targets, reference=args.reference, color_by_rank=args.color_by_rank, fault=args.fault,
-        tau=args.tau, cache_mb=args.cache_mb, gpu_mb=args.gpu_mb, loading=args.loading,
-    )
+    flags = {f.name: getattr(args, f.name) for f in fields(RenderConfig) if hasattr(args, f.name)}
+    return RenderConfig.from_env(**{**flags, "width": w, "height": h})
 
 
 def cmd_render(args) -> int:
@@ -236,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     _report_peak_rss()
     if argv[:1] == ["__job"] and len(argv) == 2:  # a rank of a job started by massview.api.render
-        from ..api import run_job
+        from .render_job import run_job
 
         return run_job(argv[1])
     args = build_parser().parse_args(argv)
@@ -253,6 +269,10 @@ def main(argv: list[str] | None = None) -> int:
             from .demo import run_demo
 
             return run_demo(args)
+        if args.command == "prepare" and args.what == "roettger":
+            from .roettger_cmds import cmd_prepare_roettger
+
+            return cmd_prepare_roettger(args)
         if args.command in ("generate", "prepare", "info", "verify"):
             from . import scene_cmds, terrain_cmds
 

@@ -8,7 +8,7 @@ this registry (the first docstring line of a module is its help text).
 
 from __future__ import annotations
 
-from . import composite, ingest, scene, terrain
+from . import composite, ingest, roettger, scene, scene_ingest, terrain
 
 __all__ = ["BENCHES"]
 
@@ -16,5 +16,7 @@ BENCHES = {
     "composite": composite,
     "terrain": terrain,
     "ingest": ingest,
+    "scene-ingest": scene_ingest,
     "scene": scene,
+    "roettger": roettger,
 }

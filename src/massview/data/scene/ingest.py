@@ -28,7 +28,7 @@ from ...core.errors import IngestError
 from .mesh import Mesh, vertex_normals
 from .plystream import PlyLayout
 from .simplify import build_levels
-from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_soup
+from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_soup, split_dense
 from .sources import MemorySoup, StructuredObject, open_input, stream_bounds, stream_corners
 from .writer import SceneWriter
 
@@ -39,13 +39,13 @@ __all__ = ["IngestParams", "prepare_scene"]
 class IngestParams:
     object_triangles: int = 16384  # soup objects grow to at most this many triangles
     object_size: float = float("inf")  # ... and at most this longest box side (world units)
-    cell_triangles: int = 1 << 20  # soup cell size (bounds the memory of one cell)
+    cell_triangles: int = 1 << 18  # soup cell size (bounds the memory of one cell)
     instance: bool = False  # store shared geometry once with transforms
     simplifier: str = "fast-simplification"
     max_levels: int = 8
     stream_bytes: int = 256 << 20  # binary PLY at least this large is streamed
-    face_chunk: int = 1 << 20  # faces per streamed read
-    vertex_block: int = 1 << 22  # vertices per streamed vertex read
+    face_chunk: int = 1 << 18  # faces per streamed read
+    vertex_block: int = 1 << 20  # vertices per streamed vertex read (15-40 MB)
 
     def split(self) -> SplitParams:
         return SplitParams(self.object_triangles, self.object_size, self.cell_triangles)
@@ -180,9 +180,10 @@ def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bo
             _structured(run, src)
             continue
         cells = _cells_of_memory(src, prm) if isinstance(src, MemorySoup) else _cells_of_stream(src, out / "_spill" / str(i), prm, prog)
-        for corners in cells:
-            for p, col, nrm, f in cell_objects(corners, prm.split()):
-                run.write(_mesh(p, col, nrm, f), [None])
+        for cell in cells:
+            for corners in split_dense(cell, prm.cell_triangles):
+                for p, col, nrm, f in cell_objects(corners, prm.split()):
+                    run.write(_mesh(p, col, nrm, f), [None])
     attrs = w.finish({"ingest_seconds": round(time.perf_counter() - t0, 3)})
     shutil.rmtree(out / "_spill", ignore_errors=True)
     return {**attrs, "seconds": time.perf_counter() - t0, "input_bytes": sum(p.stat().st_size for p in paths), "resumed": resumed}

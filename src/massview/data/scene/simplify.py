@@ -9,7 +9,7 @@ no longer removes 20 % of the triangles or fewer than ``min_triangles`` would re
 Colours of the new vertices are those of the nearest level-0 vertex; normals are recomputed
 from the simplified surface. A level's error is the symmetric Hausdorff distance between
 it and level 0, estimated on the vertices (each vertex's exact distance to the nearest of the
-4 triangles whose centroids are nearest; at most 2048 vertices, evenly strided), made non-decreasing over the levels, plus the
+4 triangles whose centroids are nearest; at most 1024 vertices, evenly strided), made non-decreasing over the levels, plus the
 16-bit quantization step — the renderer picks a level from its projected size in pixels.
 """
 
@@ -22,7 +22,7 @@ from .mesh import Mesh, quantization_error, vertex_normals
 __all__ = ["build_levels", "is_closed", "simplify_once", "BACKENDS", "surface_distance", "surface_index"]
 
 BACKENDS = ("fast-simplification", "pyfqmr")
-_SAMPLES = 2048
+_SAMPLES = 1024
 
 
 def is_closed(indices: np.ndarray, positions: np.ndarray | None = None) -> bool:

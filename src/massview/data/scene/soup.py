@@ -5,6 +5,8 @@ bounds; a triangle belongs to the cell of its centroid) so that a soup larger th
 handled one cell at a time — the in-memory and the streamed ingest both go through
 :func:`cell_objects` with the same cells, so they write the same store. Inside a cell:
 
+A cell much denser than the average is halved further (:func:`split_dense`). Then:
+
 1. remove redundant vertices (equal position, colour and normal) and faces (degenerate, or
    the same three vertices as an earlier face);
 2. connected components (vertices welded by position);
@@ -25,14 +27,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Corners", "SplitParams", "cell_grid", "cell_of", "clean_soup", "cell_objects"]
+__all__ = ["Corners", "SplitParams", "cell_grid", "cell_of", "clean_soup", "cell_objects", "split_dense"]
 
 
 @dataclass(frozen=True)
 class SplitParams:
     object_triangles: int = 16384  # largest object a cluster may grow to
     object_size: float = math.inf  # largest longest box side of a joined cluster (world units)
-    cell_triangles: int = 1 << 20  # triangles per spatial cell (memory bound of one cell)
+    cell_triangles: int = 1 << 18  # triangles per spatial cell (memory bound of one cell)
 
 
 @dataclass(frozen=True)
@@ -64,6 +66,23 @@ def cell_of(centroid: np.ndarray, lo: np.ndarray, hi: np.ndarray, dims: np.ndarr
     ext = np.maximum(np.asarray(hi, float) - np.asarray(lo, float), 1e-12)
     ijk = np.clip(((centroid - lo) / ext * dims).astype(np.int64), 0, dims - 1)
     return (ijk[:, 2] * dims[1] + ijk[:, 1]) * dims[0] + ijk[:, 0]
+
+
+def split_dense(c: Corners, limit: int) -> list[Corners]:
+    """A cell of more than 2 x ``limit`` triangles (dense data in a uniform grid) cut in halves
+    at the median centroid along its longest axis, recursively, so no piece processed at once
+    exceeds the memory of a regular cell. Deterministic, order-keeping within each half."""
+    if c.count <= 2 * limit:
+        return [c]
+    cent = c.positions.astype(np.float64).mean(axis=1)
+    axis = int(np.argmax(cent.max(0) - cent.min(0)))
+    order = np.argsort(cent[:, axis], kind="stable")
+    halves = [np.sort(order[: c.count // 2]), np.sort(order[c.count // 2:])]
+    out = []
+    for h in halves:
+        sub = Corners(c.positions[h], c.colors[h], None if c.normals is None else c.normals[h])
+        out += split_dense(sub, limit)
+    return out
 
 
 def clean_soup(c: Corners) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
@@ -114,16 +133,11 @@ def _kd_pieces(cent: np.ndarray, idx: np.ndarray, cap: int) -> list[np.ndarray]:
     return _kd_pieces(cent, order[:h], cap) + _kd_pieces(cent, order[h:], cap)
 
 
-def _cluster(lo: np.ndarray, hi: np.ndarray, tris: np.ndarray, open_: np.ndarray, sp: SplitParams) -> list[list[int]]:
-    """Agglomerative clustering of base clusters (boxes lo/hi (n,3), triangle counts (n,));
-    only ``open_`` ones may join. Returns lists of base-cluster ids."""
+def _neighbours(lo: np.ndarray, hi: np.ndarray, cand: np.ndarray, n: int) -> dict[int, set]:
+    """Each candidate's 8 nearest candidates by box centre (symmetric), the paper's bound on
+    the joined boxes tried per cluster."""
     from scipy.spatial import cKDTree
 
-    n = len(tris)
-    members = {i: [i] for i in range(n)}
-    box = {i: (lo[i], hi[i], int(tris[i])) for i in range(n)}
-    cand = np.nonzero(open_)[0]
-    heap: list = []
     nbrs: dict[int, set] = {i: set() for i in range(n)}
     if len(cand) > 1:
         k = min(9, len(cand))
@@ -131,8 +145,20 @@ def _cluster(lo: np.ndarray, hi: np.ndarray, tris: np.ndarray, open_: np.ndarray
         for a, row in zip(cand, nn.reshape(len(cand), k)):
             for b in cand[row]:
                 if b != a:
-                    nbrs[a].add(int(b))
+                    nbrs[int(a)].add(int(b))
                     nbrs[int(b)].add(int(a))
+    return nbrs
+
+
+def _cluster(lo: np.ndarray, hi: np.ndarray, tris: np.ndarray, open_: np.ndarray, sp: SplitParams) -> list[list[int]]:
+    """Agglomerative clustering of base clusters (boxes lo/hi (n,3), triangle counts (n,));
+    only ``open_`` ones may join. Returns lists of base-cluster ids."""
+    n = len(tris)
+    members = {i: [i] for i in range(n)}
+    box = {i: (lo[i], hi[i], int(tris[i])) for i in range(n)}
+    cand = np.nonzero(open_)[0]
+    heap: list = []
+    nbrs = _neighbours(lo, hi, cand, n)
     alive = set(members)
 
     def push(a: int, b: int) -> None:
