@@ -8,7 +8,7 @@ this registry (the first docstring line of a module is its help text).
 
 from __future__ import annotations
 
-from . import composite, ingest, scene_ingest, terrain
+from . import composite, ingest, roettger, scene, scene_ingest, terrain
 
 __all__ = ["BENCHES"]
 
@@ -17,4 +17,6 @@ BENCHES = {
     "terrain": terrain,
     "ingest": ingest,
     "scene-ingest": scene_ingest,
+    "scene": scene,
+    "roettger": roettger,
 }
