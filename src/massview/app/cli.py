@@ -72,6 +72,10 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", "-o", type=Path, default=Path("out/render"), help="output folder (default out/render)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary table")
     p.add_argument("--fault", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--system", default=None, choices=("reliefboards",), help="reliefboards: M2, boards built by backend ranks")
+    from .reliefboards_cmds import add_render_args as _add_reliefboard_args
+
+    _add_reliefboard_args(p)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -179,6 +183,10 @@ def cmd_render(args, argv) -> int:
     from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
 
     cfg = render_config(args)
+    if args.system == "reliefboards":
+        from .reliefboards_cmds import cmd_render as _reliefboards
+
+        return _reliefboards(args, argv, cfg)
     if not in_mpi_job():
         nranks = args.ranks or 1
         _validate_render(args, cfg, nranks)

@@ -206,15 +206,17 @@ def near_zone_range(lo, hi, triangles, params: ClusterParams) -> float:
     return float(np.linalg.norm(hi[members].max(0) - lo[members].min(0)))
 
 
-def cluster_scene(lo, hi, triangles, params: ClusterParams = ClusterParams()) -> Clustering:
-    """Both phases of §4 on base clusters (connected components) ``lo``/``hi``/``triangles``."""
+def cluster_scene(lo, hi, triangles, params: ClusterParams = ClusterParams(), merge: bool = True) -> Clustering:
+    """Both phases of §4 on base clusters (connected components) ``lo``/``hi``/``triangles``.
+    ``merge=False`` keeps every input as its own object and only classifies it (the paper's
+    forest: compact objects used directly, without clustering)."""
     lo, hi, tris = _check(lo, hi, triangles)
     d_nz = near_zone_range(lo, hi, tris, params)
     sl_c = cluster_side_length(d_nz, params)
     too_large = (hi - lo).max(axis=1) > sl_c
     small = np.nonzero(~too_large)[0]
     rep = np.arange(len(lo))
-    if len(small):
+    if len(small) and merge:
         sub, _, _ = agglomerate(lo[small], hi[small], tris[small], params.k, cap=sl_c)
         rep[small] = small[sub]
     uniq, labels = np.unique(rep, return_inverse=True)

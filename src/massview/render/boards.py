@@ -41,7 +41,12 @@ def _vao(ctx, prog, buffers, ibo):
 
 
 class BoardBuilder:
-    """Four-pass Reliefboard creation for one object mesh at a time (a backend's job)."""
+    """Four-pass Reliefboard creation for one object mesh at a time (a backend's job).
+
+    ``BoardBuilder.process_passes`` counts the capture passes run by every builder in this
+    process (the visualization rank reports it: it must stay 0 there)."""
+
+    process_passes = 0
 
     def __init__(self, ctx: moderngl.Context):
         self.ctx = ctx
@@ -87,6 +92,7 @@ class BoardBuilder:
             vao.render(moderngl.TRIANGLES)
             raw = fbo.read(components=comps, dtype=dtype)
             self.passes_run += 1
+            BoardBuilder.process_passes += 1
         finally:
             vao.release()
             fbo.release()
@@ -133,6 +139,11 @@ class BoardRenderer:
     @property
     def gpu_bytes(self) -> int:
         return sum(b.size for entry in self._boards.values() for b in entry[1])
+
+    def triangles(self, object_id: int) -> int:
+        """Triangles of the object's resident board (0 if none)."""
+        entry = self._boards.get(int(object_id))
+        return 0 if entry is None else entry[2]
 
     def put(self, board: Reliefboard, flat: bool = False) -> None:
         """Upload ``board`` (replacing the object's previous board)."""

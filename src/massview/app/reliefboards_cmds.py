@@ -1,0 +1,159 @@
+"""``massview render SCENE --system reliefboards``: M2 along a camera path, and its §7 metrics.
+
+Outputs in ``DIR`` as for ``massview render``: ``frames/NNNNN.png``, ``stats.jsonl`` (one record
+per frame of the visualization rank, with the M2 counters) and ``summary.json`` with the §7
+figures: frame time, triangles by kind, requests, mean/max response time, angle-error
+distribution (min, quartiles, mean, max), time to a complete view, per-backend loads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..core.config import RenderConfig
+from ..core.errors import ConfigError
+from ..core.paths import load_path
+from ..core.stats import summarize
+
+__all__ = ["add_render_args", "options_from_args", "cmd_render", "run", "m2_summary"]
+
+
+def _stall(spec: str) -> tuple[int, float | None]:
+    rank, _, sec = spec.partition(":")
+    try:
+        return int(rank), (float(sec) if sec else None)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{spec!r}: expected RANK or RANK:SECONDS, e.g. 2 or 2:0.5") from None
+
+
+def add_render_args(p: argparse.ArgumentParser) -> None:
+    """The M2 flags of ``massview render --system reliefboards``."""
+    g = p.add_argument_group("reliefboards (--system reliefboards)")
+    g.add_argument("--tnz", type=int, default=None, help="near-zone triangles t_nz (default 350000: the paper's 3.5 M scaled to llvmpipe)")
+    g.add_argument("--epsilon", type=float, default=11.5, help="angle error (deg) past which a board is renewed (default 11.5)")
+    g.add_argument("--max-error", type=float, default=45.0, help="angle error (deg) past which the original is drawn (default 45)")
+    g.add_argument("--size-threshold", type=float, default=0.30, help="relative projected-size change that renews a board (default 0.3)")
+    g.add_argument("--board-px", type=int, default=128, help="largest projected board side p in pixels (default 128)")
+    g.add_argument("--min-triangles", type=int, default=None, help="objects with fewer triangles are infeasible (default 2·p²)")
+    g.add_argument("--replicas", type=int, default=3, help="replicas of each object on the backends (default 3)")
+    g.add_argument("--placement-seed", type=int, default=0, help="seed of the random replica placement")
+    g.add_argument("--stall-backend", type=_stall, default=None, metavar="RANK[:SEC]",
+                   help="simulate a stalled backend (holds every request until the end) or a slow one (SEC more per board)")
+
+
+def options_from_args(args):
+    from ..systems.reliefboards import ReliefboardOptions
+
+    stall = args.stall_backend or (None, None)
+    kw = dict(epsilon_deg=args.epsilon, max_error_deg=args.max_error, size_threshold=args.size_threshold,
+              p=args.board_px, replicas=args.replicas, seed=args.placement_seed, min_triangles=args.min_triangles,
+              stall_backend=stall[0], stall_s=stall[1])
+    if args.tnz is not None:
+        kw["t_nz"] = args.tnz
+    return ReliefboardOptions(**kw)
+
+
+def _quantiles(values) -> dict:
+    v = np.asarray(values, np.float64)
+    if v.size == 0:
+        return {"count": 0}
+    q = np.percentile(v, [0, 25, 50, 75, 100])
+    q = [round(float(x), 3) for x in q]
+    return {"count": int(v.size), "min": q[0], "q1": q[1], "median": q[2],
+            "q3": q[3], "max": q[4], "mean": round(float(v.mean()), 3)}
+
+
+def m2_summary(records: list[dict]) -> dict:
+    """The §7 figures of a run from its per-frame records."""
+    c = [r["counters"] for r in records]
+    frame_ms = np.array([r["times_ms"]["total"] for r in records])
+    resp = [x for k in c for x in k.get("response_ms", [])]
+    angles = [x for k in c for x in k.get("angle_error", [])]
+    complete = [i for i, k in enumerate(c) if k.get("view_complete")]
+    t_complete = float(frame_ms[: complete[0] + 1].sum()) if complete else None
+    return {
+        "frame_ms_p50": round(float(np.percentile(frame_ms, 50)), 3),
+        "frame_ms_p99": round(float(np.percentile(frame_ms, 99)), 3),
+        "tris_near_mean": float(np.mean([k["tris_near"] for k in c])),
+        "tris_far_original_mean": float(np.mean([k["tris_far_original"] for k in c])),
+        "tris_board_mean": float(np.mean([k["tris_board"] for k in c])),
+        "requests": int(sum(k.get("requests", 0) for k in c)),
+        "answered": int(sum(k.get("answered", 0) for k in c)),
+        "pending_at_end": int(c[-1]["pending"]) if c else 0,
+        "response_ms": _quantiles(resp),
+        "angle_error_deg": _quantiles(angles),
+        "first_complete_frame": complete[0] if complete else None,
+        "ms_to_complete_view": round(t_complete, 3) if t_complete is not None else None,
+        "loads_per_backend": np.sum([k.get("loads", []) for k in c if k.get("loads")], axis=0).tolist() if c else [],
+        "board_passes_on_visualization_rank": int(max((k.get("board_passes_here", 0) for k in c), default=0)),
+    }
+
+
+def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool = True, write_frames: bool = True):
+    """Render ``cfg.frames`` frames of ``cfg.path`` with M2; returns the summary on rank 0."""
+    from ..systems.boardscene import open_board_objects
+    from ..systems.reliefboards import run_reliefboards
+    from .render_cmd import write_png
+
+    rank = comm.Get_rank()
+    fovy = 45.0
+    objects = open_board_objects(scene, opts.cluster_params(cfg.height, fovy))
+    cameras = load_path(cfg.path, *objects.bounds).cameras(cfg.frames, cfg.width, cfg.height) if rank == 0 else None
+    if rank == 0 and cameras and abs(cameras[0].fovy - fovy) > 1e-9:
+        raise ConfigError(f"--path {cfg.path}: the reliefboards system classifies objects for fovy {fovy}, the path has {cameras[0].fovy}")
+    stats_file = None
+    if rank == 0 and out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        stats_file = open(out / "stats.jsonl", "w")
+
+    def sink(f, image, stats):
+        if stats_file is not None:
+            if write_frames:
+                write_png(out / "frames" / f"{f:05d}.png", image)
+            stats_file.write(json.dumps(stats.to_json()) + "\n")
+
+    try:
+        res = run_reliefboards(comm, objects, opts, cameras, sink, cfg.reference, cfg.egl_device, cfg.color_by_rank)
+    finally:
+        if stats_file is not None:
+            stats_file.close()
+    if res is None:
+        return None
+    records, extra = res
+    summary = summarize(records, scene=scene, system="reliefboards", size=[cfg.width, cfg.height], path=cfg.path,
+                        renderer=extra["renderer"], backends=comm.Get_size() - 1)
+    summary.update(m2_summary(records))
+    summary.update(objects=objects.count, feasible=int(objects.feasible.sum()), d_nz=objects.d_nz, sl_c=objects.sl_c,
+                   t_nz=opts.t_nz, late_boards=extra["late_boards"], backend_counters=extra["backends"])
+    if cfg.reference:
+        summary["max_abs_diff"] = max(r["counters"]["ref_max_abs_diff"] for r in records)
+        summary["diff_fraction"] = max(r["counters"]["ref_diff_fraction"] for r in records)
+    if out is not None:
+        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def cmd_render(args, argv, cfg: RenderConfig) -> int:
+    """``massview render --system reliefboards``: relaunch under mpiexec, run, print."""
+    from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
+
+    opts = options_from_args(args)
+    load_path(cfg.path, [0, 0, 0], [1, 1, 1])
+    if not in_mpi_job():
+        if (args.ranks or 1) < 2:
+            raise ConfigError("--system reliefboards needs a visualization rank and at least one backend: give --ranks 2 or more")
+        return relaunch(argv, args.ranks)
+    comm = world()
+    summary = guarded(comm, run, comm, args.scene, cfg, opts, args.out, args.quiet)
+    if summary is not None and not args.quiet:
+        keys = ("mean_frame_ms", "frame_ms_p99", "requests", "answered", "response_ms", "angle_error_deg", "ms_to_complete_view",
+                "loads_per_backend")
+        for k in keys:
+            print(f"{k}: {summary.get(k)}", file=sys.stdout)
+        print(f"wrote {args.out}/summary.json, {args.out}/stats.jsonl and the frames")
+    return 0
