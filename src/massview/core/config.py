@@ -47,6 +47,15 @@ class RenderConfig:
     loading: str = "async"  # terrain: "async" (never wait) or "complete" (wait for every needed block)
     egl_device: int | None = None
     fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
+    # T2 (--system roettger): computation ranks, partition, budget, Röttger's C and c, layers
+    system: str = "auto"  # "auto" (by scene), "roettger" or "reliefboards"
+    layers: tuple[str, ...] = ()  # further stores drawn as stacked layers (T2)
+    compute_ranks: int = 1
+    paper_partition: bool = False
+    triangle_budget: int | None = None
+    roettger_C: float | None = None  # None: the store table's C_min
+    roettger_c: float | None = None  # None: from --tau (massview.lod.roettger.default_c)
+    fan_delta: bool = True  # send only the fans that changed since the previous frame
 
     def __post_init__(self) -> None:
         if self.frames < 1:
@@ -59,6 +68,15 @@ class RenderConfig:
             raise ConfigError("--cache-mb and --gpu-mb must be at least 1")
         if not self.tau > 0:
             raise ConfigError(f"--tau (pixel tolerance) must be positive, got {self.tau}")
+        if self.system not in ("auto", "roettger", "reliefboards"):
+            raise ConfigError(f"--system must be auto, roettger or reliefboards, got {self.system!r}")
+        if self.compute_ranks < 1:
+            raise ConfigError(f"--compute-ranks must be at least 1, got {self.compute_ranks}")
+        if self.triangle_budget is not None and self.triangle_budget < 1:
+            raise ConfigError(f"--triangle-budget must be at least 1, got {self.triangle_budget}")
+        if self.layers and self.system != "roettger":
+            raise ConfigError("several stores (layers) need --system roettger")
+        object.__setattr__(self, "layers", tuple(self.layers))
 
     @classmethod
     def from_env(cls, env=None, **explicit) -> "RenderConfig":

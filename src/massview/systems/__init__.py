@@ -29,6 +29,10 @@ def scene_kind(spec: str) -> str:
 def open_system(spec: str, cfg=None):
     """The rendering system for a scene: ``builtin:objects[?n=..&seed=..]`` or a terrain store."""
     egl = getattr(cfg, "egl_device", None)
+    if getattr(cfg, "system", "auto") == "roettger":
+        from .roettger import RoettgerSystem
+
+        return RoettgerSystem((spec, *cfg.layers), cfg)
     if scene_kind(spec) == "objects":
         from .objects import ObjectsSystem
 

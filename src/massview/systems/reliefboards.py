@@ -1,7 +1,7 @@
 """M2 — asynchronous Reliefboards computed by backend ranks (Süß et al. 2010).
 
-Two roles on one communicator: rank 0 is the **visualization rank**, every other rank a
-**backend**. Object data are placed on the backends at random with a fixed number of replicas
+Two roles (:mod:`~massview.parallel.roles`): one **visualization rank** (the parent's rank 0)
+and the **backends** (all other ranks); messages between them go over the parent communicator. Object data are placed on the backends at random with a fixed number of replicas
 (§6.2); every rank derives the same placement from the seed.
 
 Visualization rank, each frame (§6.1):
@@ -42,13 +42,16 @@ from ..lod.cull import spheres_in_frustum
 from ..lod.reliefboard import decode_board, encode_board
 from ..parallel.boardlink import BoardRequest, BackendLink, VisualizationLink
 from ..parallel.ccollision import assign_requests, place_replicas
+from ..parallel.roles import Role, split_roles
 from ..render.boards import BoardBuilder, BoardRenderer
 from ..render.context import create_context, renderer_string
 from ..render.meshes import MeshRenderer, rank_tint
 from ..render.view import ViewRenderer
 from .boardscene import BoardObjects
 
-__all__ = ["ReliefboardOptions", "VisualizationRank", "BackendRank"]
+__all__ = ["ReliefboardOptions", "VisualizationRank", "BackendRank", "ROLES", "run_reliefboards"]
+
+ROLES = (Role("visualization", 1), Role("backend", None, minimum=1))
 
 
 @dataclass(frozen=True)
@@ -87,12 +90,12 @@ class ReliefboardOptions:
 class VisualizationRank:
     """Rank 0's state: resident boards, pending requests, the object data for originals."""
 
-    def __init__(self, comm, objects: BoardObjects, opts: ReliefboardOptions, egl_device=None, tint_boards=False):
-        size = comm.Get_size()
-        if size < 2:
+    def __init__(self, comm, backends: list[int], objects: BoardObjects, opts: ReliefboardOptions, egl_device=None,
+                 tint_boards=False):
+        if not backends:
             raise ConfigError("the reliefboards system needs at least one backend: run with --ranks 2 or more")
         self.obj, self.opts, self.policy = objects, opts, opts.policy()
-        self.backends = list(range(1, size))
+        self.backends = list(backends)
         self.holders = place_replicas(objects.count, len(self.backends), opts.replicas, opts.seed)
         self.link = VisualizationLink(comm, self.backends)
         self.ctx = create_context(egl_device)
@@ -176,7 +179,8 @@ class VisualizationRank:
         stats.counters["boards_drawn"] = len(plan.far_board)
         stats.counters["far_original"] = len(plan.far_original)
         stats.counters["pending"] = int(self.pending.sum())
-        stats.counters["pending_by_backend"] = np.bincount(self.pending_to[self.pending] - 1, minlength=len(self.backends)).tolist()
+        index = np.searchsorted(self.backends, self.pending_to[self.pending])
+        stats.counters["pending_by_backend"] = np.bincount(index, minlength=len(self.backends)).tolist()
         stats.counters["angle_error"] = np.round(plan.angle_error, 3).tolist()
         far = np.concatenate([plan.far_original, plan.far_board])
         stats.counters["view_complete"] = int(len(plan.far_original) == 0 and not self.pending[far].any())
@@ -201,12 +205,12 @@ class VisualizationRank:
 class BackendRank:
     """A backend: builds the boards it is asked for, in order, from its replicas."""
 
-    def __init__(self, comm, objects: BoardObjects, opts: ReliefboardOptions, egl_device=None):
+    def __init__(self, comm, viz: int, backends: list[int], objects: BoardObjects, opts: ReliefboardOptions, egl_device=None):
         self.rank = comm.Get_rank()
         self.obj, self.opts = objects, opts
-        holders = place_replicas(objects.count, comm.Get_size() - 1, opts.replicas, opts.seed)
-        self.held = np.any(holders == self.rank - 1, axis=1)
-        self.link = BackendLink(comm, 0)
+        holders = place_replicas(objects.count, len(backends), opts.replicas, opts.seed)
+        self.held = np.any(holders == backends.index(self.rank), axis=1)
+        self.link = BackendLink(comm, viz)
         self.ctx = create_context(egl_device)
         self.builder = BoardBuilder(self.ctx)
         self.stalled = opts.stall_backend == self.rank
@@ -248,23 +252,24 @@ class BackendRank:
 
 def run_reliefboards(comm, objects: BoardObjects, opts: ReliefboardOptions, cameras: list[Camera] | None,
                      sink=None, reference: bool = False, egl_device=None, tint_boards: bool = False):
-    """Run M2 on every rank of ``comm``: rank 0 renders ``cameras`` (needed there only), the
-    others serve boards. ``sink(frame, image, stats)`` gets every frame on rank 0. Returns
-    ``(records, backend counters)`` on rank 0 and ``None`` elsewhere. The only collective is
-    the gather of the backends' counters after the last frame."""
-    if comm.Get_size() < 2:
-        raise ConfigError("the reliefboards system needs at least one backend: run with --ranks 2 or more")
-    if comm.Get_rank() != 0:
-        counters = BackendRank(comm, objects, opts, egl_device).run()
-        comm.gather(counters, root=0)
+    """Run M2 on every rank of ``comm`` (split into :data:`ROLES`): the visualization rank
+    renders ``cameras`` (needed there only), the backends serve boards. ``sink(frame, image,
+    stats)`` gets every frame on the visualization rank. Returns ``(records, extra)`` there and
+    ``None`` elsewhere. The only collective after the split is the gather of the backends'
+    counters once the last frame is done."""
+    rc = split_roles(comm, ROLES)
+    parent, viz, backends = rc.parent, rc.leader("visualization"), rc.ranks["backend"]
+    if rc.role == "backend":
+        counters = BackendRank(parent, viz, backends, objects, opts, egl_device).run()
+        parent.gather(counters, root=viz)
         return None
-    viz = VisualizationRank(comm, objects, opts, egl_device, tint_boards)
+    vis = VisualizationRank(parent, backends, objects, opts, egl_device, tint_boards)
     records = []
     try:
         for f, cam in enumerate(cameras):
-            image, stats = viz.frame(cam, f)
+            image, stats = vis.frame(cam, f)
             if reference:
-                ref = viz.render_reference(cam)
+                ref = vis.render_reference(cam)
                 d = np.abs(image.color[..., :3].astype(np.int16) - ref.color[..., :3]).max(axis=2)
                 stats.counters["ref_max_abs_diff"] = int(d.max(initial=0))
                 stats.counters["ref_diff_fraction"] = float(np.count_nonzero(d) / d.size)
@@ -272,6 +277,6 @@ def run_reliefboards(comm, objects: BoardObjects, opts: ReliefboardOptions, came
                 sink(f, image, stats)
             records.append(stats.to_json())
     finally:
-        late = viz.close()
-    backends = comm.gather(None, root=0)[1:]
-    return records, {"late_boards": late, "backends": backends, "renderer": viz.renderer}
+        late = vis.close()
+    gathered = parent.gather(None, root=viz)
+    return records, {"late_boards": late, "backends": [g for g in gathered if g is not None], "renderer": vis.renderer}
