@@ -137,6 +137,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .roettger_cmds import add_parsers as _roettger_parsers
 
     _roettger_parsers(psub)
+    from .reliefboards_cmds import add_parsers as _reliefboard_parsers
+
+    _reliefboard_parsers(psub)
     inf = sub.add_parser("info", help="levels, blocks, size on disk, compression, georeference of a store")
     inf.add_argument("store")
     inf.add_argument("--json", action="store_true")
@@ -320,6 +323,10 @@ def main(argv: list[str] | None = None) -> int:
             from .demo import run_demo
 
             return run_demo(args)
+        if args.command == "prepare" and args.what == "reliefboards":
+            from .reliefboards_cmds import cmd_prepare
+
+            return cmd_prepare(args)
         if args.command == "prepare" and args.what == "roettger":
             from .roettger_cmds import cmd_prepare_roettger
 

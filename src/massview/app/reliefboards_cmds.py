@@ -157,3 +157,86 @@ def cmd_render(args, argv, cfg: RenderConfig) -> int:
             print(f"{k}: {summary.get(k)}", file=sys.stdout)
         print(f"wrote {args.out}/summary.json, {args.out}/stats.jsonl and the frames")
     return 0
+
+
+# -- massview prepare reliefboards ----------------------------------------------------------------
+def add_parsers(prepare_sub) -> None:
+    """``massview prepare reliefboards SCENE``: §4 clustering stored in the scene store."""
+    p = prepare_sub.add_parser("reliefboards", help="M2: cluster a scene store into feasible objects (§4), stored in the store")
+    p.add_argument("scene", help="a scene store (massview prepare scene / generate scene)")
+    p.add_argument("--tnz", type=int, default=350_000, help="near-zone triangles t_nz (default 350000: 3.5 M scaled to llvmpipe)")
+    p.add_argument("--board-px", type=int, default=128, help="largest projected board side p in pixels (default 128)")
+    p.add_argument("--size", default="1024x768", help="display WIDTHxHEIGHT; its height is r_y (default 1024x768, the paper's)")
+    p.add_argument("--fovy", type=float, default=45.0, help="vertical field of view in degrees (default 45)")
+    p.add_argument("--min-triangles", type=int, default=None, help="clusters with fewer triangles are infeasible (default 2·p²)")
+    p.add_argument("--candidates", type=int, default=8, help="nearby candidate clusters per cluster (default 8)")
+    p.add_argument("--picture", type=Path, default=None, help="also write a PNG of the clusters (as the paper's Figure 5)")
+    p.add_argument("--quiet", "-q", action="store_true")
+
+
+def cmd_prepare(args) -> int:
+    from ..core.config import parse_size
+    from ..data.board_clusters import write_clusters
+    from ..lod.clusters import ClusterParams, cluster_scene
+    from ..systems.boardscene import open_scene_store
+
+    _, height = parse_size(args.size)
+    params = ClusterParams(t_nz=args.tnz, p=args.board_px, r_y=height, fovy=args.fovy, k=args.candidates,
+                           min_triangles=args.min_triangles)
+    store = open_scene_store(args.scene)
+    sk = store.skeleton
+    tris = np.asarray(sk.triangles, np.int64)
+    tris = tris[:, 0] if tris.ndim == 2 else tris
+    cl = cluster_scene(np.asarray(sk.box_lo, np.float64), np.asarray(sk.box_hi, np.float64), tris, params)
+    write_clusters(args.scene, cl.labels, cl.status, {"t_nz": params.t_nz, "p": params.p, "r_y": params.r_y, "fovy": params.fovy,
+                                                      "min_triangles": params.board_triangles, "d_nz": cl.d_nz, "sl_c": cl.sl_c})
+    counts = np.bincount(cl.status, minlength=3)
+    if not args.quiet:
+        print(f"{args.scene}: {len(tris)} objects -> {len(cl.status)} clusters: {counts[0]} feasible, {counts[1]} too large "
+              f"(> sl_c = {cl.sl_c:.4g}), {counts[2]} with fewer than {params.board_triangles} triangles; d_nz = {cl.d_nz:.4g}")
+    if args.picture is not None:
+        write_cluster_picture(args.scene, args.picture, params, parse_size(args.size))
+        if not args.quiet:
+            print(f"wrote {args.picture}")
+    return 0
+
+
+def write_cluster_picture(scene: str, path: Path, params, size=(1024, 768)) -> Path:
+    """The clusters as in the paper's Figure 5: too large green, feasible clusters in shades of
+    red, clusters with too few triangles in other colours."""
+    from PIL import Image as PILImage
+
+    from ..core.camera import Camera
+    from ..core.stats import FrameStats
+    from ..lod.clusters import FEASIBLE, TOO_LARGE
+    from ..render.context import create_context
+    from ..render.meshes import MeshRenderer
+    from ..render.view import ViewRenderer
+    from ..systems.boardscene import open_board_objects
+
+    obj = open_board_objects(scene, params)
+    lo, hi = obj.bounds
+    c, ext = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+    cam = Camera.look_at(c + np.array([0.55, -0.75, 0.45]) * ext, c, fovy=params.fovy, near=ext * 0.01, far=ext * 4,
+                         width=size[0], height=size[1])
+    ctx = create_context()
+    meshes, view = MeshRenderer(ctx, *obj.concatenated()), ViewRenderer(ctx)
+    rng = np.random.default_rng(1)
+
+    def draw(mvp):
+        for i in range(obj.count):
+            if obj.status[i] == TOO_LARGE:
+                tint = (0.2, 0.85, 0.2, 0.8)
+            elif obj.status[i] == FEASIBLE:
+                tint = (rng.uniform(0.55, 1.0), rng.uniform(0.0, 0.15), rng.uniform(0.0, 0.15), 0.8)
+            else:
+                tint = (*rng.uniform(0.2, 0.9, 3) * np.array([0.5, 0.7, 1.0]), 0.8)
+            meshes.draw(np.array([i]), mvp, tuple(float(v) for v in tint))
+        return 0
+
+    img = view.render(cam, cam.viewport, draw, FrameStats(frame=0, rank=0))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PILImage.fromarray(img.color[..., :3]).save(path, optimize=True)
+    meshes.release()
+    view.release()
+    return path

@@ -100,7 +100,7 @@ class VisualizationRank:
         self.link = VisualizationLink(comm, self.backends)
         self.ctx = create_context(egl_device)
         self.renderer = renderer_string(self.ctx)
-        self.meshes = MeshRenderer(self.ctx, objects.positions, objects.normals, objects.colors, objects.indices, objects.index_offset)
+        self.meshes = MeshRenderer(self.ctx, *objects.concatenated())
         self.boards = BoardRenderer(self.ctx)
         self.view = ViewRenderer(self.ctx)
         n = objects.count
@@ -217,12 +217,16 @@ class BackendRank:
         self.builder = BoardBuilder(self.ctx)
         self.stalled = opts.stall_backend == self.rank
         self.built, self.build_ms = 0, []
+        self._meshes: dict[int, tuple] = {}  # the replicas this backend holds, loaded on first request
 
     def _build(self, req: BoardRequest) -> bytes:
         if not self.held[req.object_id]:
             raise ConfigError(f"backend {self.rank} was asked for object {req.object_id}, of which it holds no replica")
         t0 = time.perf_counter()
-        board = self.builder.build(req.object_id, *self.obj.mesh(req.object_id), direction=req.direction, size=req.size,
+        mesh = self._meshes.get(req.object_id)
+        if mesh is None:
+            mesh = self._meshes[req.object_id] = self.obj.mesh(req.object_id)
+        board = self.builder.build(req.object_id, *mesh, direction=req.direction, size=req.size,
                                    box_lo=self.obj.box_lo[req.object_id], box_hi=self.obj.box_hi[req.object_id])
         data = encode_board(board)
         self.build_ms.append((time.perf_counter() - t0) * 1e3)
