@@ -165,6 +165,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .bench import roettger as _bench_roettger
 
     _bench_roettger.add_arguments(bsub.add_parser("roettger", help="T2: the paper's experiments (§4.1 speed-up, Figures 6, 7), T1 vs T2, RSS per computation rank"))
+    from .bench import reliefboards as _bench_reliefboards
+
+    _bench_reliefboards.add_arguments(bsub.add_parser("reliefboards", help="M2: §7 experiments (frame time vs all-original, response, angle error, backends)"))
     bi = bsub.add_parser("ingest", help="prepare a synthetic DEM: MB/s, compression ratio, peak RSS")
     bi.add_argument("--size", type=_positive, default=16385, help="samples per side (default 16385: 1 GiB float32)")
     bi.add_argument("--seed", type=int, default=1)
@@ -274,6 +277,10 @@ def cmd_bench(args, argv) -> int:
         from . import bench_terrain
 
         return bench_terrain.run(args)
+    if args.bench == "reliefboards":
+        from .bench import reliefboards
+
+        return reliefboards.run(args)
     if args.bench == "roettger":
         from .bench import roettger
 

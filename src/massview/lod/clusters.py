@@ -208,12 +208,15 @@ def near_zone_range(lo, hi, triangles, params: ClusterParams) -> float:
 
 def cluster_scene(lo, hi, triangles, params: ClusterParams = ClusterParams(), merge: bool = True) -> Clustering:
     """Both phases of §4 on base clusters (connected components) ``lo``/``hi``/``triangles``.
-    ``merge=False`` keeps every input as its own object and only classifies it (the paper's
-    forest: compact objects used directly, without clustering)."""
+
+    ``merge=False`` keeps every input as its own object and only classifies it — the paper's
+    forest, whose compact objects it uses directly, without clustering: then an object is too
+    large only when its longest side exceeds the near-zone range d_nz (it cannot lie beyond a
+    near zone it does not fit in); the triangle rule is the same."""
     lo, hi, tris = _check(lo, hi, triangles)
     d_nz = near_zone_range(lo, hi, tris, params)
     sl_c = cluster_side_length(d_nz, params)
-    too_large = (hi - lo).max(axis=1) > sl_c
+    too_large = (hi - lo).max(axis=1) > (sl_c if merge else d_nz)
     small = np.nonzero(~too_large)[0]
     rep = np.arange(len(lo))
     if len(small) and merge:

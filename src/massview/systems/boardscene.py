@@ -101,14 +101,16 @@ def _world_mesh(store, obj: int) -> tuple:
     pos = np.asarray(m.positions, np.float64) @ lin.T + t[:3, 3]
     nrm = np.asarray(m.normals, np.float64) @ np.linalg.inv(lin)
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
-    return pos.astype(np.float32), nrm.astype(np.float32), np.asarray(m.colors, np.uint8), np.asarray(m.indices, np.uint32)
+    return pos.astype(np.float32), nrm.astype(np.float32), np.asarray(m.colors, np.uint8), np.asarray(m.indices, np.uint32).reshape(-1)
 
 
-def objects_from_store(store, params: ClusterParams, labels: np.ndarray | None = None) -> BoardObjects:
+def objects_from_store(store, params: ClusterParams, labels: np.ndarray | None = None,
+                       status: np.ndarray | None = None, attrs: dict | None = None) -> BoardObjects:
     """A scene store (``skeleton`` with ``box_lo``, ``box_hi``, ``triangles`` (n, levels),
     ``geometry``, ``transform``; ``get_mesh(geometry, level)``). With ``labels`` (cluster id per
-    store object, from ``prepare reliefboards``) the M2 objects are the clusters, classified
-    again for ``params``; without, every store object is used directly."""
+    store object) and ``status``/``attrs`` (per cluster, d_nz and sl_c) from ``prepare
+    reliefboards``, the M2 objects are the stored clusters; without, every store object is used
+    directly, classified for ``params``."""
     sk = store.skeleton
     lo, hi = np.asarray(sk.box_lo, np.float64), np.asarray(sk.box_hi, np.float64)
     tris = np.asarray(sk.triangles, np.int64)
@@ -124,7 +126,11 @@ def objects_from_store(store, params: ClusterParams, labels: np.ndarray | None =
     np.minimum.at(c_lo, labels, lo)
     np.maximum.at(c_hi, labels, hi)
     c_tris = np.bincount(labels, weights=tris, minlength=m).astype(np.int64)
-    cl = cluster_scene(c_lo, c_hi, c_tris, params, merge=False)
+    if status is None:
+        cl = cluster_scene(c_lo, c_hi, c_tris, params, merge=False)
+        status, d_nz, sl_c = cl.status, cl.d_nz, cl.sl_c
+    else:
+        status, d_nz, sl_c = np.asarray(status, np.int8), float(attrs["d_nz"]), float(attrs["sl_c"])
     members = [np.flatnonzero(labels == c) for c in range(m)]
 
     def load(c):
@@ -133,7 +139,7 @@ def objects_from_store(store, params: ClusterParams, labels: np.ndarray | None =
         return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]),
                 np.concatenate([p[3].astype(np.int64) + b for p, b in zip(parts, base)]).astype(np.uint32))
 
-    return BoardObjects(c_lo, c_hi, c_tris, cl.status, cl.d_nz, cl.sl_c, load)
+    return BoardObjects(c_lo, c_hi, c_tris, status, d_nz, sl_c, load)
 
 
 def open_board_objects(spec: str, params: ClusterParams) -> BoardObjects:
@@ -151,7 +157,9 @@ def open_board_objects(spec: str, params: ClusterParams) -> BoardObjects:
         return objects_from_scene(generate_objects(n, seed), params)
     store = open_scene_store(spec)
     stored = read_clusters(spec)
-    return objects_from_store(store, params, None if stored is None else stored.labels)
+    if stored is None:
+        return objects_from_store(store, params)
+    return objects_from_store(store, params, stored.labels, stored.status, stored.attrs)
 
 
 def open_scene_store(spec: str):
