@@ -202,8 +202,9 @@ def cmd_prepare(args) -> int:
 
 
 def write_cluster_picture(scene: str, path: Path, params, size=(1024, 768)) -> Path:
-    """The clusters as in the paper's Figure 5: too large green, feasible clusters in shades of
-    red, clusters with too few triangles in other colours."""
+    """The clusters as in the paper's Figure 5: too large green (as wireframe here, so that
+    walls do not hide the rest), feasible clusters in shades of red, clusters with too few
+    triangles in other colours."""
     from PIL import Image as PILImage
 
     from ..core.camera import Camera
@@ -224,10 +225,11 @@ def write_cluster_picture(scene: str, path: Path, params, size=(1024, 768)) -> P
     rng = np.random.default_rng(1)
 
     def draw(mvp):
-        for i in range(obj.count):
-            if obj.status[i] == TOO_LARGE:
-                tint = (0.2, 0.85, 0.2, 0.8)
-            elif obj.status[i] == FEASIBLE:
+        ctx.wireframe = True  # too large: green wireframe, so the clusters inside stay visible
+        meshes.draw(np.flatnonzero(obj.status == TOO_LARGE), mvp, (0.2, 0.85, 0.2, 0.9))
+        ctx.wireframe = False
+        for i in np.flatnonzero(obj.status != TOO_LARGE):
+            if obj.status[i] == FEASIBLE:
                 tint = (rng.uniform(0.55, 1.0), rng.uniform(0.0, 0.15), rng.uniform(0.0, 0.15), 0.8)
             else:
                 tint = (*rng.uniform(0.2, 0.9, 3) * np.array([0.5, 0.7, 1.0]), 0.8)
