@@ -244,6 +244,10 @@ def cmd_view(args, argv) -> int:
     from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
 
     cfg = render_config(args)
+    if cfg.system == "reliefboards":
+        from .reliefboards_cmds import cmd_view as _reliefboards_view
+
+        return _reliefboards_view(args, argv, cfg)
     if not (0 <= args.port <= 65535):
         raise ConfigError(f"--port must be in 0..65535, got {args.port}")
     if not in_mpi_job():

@@ -159,6 +159,22 @@ def cmd_render(args, argv, cfg: RenderConfig) -> int:
     return 0
 
 
+def cmd_view(args, argv, cfg: RenderConfig) -> int:
+    """``massview view --system reliefboards``: relaunch under mpiexec, serve the viewer."""
+    from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
+    from .reliefboards_view import run_view_reliefboards
+
+    opts = options_from_args(args)
+    if not (0 <= args.port <= 65535):
+        raise ConfigError(f"--port must be in 0..65535, got {args.port}")
+    if not in_mpi_job():
+        if (args.ranks or 1) < 2:
+            raise ConfigError("--system reliefboards needs a visualization rank and at least one backend: give --ranks 2 or more")
+        return relaunch(argv, args.ranks)
+    comm = world()
+    return guarded(comm, run_view_reliefboards, comm, args, cfg, opts)
+
+
 # -- massview prepare reliefboards ----------------------------------------------------------------
 def add_parsers(prepare_sub) -> None:
     """``massview prepare reliefboards SCENE``: §4 clustering stored in the scene store."""
