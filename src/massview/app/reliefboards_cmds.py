@@ -124,17 +124,22 @@ def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool
             stats_file.close()
     if res is None:
         return None
+    summary = _summary(res, scene, cfg, opts, objects, comm.Get_size() - 1)
+    if out is not None:
+        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _summary(res, scene: str, cfg: RenderConfig, opts, objects, backends: int) -> dict:
     records, extra = res
     summary = summarize(records, scene=scene, system="reliefboards", size=[cfg.width, cfg.height], path=cfg.path,
-                        renderer=extra["renderer"], backends=comm.Get_size() - 1)
+                        renderer=extra["renderer"], backends=backends)
     summary.update(m2_summary(records))
     summary.update(objects=objects.count, feasible=int(objects.feasible.sum()), d_nz=objects.d_nz, sl_c=objects.sl_c,
                    t_nz=opts.t_nz, late_boards=extra["late_boards"], backend_counters=extra["backends"])
     if cfg.reference:
         summary["max_abs_diff"] = max(r["counters"]["ref_max_abs_diff"] for r in records)
         summary["diff_fraction"] = max(r["counters"]["ref_diff_fraction"] for r in records)
-    if out is not None:
-        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
 
@@ -234,8 +239,8 @@ def write_cluster_picture(scene: str, path: Path, params, size=(1024, 768)) -> P
     obj = open_board_objects(scene, params)
     lo, hi = obj.bounds
     c, ext = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
-    cam = Camera.look_at(c + np.array([0.55, -0.75, 0.45]) * ext, c, fovy=params.fovy, near=ext * 0.01, far=ext * 4,
-                         width=size[0], height=size[1])
+    eye = c + np.array([0.55, -0.75, 0.45]) * ext
+    cam = Camera.look_at(eye, c, fovy=params.fovy, near=ext * 0.01, far=ext * 4, width=size[0], height=size[1])
     ctx = create_context()
     meshes, view = MeshRenderer(ctx, *obj.concatenated()), ViewRenderer(ctx)
     rng = np.random.default_rng(1)
@@ -253,8 +258,8 @@ def write_cluster_picture(scene: str, path: Path, params, size=(1024, 768)) -> P
         return 0
 
     img = view.render(cam, cam.viewport, draw, FrameStats(frame=0, rank=0))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    PILImage.fromarray(img.color[..., :3]).save(path, optimize=True)
     meshes.release()
     view.release()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PILImage.fromarray(img.color[..., :3]).save(path, optimize=True)
     return path

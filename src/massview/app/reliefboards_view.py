@@ -55,13 +55,19 @@ def run_view_reliefboards(comm, args, cfg: RenderConfig, opts) -> int:
     return 0
 
 
+def _panel(c: dict, answered: int, angles) -> dict:
+    """The M2 figures of the viewer's overlay."""
+    return {"in_flight": c["pending_by_backend"], "answered": answered, "boards": c["boards_drawn"],
+            "far_originals": c["far_original"], "angle_hist": np.sum(angles, axis=0).tolist(), "angle_bins": HIST_BINS.tolist()}
+
+
 def _serve(parent, backends, objects, opts, args, cfg: RenderConfig) -> int:
     from ..systems.reliefboards import VisualizationRank
     from .viewer import ViewerServer, ViewerState
 
     stop = {"flag": False}
-    signal.signal(signal.SIGINT, lambda *a: stop.update(flag=True))
-    signal.signal(signal.SIGTERM, lambda *a: stop.update(flag=True))
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *a: stop.update(flag=True))
     logging.basicConfig(level=logging.WARNING, format="massview viewer: %(message)s", stream=sys.stderr)
     lo, hi = objects.bounds
     start = load_path("flyover", lo, hi).camera(0.0, cfg.width, cfg.height)
@@ -84,16 +90,13 @@ def _serve(parent, backends, objects, opts, args, cfg: RenderConfig) -> int:
             t0 = time.perf_counter()
             image, stats = vis.frame(snap["camera"], frame)
             times.append(time.perf_counter() - t0)
-            c = stats.counters
-            answered += int(c.get("answered", 0))
-            angles.append(np.histogram(c["angle_error"], HIST_BINS)[0])
+            answered += int(stats.counters.get("answered", 0))
+            angles.append(np.histogram(stats.counters["angle_error"], HIST_BINS)[0])
             server.publish(_jpeg(image), {
                 "frame": frame, "fps": len(times) / sum(times), "triangles_per_rank": [stats.triangles], "imbalance": 1.0,
                 "bytes_per_frame": stats.bytes_recv, "decomposition": "reliefboards", "compositor": "none", "tau": cfg.tau,
                 "color_by_rank": vis.tint_boards, "position": state.position(), "rejected": state.rejected, "clients": server.clients,
-                "m2": {"in_flight": c["pending_by_backend"], "answered": answered, "boards": c["boards_drawn"],
-                       "far_originals": c["far_original"], "angle_hist": np.sum(angles, axis=0).tolist(),
-                       "angle_bins": HIST_BINS.tolist()}})
+                "m2": _panel(stats.counters, answered, angles)})
             if server.clients == 0:
                 time.sleep(0.05)
             frame += 1

@@ -1,8 +1,9 @@
 """M2 — asynchronous Reliefboards computed by backend ranks (Süß et al. 2010).
 
 Two roles (:mod:`~massview.parallel.roles`): one **visualization rank** (the parent's rank 0)
-and the **backends** (all other ranks); messages between them go over the parent communicator. Object data are placed on the backends at random with a fixed number of replicas
-(§6.2); every rank derives the same placement from the seed.
+and the **backends** (all other ranks); messages between them go over the parent communicator.
+Object data are placed on the backends at random with a fixed number of replicas (§6.2); every
+rank derives the same placement from the seed.
 
 Visualization rank, each frame (§6.1):
 
@@ -33,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.camera import Camera
-from ..core.errors import ConfigError
+from ..core.errors import ConfigError, ParallelError
 from ..core.image import Image
 from ..core.stats import FrameStats
 from ..lod.boardpolicy import BoardPolicy, plan_frame
@@ -135,7 +136,7 @@ class VisualizationRank:
             board = decode_board(data)
             oid = board.object_id
             if self.pending_to[oid] != src:
-                raise ConfigError(f"backend {src} answered object {oid}, which it was not asked for")
+                raise ParallelError(f"backend {src} answered object {oid}, which it was not asked for")
             self.boards.put(board)
             self.board_dir[oid] = board.frame.direction
             self.board_size[oid] = board.frame.size

@@ -42,7 +42,8 @@ def add_arguments(p) -> None:
     p.add_argument("--backends", default="1,2,4,8", help="backend counts, comma-separated (default 1,2,4,8)")
     p.add_argument("--size", default="1024x768", help="image size (default 1024x768, the paper's)")
     p.add_argument("--frames", type=int, default=120, help="frames per path (default 120; the paper: 6000)")
-    p.add_argument("--arc", type=float, default=36.0, help="degrees of the forest circle flown in --frames (default 36: 0.3 deg/frame; the paper: 360 in 6000)")
+    p.add_argument("--arc", type=float, default=36.0,
+                   help="degrees of the forest circle flown in --frames (default 36: 0.3 deg/frame; the paper: 360 in 6000)")
     p.add_argument("--forest-size", type=float, default=0.2, help="generate scene forest --size (default 0.2: 50 objects)")
     p.add_argument("--plant-size", type=float, default=0.05, help="generate scene plant --size (default 0.05)")
     p.add_argument("--scenes", default="forest,plant", help="which scenes (default forest,plant)")
