@@ -269,6 +269,13 @@ def _launched_by_us() -> bool:
 def cmd_report(args) -> int:
     from .report import load_run, print_summary, write_report
 
+    if not (args.dir / "stats.jsonl").exists() and args.dir.is_dir():
+        from .reliefboards_report import m2_runs, write_collection_report
+
+        if m2_runs(args.dir):  # a folder of reliefboards runs: Figures 9 and 11 across backend counts
+            for path in write_collection_report(args.dir):
+                print(f"wrote {path}")
+            return 0
     summary, records = load_run(args.dir)
     print_summary(summary)
     path = write_report(args.dir, records, summary)

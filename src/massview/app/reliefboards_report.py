@@ -83,7 +83,8 @@ def write_backend_figures(path: Path, runs: dict[int, dict], title: str = "") ->
     a.set_title("response time (paper Fig. 9)")
     a.legend(fontsize=8)
     data = [runs[n]["angle_error"] or [0.0] for n in nb]
-    b.boxplot(data, whis=(0, 100), showmeans=True, labels=[str(n) for n in nb])
+    b.boxplot(data, whis=(0, 100), showmeans=True)
+    b.set_xticks(range(1, len(nb) + 1), [str(n) for n in nb])
     b.set_xlabel("backends")
     b.set_ylabel("angle error (deg)")
     b.set_title("angle error: min, quartiles, max, mean (paper Fig. 11)")
@@ -92,3 +93,31 @@ def write_backend_figures(path: Path, runs: dict[int, dict], title: str = "") ->
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
+
+
+def m2_runs(folder: Path) -> dict[str, dict[int, Path]]:
+    """Sub-folders of ``folder`` holding M2 runs, as ``{scene: {backends: run folder}}``."""
+    import json
+
+    found: dict[str, dict[int, Path]] = {}
+    for sub in sorted(p for p in Path(folder).iterdir() if (p / "summary.json").exists() and (p / "stats.jsonl").exists()):
+        s = json.loads((sub / "summary.json").read_text())
+        if s.get("system") == "reliefboards":
+            found.setdefault(Path(str(s["scene"])).name, {})[int(s["backends"])] = sub
+    return found
+
+
+def write_collection_report(folder: Path) -> list[Path]:
+    """Figures 9 and 11 for every scene among the M2 runs under ``folder`` (``massview report
+    DIR`` on a folder of runs, e.g. a ``bench reliefboards`` workdir)."""
+    from ..core.stats import read_stats
+
+    out = []
+    for scene, runs in m2_runs(folder).items():
+        data = {}
+        for nb, sub in runs.items():
+            recs = read_stats(sub / "stats.jsonl")
+            data[nb] = {"response_ms": [x for r in recs for x in r["counters"].get("response_ms", [])],
+                        "angle_error": [x for r in recs for x in r["counters"].get("angle_error", [])]}
+        out.append(write_backend_figures(Path(folder) / f"report-{scene}.png", data, f"{scene} · reliefboards"))
+    return out

@@ -51,6 +51,7 @@ def add_arguments(p) -> None:
     p.add_argument("--tnz", type=int, default=None, help="t_nz (default: 3.5 M scaled by the measured triangle rate)")
     p.add_argument("--workdir", type=Path, default=Path("out/bench-reliefboards"), help="scenes and runs go here")
     p.add_argument("--out", type=Path, default=None, help="write the figures and results.json here (default: workdir)")
+    p.add_argument("--reuse", action="store_true", help="reuse finished runs in the workdir (same --frames)")
 
 
 def _cli(*args, timeout=3600) -> subprocess.CompletedProcess:
@@ -113,10 +114,18 @@ def arc_path(scene: Path, arc_deg: float, out: Path) -> Path:
     return out
 
 
-def _run_one(scene: Path, path: str, nb: int, args, tnz: int, out: Path) -> dict:
+def _run_cli(scene: Path, path, nb: int, args, tnz: int, out: Path) -> None:
     _cli("render", scene, "--system", "reliefboards", "--ranks", nb + 1, "--frames", args.frames, "--path", path,
          "--size", args.size, "--tnz", tnz, "--board-px", args.board_px, "--reference", "--out", out, "-q")
-    s = json.loads((out / "summary.json").read_text())
+
+
+def _run_one(scene: Path, path: str, nb: int, args, tnz: int, out: Path) -> dict:
+    done = out / "summary.json"
+    if args.reuse and done.exists() and json.loads(done.read_text()).get("frames") == args.frames:
+        print(f"(reusing {out})", flush=True)
+    else:
+        _run_cli(scene, path, nb, args, tnz, out)
+    s = json.loads(done.read_text())
     recs = [json.loads(line) for line in (out / "stats.jsonl").read_text().splitlines()]
     s["ref_frame_ms_mean"] = float(np.mean([r["counters"]["ref_frame_ms"] for r in recs]))
     s["boards_frame_ms_mean"] = float(np.mean([r["times_ms"]["draw"] + r["times_ms"]["readback"] for r in recs]))
