@@ -1,4 +1,4 @@
-"""``massview bench reliefboards``: the paper's §7 experiments at this machine's scale.
+"""M2 Reliefboards: the paper's §7 experiments at this machine's scale (`massview bench reliefboards`).
 
 For each scene (a generated **forest** of compact objects used directly, circled on an arc;
 a generated **plant** clustered by §4, along ``flyover``) and each backend count (1, 2, 4, 8
