@@ -45,10 +45,12 @@ def test_a_stalled_backend_delays_only_its_own_requests(tmp_path):
     stuck = next(c for c in b["backend_counters"] if c["rank"] == 2)
     fine = next(c for c in b["backend_counters"] if c["rank"] == 1)
     assert stuck["built"] == 0 and stuck["received"] > 0  # it held every request it got
-    assert fine["built"] > 0 and fine["unserved"] == 0
-    last = _records(stalled)[-1]["counters"]["pending_by_backend"]
-    assert last[1] == stuck["received"]  # all its requests still wait ...
-    assert b["answered"] == fine["built"] - b["late_boards"]  # ... and every other one was answered
+    recs = _records(stalled)
+    assert recs[-1]["counters"]["pending_by_backend"][1] == stuck["received"]  # all its requests still wait ...
+    # ... while the other backend answered all but (at most) those issued in the last frames before STOP
+    recent = sum(r["counters"]["loads"][0] for r in recs[-3:])
+    assert fine["built"] > 0 and fine["unserved"] <= recent
+    assert b["answered"] == fine["built"] - b["late_boards"]
     # the frame loop never waited for it: all 20 frames, p99 frame time of the same order as without
     # the stall (a generous bound: the machine is shared; a wait would hang the run instead)
     assert b["frames"] == 20

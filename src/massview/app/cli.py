@@ -123,6 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
     gt.add_argument("--block", type=int, default=257, help="M-block size for --format store (129, 257, 513)")
     gt.add_argument("--overwrite", action="store_true")
     gt.add_argument("--quiet", "-q", action="store_true")
+    from .scene_cmds import add_generate_parser, add_prepare_parser
+
+    add_generate_parser(gsub)
     prep = sub.add_parser("prepare", help="build a store from real data")
     psub = prep.add_subparsers(dest="what", required=True, metavar="WHAT")
     pt = psub.add_parser("terrain", help="elevation (GeoTIFF/COG, .npy, .npz, SRTM .hgt, raw) -> terrain store")
@@ -148,6 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .reliefboards_cmds import add_parsers as _reliefboard_parsers
 
     _reliefboard_parsers(psub)
+    add_prepare_parser(psub)
     inf = sub.add_parser("info", help="levels, blocks, size on disk, compression, georeference of a store")
     inf.add_argument("store")
     inf.add_argument("--json", action="store_true")
@@ -298,9 +302,10 @@ def main(argv: list[str] | None = None) -> int:
 
             return cmd_prepare_roettger(args)
         if args.command in ("generate", "prepare", "info", "verify"):
-            from . import terrain_cmds
+            from . import scene_cmds, terrain_cmds
 
-            return getattr(terrain_cmds, f"cmd_{args.command}")(args)
+            scene = getattr(args, "what", None) == "scene" or (args.command in ("info", "verify") and scene_cmds.is_scene(args.store))
+            return getattr(scene_cmds if scene else terrain_cmds, f"cmd_{args.command}")(args)
     except MassviewError as e:
         print(f"massview: error: {e}", file=sys.stderr)
         return 2 if isinstance(e, ConfigError) else 1

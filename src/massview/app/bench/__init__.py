@@ -8,7 +8,7 @@ this registry (the first docstring line of a module is its help text).
 
 from __future__ import annotations
 
-from . import composite, ingest, reliefboards, roettger, terrain
+from . import composite, ingest, reliefboards, roettger, scene_ingest, terrain
 
 __all__ = ["BENCHES"]
 
@@ -18,4 +18,5 @@ BENCHES = {
     "ingest": ingest,
     "roettger": roettger,
     "reliefboards": reliefboards,
+    "scene-ingest": scene_ingest,
 }

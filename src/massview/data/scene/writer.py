@@ -31,7 +31,7 @@ _ROWS = 16384
 def _codec():
     from zarr.codecs import BloscCodec
 
-    return BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=4)
+    return BloscCodec(cname="zstd", clevel=1, shuffle="shuffle", typesize=4)
 
 
 def occluder_flags(radius: np.ndarray, triangles0: np.ndarray, closed: np.ndarray) -> np.ndarray:
