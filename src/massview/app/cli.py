@@ -92,7 +92,7 @@ def _add_roettger_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--triangle-budget", type=_positive, default=None, help="T2: at most N triangles per frame (≥ 0.9 N when the view has more)")
     p.add_argument("--roettger-C", type=float, default=None, help="T2: minimum global resolution C in [2, 64] (default: the store table's, 4)")
     p.add_argument("--roettger-c", type=float, default=None, help="T2: desired global resolution c (default √3/(tau · pixel angle))")
-    p.add_argument("--no-fan-delta", action="store_true", help="T2: resend every visible fan each frame (no change-only messages)")
+    p.add_argument("--no-fan-delta", dest="fan_delta", action="store_false", help="T2: resend every visible fan each frame (no change-only messages)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -168,15 +168,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def render_config(args) -> RenderConfig:
+    """The RenderConfig of a render/view command line: every flag whose dest is a RenderConfig
+    field (``--cache-mb`` -> ``cache_mb``) is passed by name, so a new field needs only its flag."""
+    from dataclasses import fields
+
     w, h = parse_size(args.size)
-    return RenderConfig.from_env(
-        decomposition=args.decomposition, compositor=args.compositor, radix_k=args.radix_k, codec=args.codec,
-        width=w, height=h, frames=args.frames, path=args.path, grid=args.grid, wall=args.wall,
-        tile_targets=args.tile_targets, reference=args.reference, color_by_rank=args.color_by_rank, fault=args.fault,
-        tau=args.tau, cache_mb=args.cache_mb, gpu_mb=args.gpu_mb, loading=args.loading,
-        system=args.system, layers=tuple(args.layers), compute_ranks=args.compute_ranks, paper_partition=args.paper_partition,
-        triangle_budget=args.triangle_budget, roettger_C=args.roettger_C, roettger_c=args.roettger_c, fan_delta=not args.no_fan_delta,
-    )
+    flags = {f.name: getattr(args, f.name) for f in fields(RenderConfig) if hasattr(args, f.name)}
+    return RenderConfig.from_env(**{**flags, "width": w, "height": h})
 
 
 def cmd_render(args) -> int:
@@ -272,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     _report_peak_rss()
     if argv[:1] == ["__job"] and len(argv) == 2:  # a rank of a job started by massview.api.render
-        from ..api import run_job
+        from .render_job import run_job
 
         return run_job(argv[1])
     args = build_parser().parse_args(argv)

@@ -105,7 +105,7 @@ class RoettgerSystem:
         self._reference = None
 
     # -- setup ----------------------------------------------------------------------------
-    def _read_infos(self) -> list[LayerInfo]:
+    def layer_infos(self) -> list[LayerInfo]:
         """Each layer's metadata (store attributes only) with its z offset and index grid."""
         cfg = self.cfg
         infos = [LayerInfo.of(s) for s in self.specs]
@@ -123,7 +123,7 @@ class RoettgerSystem:
         self.rc = rc = split_roles(comm, roles(cfg))
         self.vis_ranks, self.comp_ranks = rc.ranks["visualization"], rc.ranks["computation"]
         lead = rc.leader("computation")
-        self.infos = comm.bcast(self._read_infos() if comm.Get_rank() == lead else None, root=lead)
+        self.infos = comm.bcast(self.layer_infos() if comm.Get_rank() == lead else None, root=lead)
         C = cfg.roettger_C if cfg.roettger_C is not None else max(i.C_min for i in self.infos)
         for i in self.infos:
             if C < i.C_min:
@@ -148,7 +148,7 @@ class RoettgerSystem:
     @property
     def bounds(self):
         """World box of all layers (from the stores' attributes when not set up yet)."""
-        infos = self.infos or self._read_infos()
+        infos = self.infos or self.layer_infos()
         los, his = zip(*(i.bounds() for i in infos))
         return np.min(los, axis=0), np.max(his, axis=0)
 

@@ -106,7 +106,7 @@ def _sequential(store: Path, layers: int, C: int, size: str, frames: int, draw: 
 
     w, h = (int(v) for v in size.split("x"))
     sysm = RoettgerSystem([str(store)] * layers, RenderConfig(system="roettger", compute_ranks=C))
-    infos = sysm._read_infos()
+    infos = sysm.layer_infos()
     depth0 = partition_depth(C)
     N = 2**depth0
     every = np.stack(np.meshgrid(np.arange(N), np.arange(N), indexing="ij"), -1).reshape(-1, 2)
