@@ -48,6 +48,8 @@ def add_arguments(p) -> None:
     p.add_argument("--plant-size", type=float, default=0.05, help="generate scene plant --size (default 0.05)")
     p.add_argument("--scenes", default="forest,plant", help="which scenes (default forest,plant)")
     p.add_argument("--board-px", type=int, default=128, help="p, the largest projected board side (default 128)")
+    p.add_argument("--plant-min-triangles", type=int, default=None,
+                   help="prepare the plant with this --min-triangles (default: the paper's rule, 2·p²)")
     p.add_argument("--tnz", type=int, default=None, help="t_nz (default: 3.5 M scaled by the measured triangle rate)")
     p.add_argument("--workdir", type=Path, default=Path("out/bench-reliefboards"), help="scenes and runs go here")
     p.add_argument("--out", type=Path, default=None, help="write the figures and results.json here (default: workdir)")
@@ -168,8 +170,9 @@ def run(args) -> int:
     results = {"rate_tris_per_s": rate, "t_nz": tnz, "size": [w, h], "frames": args.frames, "scenes": {}}
     for kind, (scene, path) in scenes.items():
         if kind == "plant":
+            extra = ["--min-triangles", args.plant_min_triangles] if args.plant_min_triangles else []
             _cli("prepare", "reliefboards", scene, "--tnz", tnz, "--board-px", args.board_px, "--size", args.size,
-                 "--picture", out / "plant-clusters.png")
+                 "--picture", out / "plant-clusters.png", *extra)
         runs = {}
         for nb in counts:
             t0 = time.perf_counter()
