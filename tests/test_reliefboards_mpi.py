@@ -61,3 +61,9 @@ def test_a_stalled_backend_delays_only_its_own_requests(tmp_path):
 def test_one_rank_is_refused_with_a_clear_message(tmp_path):
     proc = run_cli("render", SCENE, "--frames", 1, "--out", tmp_path, *M2, check=False)
     assert proc.returncode != 0 and "--ranks 2" in proc.stderr
+
+
+@pytest.mark.mpi
+def test_stalling_a_rank_that_is_no_backend_is_refused(tmp_path):
+    proc = run_cli("render", SCENE, "--ranks", 2, "--frames", 1, "--stall-backend", 5, "--out", tmp_path, *M2, check=False)
+    assert proc.returncode != 0 and "--stall-backend 5 is not a backend rank" in proc.stderr

@@ -266,6 +266,8 @@ def run_reliefboards(comm, objects: BoardObjects, opts: ReliefboardOptions, came
     counters once the last frame is done."""
     rc = split_roles(comm, ROLES)
     parent, viz, backends = rc.parent, rc.leader("visualization"), rc.ranks["backend"]
+    if opts.stall_backend is not None and opts.stall_backend not in backends:
+        raise ConfigError(f"--stall-backend {opts.stall_backend} is not a backend rank (backends are ranks {backends[0]}..{backends[-1]})")
     if rc.role == "backend":
         counters = BackendRank(parent, viz, backends, objects, opts, egl_device).run()
         parent.gather(counters, root=viz)
