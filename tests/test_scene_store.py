@@ -90,6 +90,8 @@ def test_structured_inputs_give_their_own_objects_and_instancing_stores_shared_g
     inst = prepare_scene([glb], tmp_path / "inst", IngestParams(instance=True))
     assert (flat["objects"], flat["geometries"], flat["instanced"]) == (4, 4, False)
     assert (inst["objects"], inst["geometries"], inst["instanced"]) == (4, 2, True)
+    both = prepare_scene([obj, glb], tmp_path / "both")  # several inputs become one scene
+    assert (both["objects"], both["triangles"]) == (2 + 4, 3 + flat["triangles"])
     g1, _ = _store_triangles(tmp_path / "flat")
     g2, _ = _store_triangles(tmp_path / "inst")
     np.testing.assert_allclose(_canonical(g1), _canonical(g2), atol=1e-6)
@@ -280,3 +282,33 @@ def test_bad_inputs_get_a_clear_message_and_leave_no_complete_store(tmp_path, ca
     assert not out.exists() or not SceneStore(out, require_complete=False).attrs.get("complete")
     with pytest.raises((IngestError, StoreError)):
         SceneStore(out)
+
+
+def test_record_codec_round_trip_property():
+    from hypothesis import example, given, settings
+    from hypothesis import strategies as st
+
+    from massview.data.scene.mesh import Mesh, decode_record, encode_record, quantization_error, record_size
+
+    @settings(max_examples=15, deadline=None)
+    @given(st.integers(1, 3000), st.integers(0, 300), st.integers(0, 2**31), st.sampled_from([0, 1, 3]))
+    @example(66000, 20, 1, 2)  # more than 65536 vertices: 32-bit indices
+    def check(v, t, seed, level):
+        rng = np.random.default_rng(seed)
+        p = (rng.normal(size=(v, 3)) * rng.uniform(0.01, 1e4)).astype(np.float32)
+        n = rng.normal(size=(v, 3))
+        n = (n / np.linalg.norm(n, axis=1, keepdims=True)).astype(np.float32)
+        m = Mesh(p, n, rng.integers(0, 256, (v, 4), dtype=np.uint8), rng.integers(0, v, (t, 3)).astype(np.uint32))
+        lo, hi = p.min(0).astype(np.float64), p.max(0).astype(np.float64)
+        rec = encode_record(m, level, lo, hi)
+        assert len(rec) == record_size(v, t, level)
+        d = decode_record(rec, v, t, level, lo, hi)
+        np.testing.assert_array_equal(d.indices, m.indices)
+        np.testing.assert_array_equal(d.colors, m.colors)
+        assert np.abs(d.normals - n).max() < 2e-4
+        if level == 0:
+            np.testing.assert_array_equal(d.positions, p)  # level 0 is exact
+        else:
+            assert np.linalg.norm(d.positions.astype(np.float64) - p, axis=1).max() <= quantization_error(lo, hi) * 1.01 + 1e-3 * np.abs(p).max() * 1e-3
+
+    check()

@@ -104,6 +104,14 @@ def open_scene(spec: str | Path | Scene) -> Scene:
     return spec if isinstance(spec, Scene) else Scene(spec)
 
 
+def _bounds(scene) -> tuple[np.ndarray, np.ndarray]:
+    """The world box of a Scene, or of a spec (opened and closed again)."""
+    if isinstance(scene, Scene):
+        return scene.bounds
+    with Scene(scene) as s:
+        return s.bounds
+
+
 def _size(size) -> tuple[int, int]:
     if isinstance(size, str):
         return parse_size(size)
@@ -126,7 +134,7 @@ def camera(scene: Scene | str | None = None, *, position, look_at=None, orientat
     if near is None or far is None:
         if scene is None:
             raise ConfigError("camera(): give the scene (to fit the clip planes) or near= and far=")
-        fn, ff = scene_clip(*open_scene(scene).bounds, positions=pos[None])
+        fn, ff = scene_clip(*_bounds(scene), positions=pos[None])
         near, far = near if near is not None else fn, far if far is not None else ff
     w, h = _size(size)
     return Camera(tuple(pos), tuple(orientation), fovy=fovy, near=near, far=far, width=w, height=h)
@@ -137,7 +145,7 @@ def path(name_or_file: str | Path, scene: Scene | str, frames: int = 10, size=(1
     ``flyover``, fitted to the scene) or a keyframe ``.json`` file (clip planes fitted to the
     scene unless the file gives ``near``/``far``)."""
     w, h = _size(size)
-    return load_path(str(name_or_file), *open_scene(scene).bounds).cameras(int(frames), w, h)
+    return load_path(str(name_or_file), *_bounds(scene)).cameras(int(frames), w, h)
 
 
 def render_config(config: RenderConfig | None = None, **options) -> RenderConfig:
@@ -251,7 +259,7 @@ def validate(spec: str, cfg: RenderConfig, nranks: int) -> None:
     from .parallel.decompose import parse_decomposition, parse_wall, sort_first_tiles
     from .systems import scene_kind
 
-    modes = ("kpatch", "linear", "quadtree") if scene_kind(spec) == "terrain" else ()
+    modes = {"terrain": ("kpatch", "linear", "quadtree"), "scene": ("visible", "static")}.get(scene_kind(spec), ())
     if cfg.system == "roettger":  # T2: roles, wall per visualization rank, the stores' tables
         from .systems.roettger import validate as validate_roettger
 

@@ -27,6 +27,8 @@ per display tile) and C computation ranks (the last C ranks). The paper's pseudo
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from ..core.camera import Camera, Viewport
@@ -191,7 +193,7 @@ class RoettgerSystem:
             if sink is not None:
                 sink(frame, tile)
             if cfg.reference:
-                ref = self._reference_image(camera, c_used).crop(tile.viewport)
+                ref = self._reference_image(camera, c_used, stats).crop(tile.viewport)
                 result.diff = image_diff(tile, ref)
         return result
 
@@ -283,8 +285,9 @@ class RoettgerSystem:
         return deliver(rc.comm, image, [(0, camera.viewport)], stats, cfg.codec), c_used
 
     # -- reference ------------------------------------------------------------------------
-    def _reference_image(self, camera: Camera, c: float):
-        """The serial image: one rank runs the whole-DEM LOD (all portions) alone."""
+    def _reference_image(self, camera: Camera, c: float, stats: FrameStats):
+        """The serial image: one rank runs the whole-DEM LOD (all portions) alone; its LOD
+        time is recorded as ``reference_lod_ms`` (the sequential baseline of §4.1)."""
         if self._reference is None:
             N = 2**self.depth0
             every = np.stack(np.meshgrid(np.arange(N), np.arange(N), indexing="ij"), -1).reshape(-1, 2)
@@ -292,11 +295,13 @@ class RoettgerSystem:
             self._owner = portion_owner(self.depth0, len(self.comp_ranks))
         params = self.params(camera, c)
         layers = []
+        t0 = time.perf_counter()
         for p in self._reference:
             fans, h = p.fans(p.select(camera.position, params))  # Morton order of the whole DEM
             shift = p.n - self.depth0
             row, col = fans.centre // p.info.index_dim, fans.centre % p.info.index_dim
             layers.append((fans.lengths, fans.index, h, self._owner[row >> shift, col >> shift]))
+        stats.count("reference_lod_ms", (time.perf_counter() - t0) * 1e3)
         return self._drawer.draw(camera, camera.viewport, layers, self.cfg.color_by_rank, FrameStats(-1, 0))
 
     def close(self) -> None:

@@ -8,7 +8,7 @@ this registry (the first docstring line of a module is its help text).
 
 from __future__ import annotations
 
-from . import composite, ingest, reliefboards, roettger, scene_ingest, terrain
+from . import composite, ingest, reliefboards, roettger, scene, scene_ingest, terrain
 
 __all__ = ["BENCHES"]
 
@@ -16,7 +16,8 @@ BENCHES = {
     "composite": composite,
     "terrain": terrain,
     "ingest": ingest,
+    "scene-ingest": scene_ingest,
+    "scene": scene,
     "roettger": roettger,
     "reliefboards": reliefboards,
-    "scene-ingest": scene_ingest,
 }

@@ -10,11 +10,11 @@ stored as separate geometry, as in the papers: the data must not fit in memory.
 * **plant** — 2×2 halls of 4 storeys; each storey has walls and a floor slab (large, closed:
   heavy occlusion) and a grid of bays of girders (columns, beams), pipe runs (straight
   segments, elbows, flanges) and a vessel. Path: hall, storey, bay row, bay, system,
-  assembly, item (+ copy = 8 levels). ~19 000 nodes, ~9 M triangles per copy at size 1.
+  assembly, item (+ copy = 8 levels). ~21 600 nodes, ~8.4 M triangles per copy at size 1 (12 copies: 101 M).
 * **city** — blocks of red-sandstone buildings: facade bodies with window frames, onion
-  domes, columned pavilions (chhatris) and minarets. ~1100 nodes, ~4.5 M triangles per copy.
+  domes, columned pavilions (chhatris) and minarets. ~1100 nodes, ~4.1 M triangles per copy.
 * **forest** — conifers, broad-leaved trees (lumpy crowns) and a real-world mesh from a
-  registry package (pyvista's ``ant.ply``) scattered on a ground plate. ~250 objects, ~12 M
+  registry package (pyvista's ``ant.ply``) scattered on a ground plate. ~250 objects, ~13.7 M
   triangles per copy.
 
 Memory stays bounded however many copies: nodes are generated one at a time, the LOD levels
@@ -39,7 +39,7 @@ from ..scene.simplify import build_levels, is_closed
 from ..scene.writer import SceneWriter
 from . import shapes
 
-__all__ = ["SCENE_KINDS", "Node", "scene_nodes", "generate_scene", "real_mesh_path"]
+__all__ = ["SCENE_KINDS", "Node", "scene_nodes", "generate_scene", "real_mesh", "real_mesh_path"]
 
 SCENE_KINDS = ("plant", "city", "forest")
 PATH_DEPTH = {"plant": 8, "city": 6, "forest": 3}
@@ -211,6 +211,14 @@ def scene_nodes(kind: str, size: float = 1.0, seed: int = 1) -> tuple[list[Node]
     return _LAYOUTS[kind](size, seed)
 
 
+def real_mesh(name: str = "ant") -> tuple[np.ndarray, np.ndarray]:
+    """(vertices f8 (v,3), triangles i8 (t,3)) of a packaged real-world mesh, as in its file."""
+    import trimesh
+
+    m = trimesh.load(real_mesh_path(name), process=False, force="mesh")
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
 def real_mesh_path(name: str = "ant") -> Path:
     """A small real-world mesh shipped inside a registry package (pyvista's examples), found
     without importing the package; ConfigError when it is not installed."""
@@ -277,15 +285,15 @@ def _shape_parts(key: tuple) -> list:
         return _facade(key[1], key[2])
     if k == "dome":
         r = key[1]
-        return [(shapes.tube(r * 0.3, r, 64, 4), None), (shapes.orient(shapes.dome(r, 64, 32), (0, 0, 1), (0, 0, r * 0.3)), None)]
+        return [(shapes.tube(r * 0.3, r, 96, 8), None), (shapes.orient(shapes.dome(r, 96, 48), (0, 0, 1), (0, 0, r * 0.3)), None)]
     if k == "minaret":
         h = key[1]
-        return [(shapes.tube(h, 0.6, 32, 16), None), (shapes.orient(shapes.tube(0.15, 0.9, 32, 1), (0, 0, 1), (0, 0, h * 0.7)), None),
-                (shapes.orient(shapes.dome(0.7, 32, 16), (0, 0, 1), (0, 0, h)), (235, 228, 215))]
+        return [(shapes.tube(h, 0.6, 48, 32), None), (shapes.orient(shapes.tube(0.15, 0.9, 48, 2), (0, 0, 1), (0, 0, h * 0.7)), None),
+                (shapes.orient(shapes.dome(0.7, 48, 24), (0, 0, 1), (0, 0, h)), (235, 228, 215))]
     if k == "chhatri":
         r = key[1]
         cols = [(shapes.orient(shapes.tube(1.5, 0.08, 12, 2), (0, 0, 1), (x * r * 0.8, y * r * 0.8, 0)), None) for x in (-1, 1) for y in (-1, 1)]
-        return cols + [(shapes.box((-r, -r, 1.5), (r, r, 1.7)), None), (shapes.orient(shapes.dome(r * 0.8, 48, 24), (0, 0, 1), (0, 0, 1.7)), None)]
+        return cols + [(shapes.box((-r, -r, 1.5), (r, r, 1.7)), None), (shapes.orient(shapes.dome(r * 0.8, 64, 32), (0, 0, 1), (0, 0, 1.7)), None)]
     if k == "column":
         h = key[1]
         return [(shapes.box((-0.3, -0.3, 0), (0.3, 0.3, 0.3)), None), (shapes.orient(shapes.tube(h - 0.6, 0.2, 32, 16), (0, 0, 1), (0, 0, 0.3)), None),
@@ -302,13 +310,10 @@ def _shape_parts(key: tuple) -> list:
                   for i, (dx, dy, dz) in enumerate(((0, 0, 0.8), (0.9, 0.4, 0), (-0.7, -0.6, 0.2)))]
         return [trunk, *crowns]
     if k == "real":
-        import trimesh
-
-        m = trimesh.load(real_mesh_path(key[1]), process=False, force="mesh")
-        p = np.asarray(m.vertices, float)
-        p = (p - [(p[:, 0].min() + p[:, 0].max()) / 2, (p[:, 1].min() + p[:, 1].max()) / 2, p[:, 2].min()])
-        t = np.asarray(m.faces, np.int64)
         from ..scene.mesh import vertex_normals
+
+        p, t = real_mesh(key[1])
+        p = (p - [(p[:, 0].min() + p[:, 0].max()) / 2, (p[:, 1].min() + p[:, 1].max()) / 2, p[:, 2].min()])
 
         return [((p, t, vertex_normals(p, t).astype(float)), None)]
     raise ValueError(f"unknown shape {key!r}")

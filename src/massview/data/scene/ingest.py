@@ -44,8 +44,8 @@ class IngestParams:
     simplifier: str = "fast-simplification"
     max_levels: int = 8
     stream_bytes: int = 256 << 20  # binary PLY at least this large is streamed
-    face_chunk: int = 1 << 20  # faces per streamed read
-    vertex_block: int = 1 << 22  # vertices per streamed vertex read
+    face_chunk: int = 1 << 18  # faces per streamed read
+    vertex_block: int = 1 << 20  # vertices per streamed vertex read (15-40 MB)
 
     def split(self) -> SplitParams:
         return SplitParams(self.object_triangles, self.object_size, self.cell_triangles)

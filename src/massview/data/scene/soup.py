@@ -133,16 +133,11 @@ def _kd_pieces(cent: np.ndarray, idx: np.ndarray, cap: int) -> list[np.ndarray]:
     return _kd_pieces(cent, order[:h], cap) + _kd_pieces(cent, order[h:], cap)
 
 
-def _cluster(lo: np.ndarray, hi: np.ndarray, tris: np.ndarray, open_: np.ndarray, sp: SplitParams) -> list[list[int]]:
-    """Agglomerative clustering of base clusters (boxes lo/hi (n,3), triangle counts (n,));
-    only ``open_`` ones may join. Returns lists of base-cluster ids."""
+def _neighbours(lo: np.ndarray, hi: np.ndarray, cand: np.ndarray, n: int) -> dict[int, set]:
+    """Each candidate's 8 nearest candidates by box centre (symmetric), the paper's bound on
+    the joined boxes tried per cluster."""
     from scipy.spatial import cKDTree
 
-    n = len(tris)
-    members = {i: [i] for i in range(n)}
-    box = {i: (lo[i], hi[i], int(tris[i])) for i in range(n)}
-    cand = np.nonzero(open_)[0]
-    heap: list = []
     nbrs: dict[int, set] = {i: set() for i in range(n)}
     if len(cand) > 1:
         k = min(9, len(cand))
@@ -150,8 +145,20 @@ def _cluster(lo: np.ndarray, hi: np.ndarray, tris: np.ndarray, open_: np.ndarray
         for a, row in zip(cand, nn.reshape(len(cand), k)):
             for b in cand[row]:
                 if b != a:
-                    nbrs[a].add(int(b))
+                    nbrs[int(a)].add(int(b))
                     nbrs[int(b)].add(int(a))
+    return nbrs
+
+
+def _cluster(lo: np.ndarray, hi: np.ndarray, tris: np.ndarray, open_: np.ndarray, sp: SplitParams) -> list[list[int]]:
+    """Agglomerative clustering of base clusters (boxes lo/hi (n,3), triangle counts (n,));
+    only ``open_`` ones may join. Returns lists of base-cluster ids."""
+    n = len(tris)
+    members = {i: [i] for i in range(n)}
+    box = {i: (lo[i], hi[i], int(tris[i])) for i in range(n)}
+    cand = np.nonzero(open_)[0]
+    heap: list = []
+    nbrs = _neighbours(lo, hi, cand, n)
     alive = set(members)
 
     def push(a: int, b: int) -> None:

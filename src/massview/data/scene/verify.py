@@ -35,7 +35,7 @@ def scene_info(path) -> dict:
         return {**info, "written_geometries": ck.get("geometries"), "written_objects": ck.get("objects"), "disk_bytes": _dir_size(path)}
     sk = st.skeleton
     lo, hi = st.bounds
-    raw = int(sum(int(st.tables["nbytes"].sum()) for _ in [0]))
+    raw = int(st.tables["nbytes"].sum())
     disk = _dir_size(Path(path) / "geometry" / "data")
     return {**info, "objects": sk.count, "geometries": st.geometry_count, "instanced": bool(a.get("instanced")),
             "groups": st.groups.count, "group_depth": int(st.groups.depth.max()), "occluders": int(sk.occluder.sum()),
