@@ -48,7 +48,7 @@ class RenderConfig:
     egl_device: int | None = None
     fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
     # T2 (--system roettger): computation ranks, partition, budget, Röttger's C and c, layers
-    system: str = "auto"  # "auto" (by scene), or "roettger"
+    system: str = "auto"  # "auto" (by scene), "roettger" or "reliefboards"
     layers: tuple[str, ...] = ()  # further stores drawn as stacked layers (T2)
     compute_ranks: int = 1
     paper_partition: bool = False
@@ -68,8 +68,8 @@ class RenderConfig:
             raise ConfigError("--cache-mb and --gpu-mb must be at least 1")
         if not self.tau > 0:
             raise ConfigError(f"--tau (pixel tolerance) must be positive, got {self.tau}")
-        if self.system not in ("auto", "roettger"):
-            raise ConfigError(f"--system must be auto or roettger, got {self.system!r}")
+        if self.system not in ("auto", "roettger", "reliefboards"):
+            raise ConfigError(f"--system must be auto, roettger or reliefboards, got {self.system!r}")
         if self.compute_ranks < 1:
             raise ConfigError(f"--compute-ranks must be at least 1, got {self.compute_ranks}")
         if self.triangle_budget is not None and self.triangle_budget < 1:
