@@ -24,7 +24,7 @@ from ..parallel.codec import CODECS
 __all__ = ["main", "build_parser"]
 
 DECOMPOSITIONS = ("sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd", "sort-last",
-                  "sort-last:kpatch", "sort-last:linear", "sort-last:quadtree")
+                  "sort-last:kpatch", "sort-last:linear", "sort-last:quadtree", "sort-last:visible", "sort-last:static")
 
 
 def _grid(spec: str) -> tuple[int, int]:
@@ -48,10 +48,10 @@ def _positive(v: str) -> int:
 
 
 def _add_render_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene", help="a terrain store, or builtin:objects[?n=COUNT&seed=S]")
+    p.add_argument("scene", help="a terrain store, a scene store, or builtin:objects[?n=COUNT&seed=S]")
     p.add_argument("--ranks", type=_positive, default=None, help="local ranks to launch (default 1; ignored under an external mpiexec)")
     p.add_argument("--decomposition", default="sort-last", metavar="MODE",
-                   help=f"one of {', '.join(DECOMPOSITIONS)} (default sort-last; terrain: sort-last = sort-last:kpatch); "
+                   help=f"one of {', '.join(DECOMPOSITIONS)} (default sort-last; terrain: sort-last = sort-last:kpatch; scene: sort-last = sort-last:visible); "
                         "'horizontal' = side-by-side columns, 'vertical' = stacked rows")
     p.add_argument("--compositor", default="binary-swap", choices=COMPOSITORS, help="sort-last depth compositing (default binary-swap)")
     p.add_argument("--radix-k", type=int, default=None, help="k for radix-k (default 4)")
@@ -63,11 +63,11 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--wall", default=None, metavar="CxR", help="display wall: C×R display ranks each write their own tile")
     p.add_argument("--tile-targets", action="store_true", help="sort-first into tile-sized targets (off-axis frusta; equal to ~1e-4 of pixels)")
     p.add_argument("--color-by-rank", action="store_true", help="tint each rank's contribution")
-    p.add_argument("--tau", type=float, default=1.0, help="terrain: pixel tolerance of the LOD (default 1)")
-    p.add_argument("--cache-mb", type=int, default=256, help="terrain: RAM block cache per rank, MiB (default 256)")
-    p.add_argument("--gpu-mb", type=int, default=256, help="terrain: GL block pool per rank, MiB (default 256)")
+    p.add_argument("--tau", type=float, default=1.0, help="terrain and scenes: pixel tolerance of the LOD (default 1)")
+    p.add_argument("--cache-mb", type=int, default=256, help="terrain and scenes: RAM block cache per rank, MiB (default 256)")
+    p.add_argument("--gpu-mb", type=int, default=256, help="terrain and scenes: GL block pool per rank, MiB (default 256)")
     p.add_argument("--loading", choices=("async", "complete"), default="async",
-                   help="terrain: async = never wait for data, draw coarser meanwhile (default); complete = wait until every block the view needs is loaded")
+                   help="terrain and scenes: async = never wait for data, draw coarser meanwhile (default); complete = wait until every block the view needs is loaded")
     p.add_argument("--reference", action="store_true", help="also render each frame on one rank and report max_abs_diff and diff_fraction")
     p.add_argument("--out", "-o", type=Path, default=Path("out/render"), help="output folder (default out/render)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary table")
@@ -166,7 +166,7 @@ def _validate_render(args, cfg: RenderConfig, nranks: int) -> None:
 
     from ..systems import scene_kind
 
-    modes = ("kpatch", "linear", "quadtree") if scene_kind(args.scene) == "terrain" else ()
+    modes = {"terrain": ("kpatch", "linear", "quadtree"), "scene": ("visible", "static")}.get(scene_kind(args.scene), ())
     parse_decomposition(cfg.decomposition, modes)
     if cfg.decomposition == "sort-first:grid":
         sort_first_tiles("grid", nranks, cfg.width, cfg.height, cfg.grid)
