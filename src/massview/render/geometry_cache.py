@@ -72,20 +72,21 @@ class GeometryCache:
         loads0, disk0 = ram.counters["loads"], ram.counters["bytes_loaded"]
         missing = [k for k in keys if not pool.resident[k]]
         pool.touch(k for k in keys if pool.resident[k])
-        in_ram = {k for k in missing if ram.contains(k)}
+        held = {k: ram.get(k) for k in missing if ram.contains(k)}  # hold them: loads below may evict
+        held = {k: v for k, v in held.items() if v is not None}
         for k in missing:
-            if k not in in_ram:
+            if k not in held:
                 ram.request(k, float("inf"))  # all at once: the workers read them in parallel
         uploaded = 0
         for k in missing:
-            packed = ram.get(k) if k in in_ram else None
+            packed = held.get(k)
             if packed is None:
                 packed = ram.get_blocking(k, self.timeout)
             if not pool.upload(k, packed, keep):
                 raise ConfigError(f"the meshes of one frame do not fit the GPU budget ({pool.budget} bytes, "
                                   f"{len(keys)} meshes); raise --gpu-mb")
             uploaded += int(packed.nbytes) - 16
-        return CacheCounts(len(keys) - len(missing), len(in_ram), ram.counters["loads"] - loads0, uploaded,
+        return CacheCounts(len(keys) - len(missing), len(held), ram.counters["loads"] - loads0, uploaded,
                            ram.counters["bytes_loaded"] - disk0, pool.evictions - gpu_ev0, ram.counters["evictions"] - ram_ev0)
 
     def stored_bytes(self, key) -> bytes:
