@@ -20,6 +20,7 @@ from ..core.errors import ConfigError, MassviewError
 from ..core.paths import BUILTIN_PATHS
 from ..parallel.composite import COMPOSITORS
 from ..parallel.codec import CODECS
+from .dmmr_cmds import add_dmmr_args, dmmr_config
 
 __all__ = ["main", "build_parser"]
 
@@ -72,6 +73,7 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", "-o", type=Path, default=Path("out/render"), help="output folder (default out/render)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary table")
     p.add_argument("--fault", default=None, help=argparse.SUPPRESS)
+    add_dmmr_args(p)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -155,7 +157,7 @@ def render_config(args) -> RenderConfig:
         decomposition=args.decomposition, compositor=args.compositor, radix_k=args.radix_k, codec=args.codec,
         width=w, height=h, frames=args.frames, path=args.path, grid=args.grid, wall=args.wall,
         tile_targets=args.tile_targets, reference=args.reference, color_by_rank=args.color_by_rank, fault=args.fault,
-        tau=args.tau, cache_mb=args.cache_mb, gpu_mb=args.gpu_mb, loading=args.loading,
+        tau=args.tau, cache_mb=args.cache_mb, gpu_mb=args.gpu_mb, loading=args.loading, **dmmr_config(args),
     )
 
 

@@ -61,7 +61,13 @@ def run_render(comm, scene: str, cfg: RenderConfig, out: Path, quiet: bool = Fal
     records, diffs = [], []
     stats_file = open(out / "stats.jsonl", "w") if rank == 0 else None
     try:
-        for f in range(cfg.frames):
+        if hasattr(system, "run_path"):  # a system with roles runs its own frame loop (M1)
+            got = system.run_path(comm, cameras, cfg, sink if is_display else None)
+            for rec in (got[0] if got else []):
+                records.append(rec)
+                stats_file.write(json.dumps(rec) + "\n")
+            diffs = got[1] if got else []
+        for f in range(0 if hasattr(system, "run_path") else cfg.frames):
             res = render_frame(comm, system, cfg, cameras[f] if rank == 0 else None, f, sink if is_display else None)
             gathered = comm.gather((res.stats.to_json(), res.diff), root=0)
             if rank == 0:

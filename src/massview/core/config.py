@@ -47,6 +47,14 @@ class RenderConfig:
     loading: str = "async"  # terrain: "async" (never wait) or "complete" (wait for every needed block)
     egl_device: int | None = None
     fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
+    system: str = "auto"  # "auto" (by the scene) or "dmmr" (M1: server + clients)
+    visible_frames: int = 4  # dmmr: frames a passed occlusion query keeps an object visible
+    query_threshold: int = 0  # dmmr: samples (pixels) a box must pass to count as visible
+    occlusion: str = "on"  # dmmr: occlusion culling on the clients, "on" or "off"
+    occluder_lod: str = "exact"  # dmmr: depth pre-pass at the rendered level ("exact") or the coarsest ("coarse")
+    stage_pipeline: str = "on"  # dmmr: divide i / visibility i-1 / render i-2 concurrently, or "off"
+    client_cache_mb: int | None = None  # dmmr: client RAM cache (default: scene object bytes / clients)
+    stage_delay: str | None = None  # testing aid: "divide:MS,visibility:MS,render:MS" sleeps per stage
 
     def __post_init__(self) -> None:
         if self.frames < 1:
@@ -59,6 +67,20 @@ class RenderConfig:
             raise ConfigError("--cache-mb and --gpu-mb must be at least 1")
         if not self.tau > 0:
             raise ConfigError(f"--tau (pixel tolerance) must be positive, got {self.tau}")
+        self._check_dmmr()
+
+    def _check_dmmr(self) -> None:
+        if self.system not in ("auto", "dmmr"):
+            raise ConfigError(f"--system must be auto or dmmr, got {self.system!r}")
+        if self.visible_frames < 1 or self.query_threshold < 0:
+            raise ConfigError("--visible-frames must be at least 1 and --query-threshold at least 0")
+        for name in ("occlusion", "stage_pipeline"):
+            if getattr(self, name) not in ("on", "off"):
+                raise ConfigError(f"--{name.replace('_', '-')} must be on or off, got {getattr(self, name)!r}")
+        if self.occluder_lod not in ("exact", "coarse"):
+            raise ConfigError(f"--occluder-lod must be exact or coarse, got {self.occluder_lod!r}")
+        if self.client_cache_mb is not None and self.client_cache_mb < 1:
+            raise ConfigError("--client-cache-mb must be at least 1")
 
     @classmethod
     def from_env(cls, env=None, **explicit) -> "RenderConfig":

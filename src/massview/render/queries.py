@@ -23,6 +23,7 @@ the ids that own at least one pixel of a viewport.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -56,12 +57,15 @@ def _scissor(camera: Camera, vp: Viewport) -> tuple[int, int, int, int]:
 @dataclass(frozen=True)
 class QueryResult:
     """samples: (n,) int64 samples passed per box; passed: samples > threshold;
-    waits: times the frame blocked on query results; depth_triangles: pre-pass triangles."""
+    waits: times the frame blocked on query results; depth_triangles: pre-pass triangles;
+    issue_ms: depth pass and issuing the queries; retrieve_ms: collecting the results."""
 
     samples: np.ndarray
     passed: np.ndarray
     waits: int
     depth_triangles: int
+    issue_ms: float = 0.0
+    retrieve_ms: float = 0.0
 
     @property
     def issued(self) -> int:
@@ -104,6 +108,8 @@ class OcclusionQuerier:
              lo: np.ndarray, hi: np.ndarray, threshold: int = 0) -> QueryResult:
         """Depth pre-pass, then one query per box ``[lo[i], hi[i]]``; see the module doc."""
         n = len(lo)
+        t0 = time.perf_counter()
+        wait_s = 0.0
         fbo = self._target(camera.width, camera.height)
         fbo.use()
         self.ctx.scissor = None
@@ -132,13 +138,18 @@ class OcclusionQuerier:
                     with self._queries[i]:
                         self._vao.render(moderngl.TRIANGLES, vertices=36, first=36 * i)
                 if pending is not None:
+                    t1 = time.perf_counter()
                     waits += self._collect(samples, *pending)
+                    wait_s += time.perf_counter() - t1
                 pending = (start, stop)
+            t1 = time.perf_counter()
             waits += self._collect(samples, *pending)
+            wait_s += time.perf_counter() - t1
             fbo.depth_mask = True
             self.ctx.depth_func = "<"
         self.ctx.scissor = None
-        return QueryResult(samples, samples > int(threshold), waits, tris)
+        total = time.perf_counter() - t0
+        return QueryResult(samples, samples > int(threshold), waits, tris, 1e3 * (total - wait_s), 1e3 * wait_s)
 
     def _collect(self, out: np.ndarray, start: int, stop: int) -> int:
         """Read the results of queries [start, stop): one blocking wait for the batch."""

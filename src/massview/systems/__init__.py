@@ -44,6 +44,10 @@ def open_system(spec: str, cfg=None):
     or a scene store."""
     egl = getattr(cfg, "egl_device", None)
     kind = scene_kind(spec)
+    if getattr(cfg, "system", "auto") == "dmmr":  # M1: server + clients over a scene (or builtin:objects)
+        from .dmmr import DmmrSystem
+
+        return DmmrSystem(spec, cfg)
     if kind == "objects":
         from .objects import ObjectsSystem
 

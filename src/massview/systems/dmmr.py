@@ -1,0 +1,319 @@
+"""M1 — Distributed Massive Model Rendering (Revanth & Narayanan, ICVGIP 2012).
+
+Roles (§3.1): rank 0 is the **server**, every other rank a **client** (one rank: the server
+and one client share the process, linked by queues instead of MPI).
+
+* Server, per frame (§3.4): frustum-cull the skeleton (hierarchical, over group boxes), choose
+  each object's LOD level from ``--tau``, split the screen into one sub-frustum per client with
+  the load-balanced frustum division (Algorithm 1, :mod:`massview.lod.split`, weights =
+  triangles of the chosen levels, footprints = projected bounding spheres) and send each client
+  its viewport and object list. The server holds the skeleton only and never reads geometry
+  (except to render the one-rank reference under ``--reference``).
+* Client (§3.5–3.8, :mod:`massview.systems.dmmr_client`): occlusion culling on GPU 1,
+  sub-frame rendering through the GPU/RAM/disk cache on GPU 2, compress, send.
+* Server, assembly (§3.7): receive, decompress and paste the sub-frames; deliver the frame.
+
+Pipelining (§3.3): with ``--stage-pipeline on`` (default) the server divides frame i while
+the clients determine the visibility of frame i−1 and render frame i−2 (one thread per module,
+:class:`~massview.parallel.pipeline.StagePipeline` on the clients, at most three frames in
+flight); ``off`` runs one frame at a time (the synchronous reference).
+
+Statistics per frame: the server's record (rank 0) has stages ``divide``, ``send``,
+``assemble`` and ``total`` = the frame period (time between consecutive delivered frames), and
+counters for objects in the frustum and sent, latency (ms and frames in flight); each client's
+record has stages ``visibility`` (``vis_load``, ``vis_issue``, ``vis_retrieve``), ``load``,
+``draw``, ``readback``, ``encode``, ``send`` and counters for queries issued and waits, objects
+culled by occlusion, triangles drawn, cache hits and loads per level and bytes.
+"""
+
+from __future__ import annotations
+
+import queue
+import sys
+import threading
+import time
+
+import numpy as np
+
+from ..core.camera import Camera
+from ..core.config import RenderConfig
+from ..core.image import Image, blank_image
+from ..core.stats import FrameStats
+from ..data.cache import BlockCache
+from ..lod.scene import SkeletonCuller, choose_levels
+from ..lod.split import divide_frustum, sphere_rects
+from ..parallel.codec import decode_image
+from ..parallel.pipeline import StagePipeline
+from ..render.geometry_cache import packed_loader
+from ..render.meshes import rank_tint
+from .dmmr_client import ClientTask, DmmrClient, SceneDrawer
+from .dmmr_scene import open_scene
+from .frameloop import image_diff
+
+__all__ = ["DmmrSystem", "DmmrServer"]
+
+_TAG_TASK, _TAG_SIZE, _TAG_IMAGE = 0x4D31, 0x4D32, 0x4D33
+
+
+class _MpiLink:
+    """Server ↔ client messages: tasks pickled (lowercase), sub-frames as uint8 buffers."""
+
+    def __init__(self, comm):
+        self.comm = comm
+
+    def send_task(self, client: int, task: ClientTask) -> None:
+        self.comm.send(task, dest=client + 1, tag=_TAG_TASK)
+
+    def recv_task(self) -> ClientTask:
+        return self.comm.recv(source=0, tag=_TAG_TASK)
+
+    def send_image(self, payload: bytes) -> None:
+        self.comm.Send(np.array([len(payload)], np.int64), dest=0, tag=_TAG_SIZE)
+        self.comm.Send(np.frombuffer(payload, np.uint8), dest=0, tag=_TAG_IMAGE)
+
+    def recv_image(self, client: int) -> np.ndarray:
+        size = np.zeros(1, np.int64)
+        self.comm.Recv(size, source=client + 1, tag=_TAG_SIZE)
+        buf = np.empty(int(size[0]), np.uint8)
+        self.comm.Recv(buf, source=client + 1, tag=_TAG_IMAGE)
+        return buf
+
+    def fail(self, err: BaseException) -> None:
+        print(f"massview: error on rank 0 (dmmr server): {type(err).__name__}: {err}", file=sys.stderr, flush=True)
+        self.comm.Abort(1)
+
+
+class _LocalLink:
+    """The one-rank case: the server and its single client in one process."""
+
+    def __init__(self):
+        self.tasks: queue.Queue = queue.Queue()
+        self.images: queue.Queue = queue.Queue()
+
+    def send_task(self, client, task):
+        self.tasks.put(task)
+
+    def recv_task(self):
+        item = self.tasks.get()
+        if isinstance(item, BaseException):
+            raise item
+        return item
+
+    def send_image(self, payload):
+        self.images.put(payload)
+
+    def recv_image(self, client):
+        item = self.images.get()
+        if isinstance(item, BaseException):
+            raise item
+        return np.frombuffer(item, np.uint8)
+
+    def fail(self, err):
+        self.images.put(err)
+        self.tasks.put(err)
+
+
+def _delays(cfg: RenderConfig) -> dict[str, float]:
+    """``--stage-delay divide:MS,visibility:MS,render:MS`` (testing aid) in seconds."""
+    out = {}
+    for part in (cfg.stage_delay or "").split(","):
+        if part:
+            name, _, ms = part.partition(":")
+            out[name] = float(ms) / 1e3
+    return out
+
+
+class DmmrServer:
+    """Frustum culling, level choice and Algorithm 1 over the skeleton only."""
+
+    def __init__(self, store, tau: float):
+        sk = self.sk = store.skeleton
+        self.culler = SkeletonCuller(store.groups, sk.group, sk.box_lo, sk.box_hi)
+        self.levels = np.asarray(sk.levels, np.int64)
+        self.tris = np.asarray(sk.triangles, np.int64)
+        self.tau = tau
+
+    def cut(self, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """Object ids in the frustum (sorted) and their chosen levels."""
+        vis = np.flatnonzero(self.culler.visible(camera.frustum_planes()))
+        sk = self.sk
+        lv = choose_levels(camera, sk.center[vis], sk.radius[vis], self.levels[vis], sk.level_error[vis], self.tau)
+        return vis, np.asarray(lv, np.int64)
+
+    def divide(self, frame: int, camera: Camera, clients: int) -> tuple[list[ClientTask], np.ndarray, np.ndarray]:
+        vis, lv = self.cut(camera)
+        rects = sphere_rects(camera, self.sk.center[vis], self.sk.radius[vis])
+        subs = divide_frustum(rects, self.tris[vis, lv].astype(np.float64), camera.viewport, clients)
+        tasks = [ClientTask(frame, camera, s.viewport, vis[s.items], lv[s.items]) for s in subs]
+        return tasks, vis, lv
+
+
+class DmmrSystem:
+    """``--system dmmr``: see the module doc. ``run_path`` is the system's own frame loop."""
+
+    sort_last_modes: tuple[str, ...] = ()
+
+    def __init__(self, spec: str, cfg: RenderConfig | None = None):
+        self.spec = spec
+        self.store = open_scene(spec)
+        self.cfg = cfg or RenderConfig()
+        self.server = DmmrServer(self.store, self.cfg.tau)
+        self._ref: SceneDrawer | None = None
+
+    @property
+    def bounds(self):
+        lo, hi = self.store.bounds
+        return np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+
+    @property
+    def renderer(self) -> str:
+        return "dmmr: " + getattr(self, "_renderer", "clients' GL")
+
+    def ram_budget(self, clients: int) -> int:
+        """Client RAM cache bytes: ``--client-cache-mb`` or the scene's object bytes ÷ clients (§4)."""
+        if self.cfg.client_cache_mb:
+            return self.cfg.client_cache_mb << 20
+        total = int(np.asarray(self.store.skeleton.level_bytes, np.int64).sum())
+        return max(total // max(clients, 1), 64 << 20)
+
+    # -- the frame loop -----------------------------------------------------------------
+    def run_path(self, comm, cameras: list[Camera] | None, cfg: RenderConfig, sink=None):
+        """Render ``cameras`` (rank 0's list); returns (records, diffs) on rank 0, else None."""
+        rank, size = comm.Get_rank(), comm.Get_size()
+        clients = max(size - 1, 1)
+        nframes = comm.bcast(len(cameras) if rank == 0 else None, root=0)
+        if size == 1:
+            link = _LocalLink()
+            out: dict = {}
+
+            def client_main():
+                try:
+                    out["records"] = self._client(link, 0, nframes, cfg, clients)
+                except BaseException as e:  # noqa: BLE001 - handed to the server loop
+                    link.images.put(e)
+
+            th = threading.Thread(target=client_main, name="massview-dmmr-client", daemon=True)
+            th.start()
+            records, diffs = self._serve(link, cameras, cfg, clients, sink)
+            th.join()
+            return records + out.get("records", []), diffs
+        link = _MpiLink(comm)
+        if rank == 0:
+            records, diffs = self._serve(link, cameras, cfg, clients, sink)
+        else:
+            records = self._client(link, rank - 1, nframes, cfg, clients)
+        gathered = comm.gather(records if rank else None, root=0)
+        if rank:
+            return None
+        for part in gathered[1:]:
+            records.extend(part)
+        return records, diffs
+
+    def _client(self, link, index: int, nframes: int, cfg: RenderConfig, clients: int) -> list[dict]:
+        client = DmmrClient(self.store, cfg, index, self.ram_budget(clients))
+        delay = _delays(cfg)
+        tint = rank_tint(index) if cfg.color_by_rank else (0.0, 0.0, 0.0, 0.0)
+        records: list[dict] = []
+
+        def visibility(f, _):
+            task = link.recv_task()
+            stats = FrameStats(frame=f, rank=index + 1)
+            time.sleep(delay.get("visibility", 0.0))
+            v = client.visibility(task, stats)
+            if f == nframes - 1:
+                client.release_visibility()
+            return v
+
+        def render(f, v):
+            time.sleep(delay.get("render", 0.0))
+            _, payload = client.render(v, v.stats, tint)
+            with v.stats.stage("send"):
+                link.send_image(payload)
+            v.stats.bytes_sent += len(payload)
+            records.append(v.stats.to_json())
+            if f == nframes - 1:
+                client.release_render()
+
+        try:
+            StagePipeline([("visibility", visibility), ("render", render)], pipelined=cfg.stage_pipeline == "on").run(range(nframes))
+        finally:
+            client.close()
+        return records
+
+    def _serve(self, link, cameras, cfg: RenderConfig, clients: int, sink) -> tuple[list[dict], list]:
+        credits = threading.Semaphore(3 if cfg.stage_pipeline == "on" else 1)
+        sent = [threading.Event() for _ in cameras]
+        frames: dict[int, tuple] = {}
+        delay = _delays(cfg).get("divide", 0.0)
+
+        def divider():
+            try:
+                for f, cam in enumerate(cameras):
+                    credits.acquire()
+                    st = FrameStats(frame=f, rank=0)
+                    t0 = time.perf_counter()
+                    with st.stage("divide"):
+                        tasks, vis, lv = self.server.divide(f, cam, clients)
+                        time.sleep(delay)
+                    frames[f] = (t0, st, tasks, vis, lv)
+                    with st.stage("send"):
+                        for c, t in enumerate(tasks):
+                            link.send_task(c, t)
+                    sent[f].set()
+            except BaseException as e:  # noqa: BLE001 - ends every rank
+                link.fail(e)
+
+        th = threading.Thread(target=divider, name="massview-dmmr-divide", daemon=True)
+        th.start()
+        records, diffs, ends = [], [], []
+        prev = time.perf_counter()
+        for f, cam in enumerate(cameras):
+            full = blank_image(cam.viewport)
+            t_a = 0.0
+            for c in range(clients):
+                buf = link.recv_image(c)
+                t1 = time.perf_counter()
+                full.paste(decode_image(buf))
+                t_a += time.perf_counter() - t1
+            sent[f].wait()
+            credits.release()
+            now = time.perf_counter()
+            ends.append(now)
+            t0, st, tasks, vis, lv = frames.pop(f)
+            st.times_ms["assemble"] = t_a * 1e3
+            st.times_ms["total"] = (now - prev) * 1e3
+            prev = now
+            st.count("objects_in_frustum", len(vis))
+            st.count("objects_sent", sum(len(t.items) for t in tasks))
+            st.count("triangles_in_frustum", int(self.server.tris[vis, lv].sum()))
+            st.count("latency_ms", (now - t0) * 1e3)
+            st.count("frames_in_flight", 1 + sum(1 for g in frames if g > f))
+            st.bytes_recv += 0
+            if sink is not None:
+                sink(f, full)
+            if cfg.reference:
+                diffs.append((f, image_diff(full, self.render_reference(cam, vis, lv))))
+            records.append(st.to_json())
+        th.join()
+        return records, diffs
+
+    # -- the one-rank reference ---------------------------------------------------------
+    def render_reference(self, camera: Camera, vis: np.ndarray | None = None, lv: np.ndarray | None = None) -> Image:
+        """Every object in the frustum at the chosen levels, no occlusion culling, one rank."""
+        if vis is None:
+            vis, lv = self.server.cut(camera)
+        if self._ref is None:
+            total = int(np.asarray(self.store.skeleton.level_bytes, np.int64).sum())
+            ram = BlockCache(packed_loader(self.store), 2 * total + (64 << 20), workers=2)
+            self._ref = SceneDrawer(self.store.skeleton, ram, max(self.cfg.gpu_mb << 20, 2 * total + (64 << 20)), self.cfg.egl_device)
+        d = self._ref
+        with d.ctx:
+            d.ensure(vis, lv)
+            return d.view.render(camera, camera.viewport, d.draw_fn(camera, vis, lv), FrameStats(-1, 0))
+
+    def close(self) -> None:
+        if self._ref is not None:
+            ram = self._ref.cache.ram
+            self._ref.release()
+            ram.close()
+            self._ref = None
