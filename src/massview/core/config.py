@@ -81,6 +81,10 @@ class RenderConfig:
             raise ConfigError(f"--occluder-lod must be exact or coarse, got {self.occluder_lod!r}")
         if self.client_cache_mb is not None and self.client_cache_mb < 1:
             raise ConfigError("--client-cache-mb must be at least 1")
+        for part in (self.stage_delay or "").split(","):
+            name, _, ms = part.partition(":")
+            if part and (name not in ("divide", "visibility", "render") or not ms.replace(".", "", 1).isdigit()):
+                raise ConfigError(f"--stage-delay {self.stage_delay!r}: expected divide:MS,visibility:MS,render:MS")
 
     @classmethod
     def from_env(cls, env=None, **explicit) -> "RenderConfig":

@@ -1,0 +1,115 @@
+"""M1 end to end (`massview render SCENE --system dmmr`): real mpiexec, real GL, the one-rank
+reference (every object in the frustum, no occlusion culling) as the oracle."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from massview.core.config import RenderConfig
+from massview.core.errors import ConfigError
+from massview.core.paths import load_path
+from massview.systems.dmmr import DmmrSystem
+
+from conftest import load_png, run_cli, save_diff, summary
+
+SCENE = "builtin:objects?n=400&seed=3"
+SIZE = "320x240"
+
+
+def dmmr(out, ranks, *extra, frames=3, scene=SCENE):
+    run_cli("render", scene, "--system", "dmmr", "--ranks", ranks, "--frames", frames, "--size", SIZE,
+            "--out", out, "--reference", "-q", *extra)
+    recs = [json.loads(line) for line in (out / "stats.jsonl").read_text().splitlines()]
+    return summary(out), recs
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("ranks", [3, 4, 5])
+def test_parallel_equals_serial_without_occlusion_culling(tmp_path, ranks):
+    s, recs = dmmr(tmp_path, ranks, "--occlusion", "off")
+    assert s["ranks"] == ranks and s["frames"] == 3
+    assert s["max_abs_diff"] == 0 and s["diff_fraction"] == 0.0
+    clients = [r for r in recs if r["rank"] > 0]
+    assert {r["rank"] for r in clients} == set(range(1, ranks))
+    assert all(r["counters"].get("queries_issued", 0) == 0 for r in clients)
+
+
+@pytest.mark.mpi
+def test_occlusion_culling_keeps_the_image_and_draws_fewer_triangles(tmp_path):
+    on, recs = dmmr(tmp_path / "on", 3, frames=4)
+    off, _ = dmmr(tmp_path / "off", 3, "--occlusion", "off", frames=4)
+    assert on["max_abs_diff"] == 0 and on["diff_fraction"] == 0.0
+    assert on["triangles_per_frame"] < off["triangles_per_frame"]
+    for f in range(4):
+        a, b = load_png(tmp_path / "on" / "frames" / f"{f:05d}.png"), load_png(tmp_path / "off" / "frames" / f"{f:05d}.png")
+        if not np.array_equal(a, b):
+            raise AssertionError(f"frame {f} differs: {save_diff(a, b, tmp_path / 'diff.png')}")
+    clients = [r for r in recs if r["rank"] > 0]
+    assert sum(r["counters"]["culled_by_occlusion"] for r in clients) > 0
+    assert max(r["counters"]["queries_issued"] for r in clients) > 1
+    for r in clients:  # batched: one wait per frame however many queries (none when all are marked)
+        assert r["counters"]["query_waits"] == (1 if r["counters"]["queries_issued"] else 0)
+
+
+@pytest.mark.mpi
+@pytest.mark.slow
+def test_stage_pipeline_period_is_the_slowest_stage_and_latency_three_frames(tmp_path):
+    delay = "divide:150,visibility:450,render:150"
+    args = ("--stage-delay", delay, "--occlusion", "off")
+    _, piped = dmmr(tmp_path / "on", 2, *args, frames=8, scene="builtin:objects?n=60")
+    _, sync = dmmr(tmp_path / "off", 2, *args, "--stage-pipeline", "off", frames=5, scene="builtin:objects?n=60")
+
+    def server(recs):
+        rs = sorted((r for r in recs if r["rank"] == 0), key=lambda r: r["frame"])
+        return [r["times_ms"]["total"] for r in rs[2:]], [r["counters"]["frames_in_flight"] for r in rs]
+
+    period_p, flight_p = server(piped)
+    period_s, flight_s = server(sync)
+    assert max(flight_p) == 3 and max(flight_s) == 1
+    slowest, total = 450, 750
+    assert np.median(period_s) >= 0.95 * total
+    assert 0.95 * slowest <= np.median(period_p) < np.median(period_s) * 0.85
+
+
+def test_one_rank_in_process_matches_the_reference_and_reports_per_stage():
+    cfg = RenderConfig(width=240, height=180, frames=3, system="dmmr", reference=True, gpu_mb=64, client_cache_mb=32)
+    sys_ = DmmrSystem("builtin:objects?n=200&seed=1", cfg)
+    try:
+        cams = load_path("orbit", *sys_.bounds).cameras(3, 240, 180)
+        frames = {}
+        class _Self:
+            def Get_rank(self):
+                return 0
+
+            def Get_size(self):
+                return 1
+
+            def bcast(self, v, root=0):
+                return v
+
+        records, diffs = sys_.run_path(_Self(), cams, cfg, lambda f, img: frames.__setitem__(f, img))
+        assert sorted(frames) == [0, 1, 2]
+        assert all(d[0] == 0 for _, d in diffs) and len(diffs) == 3
+        client = [r for r in records if r["rank"] == 1]
+        assert len(client) == 3
+        for key in ("visibility", "load", "draw", "readback", "encode", "send"):
+            assert key in client[0]["times_ms"]
+        for key in ("queries_issued", "culled_by_occlusion", "gpu_hits", "ram_hits", "disk_loads", "bytes_uploaded"):
+            assert key in client[0]["counters"]
+        c0 = client[0]["counters"]
+        assert c0["vis_disk_loads"] > 0 and c0["disk_loads"] + c0["ram_hits"] > 0  # GPU 1 read the store first
+        assert client[-1]["counters"]["bytes_uploaded"] < c0["bytes_uploaded"]  # GPU buffers reused along the path
+    finally:
+        sys_.close()
+
+
+def test_bad_dmmr_options_are_clear_errors():
+    with pytest.raises(ConfigError, match="--visible-frames"):
+        RenderConfig(visible_frames=0)
+    with pytest.raises(ConfigError, match="--occluder-lod"):
+        RenderConfig(occluder_lod="fine")
+    p = run_cli("render", SCENE, "--system", "dmmr", "--occlusion", "maybe", check=False)
+    assert p.returncode != 0 and "--occlusion" in p.stderr
