@@ -73,7 +73,20 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", "-o", type=Path, default=Path("out/render"), help="output folder (default out/render)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary table")
     p.add_argument("--fault", default=None, help=argparse.SUPPRESS)
+    _add_roettger_args(p)
     add_dmmr_args(p)
+
+
+def _add_roettger_args(p: argparse.ArgumentParser) -> None:
+    """T2 flags (``--system roettger``: computation + visualization ranks)."""
+    p.add_argument("layers", nargs="*", default=[], help="T2: further terrain stores drawn as stacked layers")
+    p.add_argument("--system", choices=("auto", "roettger", "dmmr"), default="auto", help="auto (by scene: T1 for terrain), roettger (T2) or dmmr (M1: rank 0 server, other ranks clients)")
+    p.add_argument("--compute-ranks", type=_positive, default=1, help="T2: computation ranks; the other ranks visualize (default 1)")
+    p.add_argument("--paper-partition", action="store_true", help="T2: the paper's overlapping (2^m+1)² portions instead of the exact partition")
+    p.add_argument("--triangle-budget", type=_positive, default=None, help="T2: at most N triangles per frame (≥ 0.9 N when the view has more)")
+    p.add_argument("--roettger-C", type=float, default=None, help="T2: minimum global resolution C in [2, 64] (default: the store table's, 4)")
+    p.add_argument("--roettger-c", type=float, default=None, help="T2: desired global resolution c (default √3/(tau · pixel angle))")
+    p.add_argument("--no-fan-delta", action="store_true", help="T2: resend every visible fan each frame (no change-only messages)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -119,6 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--no-color", action="store_true", help="no colour pyramid")
     pt.add_argument("--overwrite", action="store_true", help="rebuild a complete store")
     pt.add_argument("--quiet", "-q", action="store_true")
+    from .roettger_cmds import add_parsers as _roettger_parsers
+
+    _roettger_parsers(psub)
     inf = sub.add_parser("info", help="levels, blocks, size on disk, compression, georeference of a store")
     inf.add_argument("store")
     inf.add_argument("--json", action="store_true")
@@ -141,6 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
     bt.add_argument("--tau", type=float, default=1.0)
     bt.add_argument("--max-plain", type=int, default=40_000_000, help="largest plain mesh to draw as the baseline (triangles)")
     bt.add_argument("--skip-parallel", action="store_true", help="only the one-rank LOD vs plain-mesh comparison")
+    from .bench import roettger as _bench_roettger
+
+    _bench_roettger.add_arguments(bsub.add_parser("roettger", help="T2: the paper's experiments (§4.1 speed-up, Figures 6, 7), T1 vs T2, RSS per computation rank"))
     bi = bsub.add_parser("ingest", help="prepare a synthetic DEM: MB/s, compression ratio, peak RSS")
     bi.add_argument("--size", type=_positive, default=16385, help="samples per side (default 16385: 1 GiB float32)")
     bi.add_argument("--seed", type=int, default=1)
@@ -157,7 +176,10 @@ def render_config(args) -> RenderConfig:
         decomposition=args.decomposition, compositor=args.compositor, radix_k=args.radix_k, codec=args.codec,
         width=w, height=h, frames=args.frames, path=args.path, grid=args.grid, wall=args.wall,
         tile_targets=args.tile_targets, reference=args.reference, color_by_rank=args.color_by_rank, fault=args.fault,
-        tau=args.tau, cache_mb=args.cache_mb, gpu_mb=args.gpu_mb, loading=args.loading, **dmmr_config(args),
+        tau=args.tau, cache_mb=args.cache_mb, gpu_mb=args.gpu_mb, loading=args.loading,
+        system=args.system, layers=tuple(args.layers), compute_ranks=args.compute_ranks, paper_partition=args.paper_partition,
+        triangle_budget=args.triangle_budget, roettger_C=args.roettger_C, roettger_c=args.roettger_c, fan_delta=not args.no_fan_delta,
+        **dmmr_config(args),
     )
 
 
@@ -169,6 +191,10 @@ def _validate_render(args, cfg: RenderConfig, nranks: int) -> None:
     from ..systems import scene_kind
 
     modes = {"terrain": ("kpatch", "linear", "quadtree"), "scene": ("visible", "static")}.get(scene_kind(args.scene), ())
+    if cfg.system == "roettger":
+        from ..systems.roettger import validate
+
+        return validate(args.scene, cfg, nranks)
     parse_decomposition(cfg.decomposition, modes)
     if cfg.decomposition == "sort-first:grid":
         sort_first_tiles("grid", nranks, cfg.width, cfg.height, cfg.grid)
@@ -240,6 +266,10 @@ def cmd_bench(args, argv) -> int:
         from . import bench_terrain
 
         return bench_terrain.run(args)
+    if args.bench == "roettger":
+        from .bench import roettger
+
+        return roettger.run(args)
     if args.bench == "ingest":
         from . import bench_ingest
 
@@ -285,6 +315,10 @@ def main(argv: list[str] | None = None) -> int:
             from .demo import run_demo
 
             return run_demo(args)
+        if args.command == "prepare" and args.what == "roettger":
+            from .roettger_cmds import cmd_prepare_roettger
+
+            return cmd_prepare_roettger(args)
         if args.command in ("generate", "prepare", "info", "verify"):
             from . import terrain_cmds
 

@@ -12,9 +12,7 @@ __all__ = ["add_dmmr_args", "dmmr_config"]
 
 
 def add_dmmr_args(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("massive models (--system dmmr: rank 0 server, other ranks clients)")
-    g.add_argument("--system", choices=("auto", "dmmr"), default=None,
-                   help="dmmr = distributed massive model rendering (load-balanced frustum division, occlusion culling, pipelined sub-frames)")
+    g = p.add_argument_group("massive models (--system dmmr: distributed massive model rendering; rank 0 server, other ranks clients)")
     g.add_argument("--visible-frames", type=int, default=None, help="dmmr: frames an object stays visible after passing a query (default 4)")
     g.add_argument("--query-threshold", type=int, default=None, help="dmmr: pixels a box must show to be visible (default 0)")
     g.add_argument("--occlusion", choices=("on", "off"), default=None, help="dmmr: occlusion culling on the clients (default on)")
@@ -27,5 +25,5 @@ def add_dmmr_args(p: argparse.ArgumentParser) -> None:
 
 
 def dmmr_config(args) -> dict:
-    names = ("system", "visible_frames", "query_threshold", "occlusion", "occluder_lod", "stage_pipeline", "client_cache_mb", "stage_delay")
+    names = ("visible_frames", "query_threshold", "occlusion", "occluder_lod", "stage_pipeline", "client_cache_mb", "stage_delay")
     return {n: getattr(args, n, None) for n in names}

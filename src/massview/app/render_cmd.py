@@ -38,6 +38,8 @@ def run_render(comm, scene: str, cfg: RenderConfig, out: Path, quiet: bool = Fal
     """Render ``cfg.frames`` frames of ``cfg.path``; returns the summary on rank 0."""
     rank, n = comm.Get_rank(), comm.Get_size()
     system = open_system(scene, cfg)
+    if hasattr(system, "setup"):  # systems with roles split the ranks and load their data here
+        system.setup(comm)
     kind, mode = parse_decomposition(cfg.decomposition, system.sort_last_modes)
     cameras = load_path(cfg.path, *system.bounds).cameras(cfg.frames, cfg.width, cfg.height) if rank == 0 else None
     is_display = any(r == rank for r, _ in display_tiles(cfg, n))
@@ -68,7 +70,8 @@ def run_render(comm, scene: str, cfg: RenderConfig, out: Path, quiet: bool = Fal
                 stats_file.write(json.dumps(rec) + "\n")
             diffs = got[1] if got else []
         for f in range(0 if hasattr(system, "run_path") else cfg.frames):
-            res = render_frame(comm, system, cfg, cameras[f] if rank == 0 else None, f, sink if is_display else None)
+            frame_fn = getattr(system, "render_frame", None) or (lambda *a: render_frame(comm, system, *a))
+            res = frame_fn(cfg, cameras[f] if rank == 0 else None, f, sink if is_display else None)
             gathered = comm.gather((res.stats.to_json(), res.diff), root=0)
             if rank == 0:
                 for rec, diff in gathered:

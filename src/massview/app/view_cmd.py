@@ -39,6 +39,9 @@ def _jpeg(tile, quality: int = 80) -> bytes:
 def run_view(comm, args, cfg: RenderConfig) -> int:
     rank, n = comm.Get_rank(), comm.Get_size()
     system = open_system(args.scene, cfg)
+    if hasattr(system, "setup"):  # systems with roles (T2) split the ranks and load their data
+        system.setup(comm)
+    frame_fn = getattr(system, "render_frame", None) or (lambda *a: render_frame(comm, system, *a))
     stop = {"flag": False}
 
     def on_sigint(signum, frame):
@@ -73,7 +76,7 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
                 break
             fcfg = RenderConfig(**{**cfg.to_json(), **snap["settings"], "grid": cfg.grid})
             t0 = time.perf_counter()
-            res = render_frame(comm, system, fcfg, snap["camera"], frame)
+            res = frame_fn(fcfg, snap["camera"], frame)
             recs = comm.gather(res.stats.to_json(), root=0)
             times.append(time.perf_counter() - t0)
             if rank == 0:

@@ -47,7 +47,16 @@ class RenderConfig:
     loading: str = "async"  # terrain: "async" (never wait) or "complete" (wait for every needed block)
     egl_device: int | None = None
     fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
-    system: str = "auto"  # "auto" (by the scene) or "dmmr" (M1: server + clients)
+    # T2 (--system roettger): computation ranks, partition, budget, Röttger's C and c, layers
+    system: str = "auto"  # "auto" (by scene), "roettger" (T2) or "dmmr" (M1)
+    layers: tuple[str, ...] = ()  # further stores drawn as stacked layers (T2)
+    compute_ranks: int = 1
+    paper_partition: bool = False
+    triangle_budget: int | None = None
+    roettger_C: float | None = None  # None: the store table's C_min
+    roettger_c: float | None = None  # None: from --tau (massview.lod.roettger.default_c)
+    fan_delta: bool = True  # send only the fans that changed since the previous frame
+    # M1 (--system dmmr): server + clients
     visible_frames: int = 4  # dmmr: frames a passed occlusion query keeps an object visible
     query_threshold: int = 0  # dmmr: samples (pixels) a box must pass to count as visible
     occlusion: str = "on"  # dmmr: occlusion culling on the clients, "on" or "off"
@@ -67,11 +76,18 @@ class RenderConfig:
             raise ConfigError("--cache-mb and --gpu-mb must be at least 1")
         if not self.tau > 0:
             raise ConfigError(f"--tau (pixel tolerance) must be positive, got {self.tau}")
+        if self.system not in ("auto", "roettger", "dmmr"):
+            raise ConfigError(f"--system must be auto, roettger or dmmr, got {self.system!r}")
+        if self.compute_ranks < 1:
+            raise ConfigError(f"--compute-ranks must be at least 1, got {self.compute_ranks}")
+        if self.triangle_budget is not None and self.triangle_budget < 1:
+            raise ConfigError(f"--triangle-budget must be at least 1, got {self.triangle_budget}")
+        if self.layers and self.system != "roettger":
+            raise ConfigError("several stores (layers) need --system roettger")
+        object.__setattr__(self, "layers", tuple(self.layers))
         self._check_dmmr()
 
     def _check_dmmr(self) -> None:
-        if self.system not in ("auto", "dmmr"):
-            raise ConfigError(f"--system must be auto or dmmr, got {self.system!r}")
         if self.visible_frames < 1 or self.query_threshold < 0:
             raise ConfigError("--visible-frames must be at least 1 and --query-threshold at least 0")
         for name in ("occlusion", "stage_pipeline"):

@@ -43,6 +43,10 @@ def open_system(spec: str, cfg=None):
     """The rendering system for a scene: ``builtin:objects[?n=..&seed=..]``, a terrain store
     or a scene store."""
     egl = getattr(cfg, "egl_device", None)
+    if getattr(cfg, "system", "auto") == "roettger":
+        from .roettger import RoettgerSystem
+
+        return RoettgerSystem((spec, *cfg.layers), cfg)
     kind = scene_kind(spec)
     if getattr(cfg, "system", "auto") == "dmmr":  # M1: server + clients over a scene (or builtin:objects)
         from .dmmr import DmmrSystem

@@ -157,6 +157,9 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     store = TerrainStore(out, require_complete=False)
     meta = compute_metadata(store, prog, write_color=color is not None, ortho=ortho, vertical_scale=vertical_scale)
     write_metadata(g, lay, meta)
+    from .roettger import DEFAULT_C_MIN, compute_table, write_table  # T2's per-node table (Röttger d2)
+
+    write_table(g, compute_table(store, DEFAULT_C_MIN, prog), DEFAULT_C_MIN)
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
