@@ -44,6 +44,7 @@ from ..lod.scene import SkeletonCuller, choose_levels
 from ..lod.split import divide_frustum, sphere_rects
 from ..parallel.codec import decode_image
 from ..parallel.pipeline import StagePipeline
+from ..parallel.roles import Role, run_roles, split_roles
 from ..render.geometry_cache import packed_loader
 from ..render.meshes import rank_tint
 from .dmmr_client import ClientTask, DmmrClient, SceneDrawer
@@ -55,27 +56,31 @@ __all__ = ["DmmrSystem", "DmmrServer"]
 _TAG_TASK, _TAG_SIZE, _TAG_IMAGE = 0x4D31, 0x4D32, 0x4D33
 
 
-class _MpiLink:
-    """Server ↔ client messages: tasks pickled (lowercase), sub-frames as uint8 buffers."""
+ROLES = (Role("server", 1), Role("client", None, minimum=1))
 
-    def __init__(self, comm):
-        self.comm = comm
+
+class _MpiLink:
+    """Server ↔ client messages over the roles' parent communicator: tasks pickled
+    (lowercase calls), sub-frames as uint8 buffers (uppercase)."""
+
+    def __init__(self, rc):
+        self.comm, self.server, self.clients = rc.parent, rc.leader("server"), rc.ranks["client"]
 
     def send_task(self, client: int, task: ClientTask) -> None:
-        self.comm.send(task, dest=client + 1, tag=_TAG_TASK)
+        self.comm.send(task, dest=self.clients[client], tag=_TAG_TASK)
 
     def recv_task(self) -> ClientTask:
-        return self.comm.recv(source=0, tag=_TAG_TASK)
+        return self.comm.recv(source=self.server, tag=_TAG_TASK)
 
     def send_image(self, payload: bytes) -> None:
-        self.comm.Send(np.array([len(payload)], np.int64), dest=0, tag=_TAG_SIZE)
-        self.comm.Send(np.frombuffer(payload, np.uint8), dest=0, tag=_TAG_IMAGE)
+        self.comm.Send(np.array([len(payload)], np.int64), dest=self.server, tag=_TAG_SIZE)
+        self.comm.Send(np.frombuffer(payload, np.uint8), dest=self.server, tag=_TAG_IMAGE)
 
     def recv_image(self, client: int) -> np.ndarray:
         size = np.zeros(1, np.int64)
-        self.comm.Recv(size, source=client + 1, tag=_TAG_SIZE)
+        self.comm.Recv(size, source=self.clients[client], tag=_TAG_SIZE)
         buf = np.empty(int(size[0]), np.uint8)
-        self.comm.Recv(buf, source=client + 1, tag=_TAG_IMAGE)
+        self.comm.Recv(buf, source=self.clients[client], tag=_TAG_IMAGE)
         return buf
 
     def fail(self, err: BaseException) -> None:
@@ -197,16 +202,16 @@ class DmmrSystem:
             records, diffs = self._serve(link, cameras, cfg, clients, sink)
             th.join()
             return records + out.get("records", []), diffs
-        link = _MpiLink(comm)
-        if rank == 0:
-            records, diffs = self._serve(link, cameras, cfg, clients, sink)
-        else:
-            records = self._client(link, rank - 1, nframes, cfg, clients)
-        gathered = comm.gather(records if rank else None, root=0)
-        if rank:
+        rc = split_roles(comm, ROLES)  # rank 0: the server; the others: clients 0 .. N-2
+        link = _MpiLink(rc)
+        out = run_roles(rc, {"server": lambda rc: self._serve(link, cameras, cfg, clients, sink),
+                             "client": lambda rc: (self._client(link, rc.role_rank, nframes, cfg, clients), None)})
+        gathered = comm.gather(out[0] if rc.role == "client" else None, root=0)
+        if rc.role != "server":
             return None
-        for part in gathered[1:]:
-            records.extend(part)
+        records, diffs = out
+        for part in gathered:
+            records.extend(part or [])
         return records, diffs
 
     def _client(self, link, index: int, nframes: int, cfg: RenderConfig, clients: int) -> list[dict]:
