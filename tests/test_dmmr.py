@@ -37,21 +37,28 @@ def test_parallel_equals_serial_without_occlusion_culling(tmp_path, ranks):
     assert all(r["counters"].get("queries_issued", 0) == 0 for r in clients)
 
 
+@pytest.fixture(scope="module")
+def plant(tmp_path_factory):
+    """A small generated power plant (≈3.5 k objects, 8 levels of groups, occluder walls)."""
+    from massview.data.generators.scenes import generate_scene
+
+    out = tmp_path_factory.mktemp("plant") / "plant.zarr"
+    generate_scene("plant", out, copies=1, size=0.15, seed=1)
+    return out
+
+
 @pytest.mark.mpi
-def test_occlusion_culling_keeps_the_image_and_draws_fewer_triangles(tmp_path):
-    on, recs = dmmr(tmp_path / "on", 3, frames=4)
-    off, _ = dmmr(tmp_path / "off", 3, "--occlusion", "off", frames=4)
-    assert on["max_abs_diff"] == 0 and on["diff_fraction"] == 0.0
-    assert on["triangles_per_frame"] < off["triangles_per_frame"]
-    for f in range(4):
-        a, b = load_png(tmp_path / "on" / "frames" / f"{f:05d}.png"), load_png(tmp_path / "off" / "frames" / f"{f:05d}.png")
-        if not np.array_equal(a, b):
-            raise AssertionError(f"frame {f} differs: {save_diff(a, b, tmp_path / 'diff.png')}")
+def test_occlusion_culling_keeps_the_image_and_draws_fewer_triangles(tmp_path, plant):
+    on, recs = dmmr(tmp_path, 3, "--path", "walkthrough", scene=plant)
+    assert on["max_abs_diff"] == 0 and on["diff_fraction"] == 0.0  # equal to the reference: no culling, one rank
+    server = [r for r in recs if r["rank"] == 0]
+    reference_triangles = np.mean([r["counters"]["triangles_in_frustum"] for r in server])  # what the reference draws
+    assert on["triangles_per_frame"] < 0.5 * reference_triangles
     clients = [r for r in recs if r["rank"] > 0]
-    assert sum(r["counters"]["culled_by_occlusion"] for r in clients) > 0
-    assert max(r["counters"]["queries_issued"] for r in clients) > 1
+    assert sum(r["counters"].get("culled_by_occlusion", 0) for r in clients) > 0
+    assert max(r["counters"].get("queries_issued", 0) for r in clients) > 1
     for r in clients:  # batched: one wait per frame however many queries (none when all are marked)
-        assert r["counters"]["query_waits"] == (1 if r["counters"]["queries_issued"] else 0)
+        assert r["counters"].get("query_waits", 0) == (1 if r["counters"].get("queries_issued", 0) else 0)
 
 
 @pytest.mark.mpi

@@ -210,3 +210,23 @@ def test_drawn_set_contains_every_visible_object_along_a_path(ctx):
     finally:
         c.release()
         c2.release()
+
+
+def test_coarse_occluders_can_hide_a_visible_object_exact_ones_cannot(ctx):
+    """A simplified occluder that grew beyond the original's silhouette (here: a box twice as
+    wide standing in for object 0's coarse level) hides object 2, which the exact occluder
+    leaves visible: only exact occluder geometry is conservative (--occluder-lod exact)."""
+    cam = Camera.look_at((0, -20, 0), (0, 0, 0), fovy=60, near=0.5, far=100, width=W, height=H)
+    exact = ((-1, -10.5, -1), (1, -10, 1))
+    coarse = ((-3, -10.5, -3), (3, -10, 3))
+    behind = ((1.6, 0, -0.5), (2.6, 1, 0.5))  # seen beside the exact occluder, behind the coarse one
+    mesh = box_meshes([exact, coarse, behind])
+    c = Client(ctx, mesh, np.array([True, False, False]))
+    try:
+        truth = c.ids.visible(cam, cam.viewport, np.array([0, 2]))
+        assert truth.tolist() == [0, 2]
+        for occluder_mesh, kept in ((0, True), (1, False)):
+            res = c.querier.test(cam, cam.viewport, lambda mvp: c.meshes.draw(np.array([occluder_mesh]), mvp), c.lo[[2]], c.hi[[2]])
+            assert bool(res.passed[0]) is kept
+    finally:
+        c.release()
