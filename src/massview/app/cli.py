@@ -159,6 +159,9 @@ def build_parser() -> argparse.ArgumentParser:
     bt.add_argument("--skip-parallel", action="store_true", help="only the one-rank LOD vs plain-mesh comparison")
     from .bench import roettger as _bench_roettger
 
+    from .bench import dmmr as _bench_dmmr
+
+    _bench_dmmr.add_arguments(bsub.add_parser("dmmr", help="M1: the paper's Tables 1-3, occlusion on/off, Algorithm 1 vs equal tiles, pipelined vs synchronous, speed-up"))
     _bench_roettger.add_arguments(bsub.add_parser("roettger", help="T2: the paper's experiments (§4.1 speed-up, Figures 6, 7), T1 vs T2, RSS per computation rank"))
     bi = bsub.add_parser("ingest", help="prepare a synthetic DEM: MB/s, compression ratio, peak RSS")
     bi.add_argument("--size", type=_positive, default=16385, help="samples per side (default 16385: 1 GiB float32)")
@@ -266,6 +269,10 @@ def cmd_bench(args, argv) -> int:
         from . import bench_terrain
 
         return bench_terrain.run(args)
+    if args.bench == "dmmr":
+        from .bench import dmmr
+
+        return dmmr.run(args)
     if args.bench == "roettger":
         from .bench import roettger
 

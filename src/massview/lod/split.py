@@ -44,7 +44,8 @@ import numpy as np
 
 from ..core.camera import Camera, Viewport
 
-__all__ = ["SplitChoice", "SubFrustum", "sphere_rects", "split_cost", "choose_split", "divide_frustum", "balanced_tiles"]
+__all__ = ["SplitChoice", "SubFrustum", "sphere_rects", "split_cost", "choose_split", "divide_frustum", "balanced_tiles",
+           "assign_to_tiles"]
 
 
 @dataclass(frozen=True)
@@ -219,3 +220,16 @@ def divide_frustum(rects: np.ndarray, weights: np.ndarray, viewport: Viewport, n
 def balanced_tiles(n: int, width: int, height: int, rects: np.ndarray, weights: np.ndarray) -> list[Viewport]:
     """The viewports of :func:`divide_frustum` over the full image (the sort-first slot)."""
     return [s.viewport for s in divide_frustum(rects, weights, Viewport(0, 0, width, height), n)]
+
+
+def assign_to_tiles(rects: np.ndarray, weights: np.ndarray, tiles: list[Viewport]) -> list[SubFrustum]:
+    """Fixed tiles (e.g. equal screen tiles, the baseline Algorithm 1 is measured against):
+    each tile gets the objects whose footprint touches it (closed intervals: conservative)."""
+    rects = np.asarray(rects, np.float64).reshape(-1, 4)
+    weights = np.asarray(weights, np.float64).reshape(-1)
+    out = []
+    for t in tiles:
+        hit = ((rects[:, 0] <= t.x + t.w) & (rects[:, 2] >= t.x) & (rects[:, 1] <= t.y + t.h) & (rects[:, 3] >= t.y))
+        ids = np.flatnonzero(hit) if not t.empty else np.zeros(0, np.int64)
+        out.append(SubFrustum(t, ids, float(weights[ids].sum())))
+    return out

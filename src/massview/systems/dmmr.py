@@ -7,8 +7,10 @@ and one client share the process, linked by queues instead of MPI).
   each object's LOD level from ``--tau``, split the screen into one sub-frustum per client with
   the load-balanced frustum division (Algorithm 1, :mod:`massview.lod.split`, weights =
   triangles of the chosen levels, footprints = projected bounding spheres) and send each client
-  its viewport and object list. The server holds the skeleton only and never reads geometry
-  (except to render the one-rank reference under ``--reference``).
+  its viewport and object list (``--decomposition sort-first:horizontal|vertical|grid`` uses
+  equal screen tiles instead: the baseline Algorithm 1 is measured against). The server holds
+  the skeleton only and never reads geometry (except to render the one-rank reference under
+  ``--reference``).
 * Client (§3.5–3.8, :mod:`massview.systems.dmmr_client`): occlusion culling on GPU 1,
   sub-frame rendering through the GPU/RAM/disk cache on GPU 2, compress, send.
 * Server, assembly (§3.7): receive, decompress and paste the sub-frames; deliver the frame.
@@ -41,8 +43,9 @@ from ..core.image import Image, blank_image
 from ..core.stats import FrameStats
 from ..data.cache import BlockCache
 from ..lod.scene import SkeletonCuller, choose_levels
-from ..lod.split import divide_frustum, sphere_rects
+from ..lod.split import assign_to_tiles, divide_frustum, sphere_rects
 from ..parallel.codec import decode_image
+from ..parallel.decompose import parse_decomposition, sort_first_tiles
 from ..parallel.pipeline import StagePipeline
 from ..parallel.roles import Role, run_roles, split_roles
 from ..render.geometry_cache import packed_loader
@@ -131,7 +134,8 @@ def _delays(cfg: RenderConfig) -> dict[str, float]:
 class DmmrServer:
     """Frustum culling, level choice and Algorithm 1 over the skeleton only."""
 
-    def __init__(self, store, tau: float):
+    def __init__(self, store, tau: float, layout: str = "balanced", grid=None):
+        self.layout, self.grid = layout, grid
         sk = self.sk = store.skeleton
         self.culler = SkeletonCuller(store.groups, sk.group, sk.box_lo, sk.box_hi)
         self.levels = np.asarray(sk.levels, np.int64)
@@ -148,7 +152,12 @@ class DmmrServer:
     def divide(self, frame: int, camera: Camera, clients: int) -> tuple[list[ClientTask], np.ndarray, np.ndarray]:
         vis, lv = self.cut(camera)
         rects = sphere_rects(camera, self.sk.center[vis], self.sk.radius[vis])
-        subs = divide_frustum(rects, self.tris[vis, lv].astype(np.float64), camera.viewport, clients)
+        weights = self.tris[vis, lv].astype(np.float64)
+        if self.layout == "balanced":
+            subs = divide_frustum(rects, weights, camera.viewport, clients)
+        else:  # equal screen tiles: the baseline Algorithm 1 is compared with
+            tiles = sort_first_tiles(self.layout, clients, camera.width, camera.height, self.grid)
+            subs = assign_to_tiles(rects, weights, tiles)
         tasks = [ClientTask(frame, camera, s.viewport, vis[s.items], lv[s.items]) for s in subs]
         return tasks, vis, lv
 
@@ -162,7 +171,9 @@ class DmmrSystem:
         self.spec = spec
         self.store = open_scene(spec)
         self.cfg = cfg or RenderConfig()
-        self.server = DmmrServer(self.store, self.cfg.tau)
+        kind, layout = parse_decomposition(self.cfg.decomposition, ("default",))
+        layout = "balanced" if kind == "sort-last" or layout == "kd" else layout  # default: Algorithm 1
+        self.server = DmmrServer(self.store, self.cfg.tau, layout, self.cfg.grid)
         self._ref: SceneDrawer | None = None
 
     @property
