@@ -27,9 +27,10 @@ def dmmr(out, ranks, *extra, frames=3, scene=SCENE):
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("ranks", [3, 4, 5])
-def test_parallel_equals_serial_without_occlusion_culling(tmp_path, ranks):
-    s, recs = dmmr(tmp_path, ranks, "--occlusion", "off")
+@pytest.mark.parametrize("ranks,decomposition", [(3, None), (4, None), (5, None), (4, "sort-first:grid")])
+def test_parallel_equals_serial_without_occlusion_culling(tmp_path, ranks, decomposition):
+    extra = ("--decomposition", decomposition) if decomposition else ()  # grid: the equal-tile baseline
+    s, recs = dmmr(tmp_path, ranks, "--occlusion", "off", *extra)
     assert s["ranks"] == ranks and s["frames"] == 3
     assert s["max_abs_diff"] == 0 and s["diff_fraction"] == 0.0
     clients = [r for r in recs if r["rank"] > 0]

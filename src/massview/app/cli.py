@@ -24,7 +24,7 @@ from .dmmr_cmds import add_dmmr_args, dmmr_config
 
 __all__ = ["main", "build_parser"]
 
-DECOMPOSITIONS = ("sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd", "sort-last",
+DECOMPOSITIONS = ("sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd", "sort-first:balanced", "sort-last",
                   "sort-last:kpatch", "sort-last:linear", "sort-last:quadtree", "sort-last:visible", "sort-last:static")
 
 
