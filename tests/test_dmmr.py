@@ -121,3 +121,18 @@ def test_bad_dmmr_options_are_clear_errors():
         RenderConfig(occluder_lod="fine")
     p = run_cli("render", SCENE, "--system", "dmmr", "--occlusion", "maybe", check=False)
     assert p.returncode != 0 and "--occlusion" in p.stderr
+
+
+def test_frame_at_a_time_path_for_the_viewer_matches_the_reference():
+    from massview.parallel.runtime import self_comm
+
+    cfg = RenderConfig(width=240, height=180, system="dmmr", reference=True, gpu_mb=64, client_cache_mb=32, color_by_rank=False)
+    sys_ = DmmrSystem("builtin:objects?n=200&seed=2", cfg)
+    try:
+        sys_.setup(self_comm())
+        for f, cam in enumerate(load_path("turn", *sys_.bounds).cameras(3, 240, 180)):
+            res = sys_.render_frame(cfg, cam, f)
+            assert res.tile is not None and res.diff[0] == 0
+            assert res.stats.counters["objects_in_frustum"] > 0
+    finally:
+        sys_.close()

@@ -183,7 +183,7 @@ class DmmrSystem:
 
     @property
     def renderer(self) -> str:
-        return "dmmr: " + getattr(self, "_renderer", "clients' GL")
+        return "dmmr: server + clients (each: occlusion-query and render GL contexts)"
 
     def ram_budget(self, clients: int) -> int:
         """Client RAM cache bytes: ``--client-cache-mb`` or the scene's object bytes ÷ clients (§4)."""
@@ -256,7 +256,44 @@ class DmmrSystem:
             client.close()
         return records
 
+    def _divide_send(self, f: int, cam: Camera, clients: int, link, delay: float = 0.0) -> tuple:
+        """Server module 1 for frame ``f``: divide, then send each client its task."""
+        st = FrameStats(frame=f, rank=0)
+        t0 = time.perf_counter()
+        with st.stage("divide"):
+            tasks, vis, lv = self.server.divide(f, cam, clients)
+            time.sleep(delay)
+        with st.stage("send"):
+            for c, t in enumerate(tasks):
+                link.send_task(c, t)
+        return t0, st, tasks, vis, lv
+
+    def _assemble(self, cam: Camera, clients: int, link, st: FrameStats) -> Image:
+        """Server module 4: receive, decompress and paste every client's sub-frame."""
+        full = blank_image(cam.viewport)
+        t_a = 0.0
+        for c in range(clients):
+            buf = link.recv_image(c)
+            t1 = time.perf_counter()
+            full.paste(decode_image(buf))
+            t_a += time.perf_counter() - t1
+            st.bytes_recv += buf.size + 8
+        st.times_ms["assemble"] = t_a * 1e3
+        return full
+
+    def _finish(self, f, cam, cfg, frame: tuple, full: Image, sink) -> tuple[FrameStats, tuple | None]:
+        t0, st, tasks, vis, lv = frame
+        st.count("objects_in_frustum", len(vis))
+        st.count("objects_sent", sum(len(t.items) for t in tasks))
+        st.count("triangles_in_frustum", int(self.server.tris[vis, lv].sum()))
+        st.count("latency_ms", (time.perf_counter() - t0) * 1e3)
+        if sink is not None:
+            sink(f, full)
+        diff = image_diff(full, self.render_reference(cam, vis, lv)) if cfg.reference else None
+        return st, diff
+
     def _serve(self, link, cameras, cfg: RenderConfig, clients: int, sink) -> tuple[list[dict], list]:
+        """The server: a division thread (at most 3 frames ahead when pipelined) and assembly."""
         credits = threading.Semaphore(3 if cfg.stage_pipeline == "on" else 1)
         sent = [threading.Event() for _ in cameras]
         frames: dict[int, tuple] = {}
@@ -266,52 +303,69 @@ class DmmrSystem:
             try:
                 for f, cam in enumerate(cameras):
                     credits.acquire()
-                    st = FrameStats(frame=f, rank=0)
-                    t0 = time.perf_counter()
-                    with st.stage("divide"):
-                        tasks, vis, lv = self.server.divide(f, cam, clients)
-                        time.sleep(delay)
-                    frames[f] = (t0, st, tasks, vis, lv)
-                    with st.stage("send"):
-                        for c, t in enumerate(tasks):
-                            link.send_task(c, t)
+                    frames[f] = self._divide_send(f, cam, clients, link, delay)
                     sent[f].set()
             except BaseException as e:  # noqa: BLE001 - ends every rank
                 link.fail(e)
 
         th = threading.Thread(target=divider, name="massview-dmmr-divide", daemon=True)
         th.start()
-        records, diffs, ends = [], [], []
+        records, diffs = [], []
         prev = time.perf_counter()
         for f, cam in enumerate(cameras):
-            full = blank_image(cam.viewport)
-            t_a = 0.0
-            for c in range(clients):
-                buf = link.recv_image(c)
-                t1 = time.perf_counter()
-                full.paste(decode_image(buf))
-                t_a += time.perf_counter() - t1
+            st = FrameStats(frame=f, rank=0)
+            full = self._assemble(cam, clients, link, st)
             sent[f].wait()
             credits.release()
             now = time.perf_counter()
-            ends.append(now)
-            t0, st, tasks, vis, lv = frames.pop(f)
-            st.times_ms["assemble"] = t_a * 1e3
-            st.times_ms["total"] = (now - prev) * 1e3
-            prev = now
-            st.count("objects_in_frustum", len(vis))
-            st.count("objects_sent", sum(len(t.items) for t in tasks))
-            st.count("triangles_in_frustum", int(self.server.tris[vis, lv].sum()))
-            st.count("latency_ms", (now - t0) * 1e3)
-            st.count("frames_in_flight", 1 + sum(1 for g in frames if g > f))
-            st.bytes_recv += 0
-            if sink is not None:
-                sink(f, full)
-            if cfg.reference:
-                diffs.append((f, image_diff(full, self.render_reference(cam, vis, lv))))
+            frame = frames.pop(f)
+            frame[1].times_ms["assemble"], frame[1].bytes_recv = st.times_ms["assemble"], st.bytes_recv
+            frame[1].times_ms["total"], prev = (now - prev) * 1e3, now
+            frame[1].count("frames_in_flight", 1 + sum(1 for g in list(frames) if g > f))
+            st, diff = self._finish(f, cam, cfg, frame, full, sink)
+            if diff is not None:
+                diffs.append((f, diff))
             records.append(st.to_json())
         th.join()
         return records, diffs
+
+    # -- one frame at a time (the viewer, and any caller of render_frame) ----------------
+    def setup(self, comm) -> None:
+        """Split the ranks into the server and the clients (collective over ``comm``)."""
+        self._comm = comm
+        if comm.Get_size() == 1:
+            self._link, self._role, self._index, self._clients = _LocalLink(), "both", 0, 1
+        else:
+            rc = split_roles(comm, ROLES)
+            self._link, self._role, self._index, self._clients = _MpiLink(rc), rc.role, rc.role_rank, comm.Get_size() - 1
+        self._client_obj = None
+
+    def render_frame(self, cfg: RenderConfig, camera: Camera | None, frame: int, sink=None):
+        """One synchronous frame on every rank (camera on rank 0): divide, cull, render,
+        assemble. Returns a :class:`~massview.systems.frameloop.FrameResult`."""
+        from .frameloop import FrameResult
+
+        if not hasattr(self, "_link"):
+            raise RuntimeError("DmmrSystem.setup(comm) must run before render_frame")
+        link, role = self._link, self._role
+        if role in ("server", "both"):
+            t0 = time.perf_counter()
+            fr = self._divide_send(frame, camera, self._clients, link)
+        if role in ("client", "both"):
+            if self._client_obj is None:
+                self._client_obj = DmmrClient(self.store, cfg, self._index, self.ram_budget(self._clients))
+            cst = FrameStats(frame=frame, rank=self._index + 1)
+            v = self._client_obj.visibility(link.recv_task(), cst)
+            _, payload = self._client_obj.render(v, cst, rank_tint(self._index) if cfg.color_by_rank else (0.0, 0.0, 0.0, 0.0))
+            with cst.stage("send"):
+                link.send_image(payload)
+            cst.bytes_sent += len(payload)
+            if role == "client":
+                return FrameResult(cst, None)
+        full = self._assemble(camera, self._clients, link, fr[1])
+        fr[1].times_ms["total"] = (time.perf_counter() - t0) * 1e3
+        st, diff = self._finish(frame, camera, cfg, fr, full, sink)
+        return FrameResult(st, full, diff)
 
     # -- the one-rank reference ---------------------------------------------------------
     def render_reference(self, camera: Camera, vis: np.ndarray | None = None, lv: np.ndarray | None = None) -> Image:
@@ -328,6 +382,9 @@ class DmmrSystem:
             return d.view.render(camera, camera.viewport, d.draw_fn(camera, vis, lv), FrameStats(-1, 0))
 
     def close(self) -> None:
+        if getattr(self, "_client_obj", None) is not None:
+            self._client_obj.close()
+            self._client_obj = None
         if self._ref is not None:
             ram = self._ref.cache.ram
             self._ref.release()
