@@ -316,12 +316,12 @@ class DmmrSystem:
             st = FrameStats(frame=f, rank=0)
             full = self._assemble(cam, clients, link, st)
             sent[f].wait()
+            frame = frames.pop(f)
+            frame[1].count("frames_in_flight", 1 + sum(1 for g in list(frames) if g > f))  # before the next division may start
             credits.release()
             now = time.perf_counter()
-            frame = frames.pop(f)
             frame[1].times_ms["assemble"], frame[1].bytes_recv = st.times_ms["assemble"], st.bytes_recv
             frame[1].times_ms["total"], prev = (now - prev) * 1e3, now
-            frame[1].count("frames_in_flight", 1 + sum(1 for g in list(frames) if g > f))
             st, diff = self._finish(f, cam, cfg, frame, full, sink)
             if diff is not None:
                 diffs.append((f, diff))
