@@ -110,6 +110,10 @@ def test_one_rank_in_process_matches_the_reference_and_reports_per_stage():
         c0 = client[0]["counters"]
         assert c0["vis_disk_loads"] > 0 and c0["disk_loads"] + c0["ram_hits"] > 0  # GPU 1 read the store first
         assert client[-1]["counters"]["bytes_uploaded"] < c0["bytes_uploaded"]  # GPU buffers reused along the path
+        records, _ = sys_.run_path(_Self(), [cams[0]] * 3, cfg)  # a static camera
+        c = {r["frame"]: r["counters"] for r in records if r["rank"] == 1}
+        assert c[1]["bytes_uploaded"] == 0 and c[1]["gpu_hits"] == c[1]["objects_drawn"] > 0  # GPU 2: nothing new
+        assert c[1]["vis_bytes_uploaded"] > 0 and c[2]["vis_bytes_uploaded"] == 0  # GPU 1: frame 0's visible set joins the depth pass once
     finally:
         sys_.close()
 

@@ -189,8 +189,8 @@ class DmmrSystem:
         """Client RAM cache bytes: ``--client-cache-mb`` or the scene's object bytes ÷ clients (§4)."""
         if self.cfg.client_cache_mb:
             return self.cfg.client_cache_mb << 20
-        total = int(np.asarray(self.store.skeleton.level_bytes, np.int64).sum())
-        return max(total // max(clients, 1), 64 << 20)
+        lb = np.asarray(self.store.skeleton.level_bytes, np.int64)
+        return max(int(lb.sum()) // max(clients, 1), 4 * int(lb.max(initial=0)) + (1 << 20))  # at least a few meshes
 
     # -- the frame loop -----------------------------------------------------------------
     def run_path(self, comm, cameras: list[Camera] | None, cfg: RenderConfig, sink=None):
