@@ -63,21 +63,44 @@ ROLES = (Role("server", 1), Role("client", None, minimum=1))
 
 
 class _MpiLink:
-    """Server ↔ client messages over the roles' parent communicator: tasks pickled
-    (lowercase calls), sub-frames as uint8 buffers (uppercase)."""
+    """Server ↔ client messages over the roles' parent communicator: tasks pickled (lowercase
+    calls), sub-frames as uint8 buffers (uppercase). Sends are non-blocking, so a stage never
+    waits for the receiver: at most ``_OUTSTANDING`` sends per sender are in flight (older
+    ones are completed first), and ``flush`` completes the rest."""
+
+    _OUTSTANDING = 4
 
     def __init__(self, rc):
         self.comm, self.server, self.clients = rc.parent, rc.leader("server"), rc.ranks["client"]
+        self._sent: list = []  # (request(s), buffers kept alive until complete)
+        self._lock = threading.Lock()
+
+    def _track(self, reqs: list, keep) -> None:
+        with self._lock:
+            self._sent.append((reqs, keep))
+            old, self._sent = self._sent[:-self._OUTSTANDING], self._sent[-self._OUTSTANDING:]
+        for rs, _ in old:
+            for r in rs:
+                r.wait()
+
+    def flush(self) -> None:
+        with self._lock:
+            old, self._sent = self._sent, []
+        for rs, _ in old:
+            for r in rs:
+                r.wait()
 
     def send_task(self, client: int, task: ClientTask) -> None:
-        self.comm.send(task, dest=self.clients[client], tag=_TAG_TASK)
+        self._track([self.comm.isend(task, dest=self.clients[client], tag=_TAG_TASK)], None)
 
     def recv_task(self) -> ClientTask:
         return self.comm.recv(source=self.server, tag=_TAG_TASK)
 
     def send_image(self, payload: bytes) -> None:
-        self.comm.Send(np.array([len(payload)], np.int64), dest=self.server, tag=_TAG_SIZE)
-        self.comm.Send(np.frombuffer(payload, np.uint8), dest=self.server, tag=_TAG_IMAGE)
+        size = np.array([len(payload)], np.int64)
+        body = np.frombuffer(payload, np.uint8)
+        self._track([self.comm.Isend(size, dest=self.server, tag=_TAG_SIZE),
+                     self.comm.Isend(body, dest=self.server, tag=_TAG_IMAGE)], (size, body, payload))
 
     def recv_image(self, client: int) -> np.ndarray:
         size = np.zeros(1, np.int64)
@@ -119,6 +142,9 @@ class _LocalLink:
     def fail(self, err):
         self.images.put(err)
         self.tasks.put(err)
+
+    def flush(self):
+        pass
 
 
 def _delays(cfg: RenderConfig) -> dict[str, float]:
@@ -252,6 +278,7 @@ class DmmrSystem:
 
         try:
             StagePipeline([("visibility", visibility), ("render", render)], pipelined=cfg.stage_pipeline == "on").run(range(nframes))
+            link.flush()
         finally:
             client.close()
         return records
@@ -327,6 +354,7 @@ class DmmrSystem:
                 diffs.append((f, diff))
             records.append(st.to_json())
         th.join()
+        link.flush()
         return records, diffs
 
     # -- one frame at a time (the viewer, and any caller of render_frame) ----------------
@@ -382,6 +410,8 @@ class DmmrSystem:
             return d.view.render(camera, camera.viewport, d.draw_fn(camera, vis, lv), FrameStats(-1, 0))
 
     def close(self) -> None:
+        if getattr(self, "_link", None) is not None:
+            self._link.flush()
         if getattr(self, "_client_obj", None) is not None:
             self._client_obj.close()
             self._client_obj = None
