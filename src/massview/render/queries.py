@@ -107,9 +107,7 @@ class OcclusionQuerier:
     def test(self, camera: Camera, vp: Viewport, draw_depth: Callable[[np.ndarray], int] | None,
              lo: np.ndarray, hi: np.ndarray, threshold: int = 0) -> QueryResult:
         """Depth pre-pass, then one query per box ``[lo[i], hi[i]]``; see the module doc."""
-        n = len(lo)
         t0 = time.perf_counter()
-        wait_s = 0.0
         fbo = self._target(camera.width, camera.height)
         fbo.use()
         self.ctx.scissor = None
@@ -121,35 +119,37 @@ class OcclusionQuerier:
         self.ctx.depth_func = "<"
         mvp = camera.view_projection()
         tris = int(draw_depth(mvp)) if draw_depth is not None else 0
-        samples = np.zeros(n, np.int64)
-        waits = 0
-        if n:
-            while len(self._queries) < n:
-                self._queries.append(self.ctx.query(samples=True))
-            self._upload_boxes(box_vertices(lo, hi))
-            self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, dtype="f4").tobytes())
-            fbo.depth_mask = False
-            self.ctx.depth_func = "<="
-            step = self.batch if self.batch > 0 else n
-            pending = None
-            for start in range(0, n, step):
-                stop = min(start + step, n)
-                for i in range(start, stop):
-                    with self._queries[i]:
-                        self._vao.render(moderngl.TRIANGLES, vertices=36, first=36 * i)
-                if pending is not None:
-                    t1 = time.perf_counter()
-                    waits += self._collect(samples, *pending)
-                    wait_s += time.perf_counter() - t1
-                pending = (start, stop)
-            t1 = time.perf_counter()
-            waits += self._collect(samples, *pending)
-            wait_s += time.perf_counter() - t1
-            fbo.depth_mask = True
-            self.ctx.depth_func = "<"
+        samples = np.zeros(len(lo), np.int64)
+        waits, wait_s = self._query_boxes(fbo, mvp, lo, hi, samples) if len(lo) else (0, 0.0)
         self.ctx.scissor = None
         total = time.perf_counter() - t0
         return QueryResult(samples, samples > int(threshold), waits, tris, 1e3 * (total - wait_s), 1e3 * wait_s)
+
+    def _query_boxes(self, fbo, mvp: np.ndarray, lo: np.ndarray, hi: np.ndarray, samples: np.ndarray) -> tuple[int, float]:
+        """Issue the box queries batch by batch, collecting batch b after issuing b+1; fills
+        ``samples``; returns (waits, seconds spent waiting)."""
+        n = len(lo)
+        while len(self._queries) < n:
+            self._queries.append(self.ctx.query(samples=True))
+        self._upload_boxes(box_vertices(lo, hi))
+        self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, dtype="f4").tobytes())
+        fbo.depth_mask = False
+        self.ctx.depth_func = "<="
+        step = self.batch if self.batch > 0 else n
+        waits, wait_s, pending = 0, 0.0, None
+        for start in list(range(0, n, step)) + [None]:
+            if start is not None:
+                for i in range(start, min(start + step, n)):
+                    with self._queries[i]:
+                        self._vao.render(moderngl.TRIANGLES, vertices=36, first=36 * i)
+            if pending is not None:
+                t1 = time.perf_counter()
+                waits += self._collect(samples, *pending)
+                wait_s += time.perf_counter() - t1
+            pending = None if start is None else (start, min(start + step, n))
+        fbo.depth_mask = True
+        self.ctx.depth_func = "<"
+        return waits, wait_s
 
     def _collect(self, out: np.ndarray, start: int, stop: int) -> int:
         """Read the results of queries [start, stop): one blocking wait for the batch."""
