@@ -39,6 +39,7 @@ import numpy as np
 
 from ..core.camera import Camera
 from ..core.config import RenderConfig
+from ..core.errors import ConfigError
 from ..core.image import Image, blank_image
 from ..core.stats import FrameStats
 from ..data.cache import BlockCache
@@ -195,8 +196,10 @@ class DmmrSystem:
 
     def __init__(self, spec: str, cfg: RenderConfig | None = None):
         self.spec = spec
-        self.store = open_scene(spec)
         self.cfg = cfg or RenderConfig()
+        if self.cfg.wall or self.cfg.tile_targets:
+            raise ConfigError("--wall and --tile-targets are not available with --system dmmr (the server assembles one frame); leave them out")
+        self.store = open_scene(spec)
         kind, layout = parse_decomposition(self.cfg.decomposition, ("default",))
         layout = "balanced" if kind == "sort-last" or layout == "kd" else layout  # default: Algorithm 1
         self.server = DmmrServer(self.store, self.cfg.tau, layout, self.cfg.grid)
