@@ -66,13 +66,12 @@ ROLES = (Role("server", 1), Role("client", None, minimum=1))
 class _MpiLink:
     """Server ↔ client messages over the roles' parent communicator: tasks pickled (lowercase
     calls), sub-frames as uint8 buffers (uppercase). Sends are non-blocking, so a stage never
-    waits for the receiver: at most ``_OUTSTANDING`` sends per sender are in flight (older
-    ones are completed first), and ``flush`` completes the rest."""
-
-    _OUTSTANDING = 4
+    waits for the receiver: at most three frames' worth of sends per sender are in flight
+    (older ones are completed first), and ``flush`` completes the rest."""
 
     def __init__(self, rc):
         self.comm, self.server, self.clients = rc.parent, rc.leader("server"), rc.ranks["client"]
+        self._OUTSTANDING = 3 * len(self.clients) + 1 if rc.role == "server" else 4
         self._sent: list = []  # (request(s), buffers kept alive until complete)
         self._lock = threading.Lock()
 
