@@ -133,9 +133,9 @@ def test_frame_at_a_time_path_for_the_viewer_matches_the_reference():
     cfg = RenderConfig(width=240, height=180, system="dmmr", reference=True, gpu_mb=64, client_cache_mb=32, color_by_rank=False)
     sys_ = DmmrSystem("builtin:objects?n=200&seed=2", cfg)
     try:
-        sys_.setup(self_comm())
+        comm = self_comm()
         for f, cam in enumerate(load_path("turn", *sys_.bounds).cameras(3, 240, 180)):
-            res = sys_.render_frame(cfg, cam, f)
+            res = sys_.render_frame(comm, cfg, cam, f)
             assert res.tile is not None and res.diff[0] == 0
             assert res.stats.counters["objects_in_frustum"] > 0
     finally:

@@ -234,3 +234,84 @@ def test_roles_rank_map():
         assign_roles(roles, 3)
     with pytest.raises(ConfigError, match="exactly"):
         assign_roles((Role("server", 1), Role("client", 2)), 4)
+
+
+def test_in_memory_table_equals_the_out_of_core_one(stores):
+    from massview.data.terrain.roettger import table_from_grid
+    from test_terrain_store import finest
+
+    st = TerrainStore(stores["real"])
+    a, b = compute_table(st, 3.0), table_from_grid(finest(st), 3.0)
+    assert len(a) == len(b) == st.layout.n - 1 and all(np.array_equal(x, y) for x, y in zip(a, b))
+
+
+@pytest.mark.parametrize("shape,C", [((760, 1000), 4), ((344, 403), 4), ((300, 237), 6), ((300, 237), 1)])
+def test_paper_layout_follows_the_rule_and_covers(shape, C):
+    from massview.systems.roettger_paper import paper_layout
+
+    rows, cols = shape
+    P, origins, D = paper_layout(rows, cols, C, 1025)
+    m = int(np.log2(P - 1))
+    if shape == (760, 1000):
+        assert P == 513 and 2 ** (m - 1) + 1 < 1000 * 2 / C <= 2**m + 1  # the paper's own set-up
+    covered = np.zeros(shape, bool)
+    for oy, ox in origins:
+        covered[oy: oy + P, ox: ox + P] = True
+    assert covered.all() and len(origins) == C and D >= max(o + P for pair in origins for o in pair)
+
+
+def test_bad_t2_options_fail_before_any_rank_starts(stores):
+    proc = run_cli("render", stores["real"], "--system", "roettger", "--ranks", "3", "--compute-ranks", "2",
+                   "--roettger-C", "1.5", "-q", check=False)
+    assert proc.returncode != 0 and "[2, 64]" in proc.stderr and "Traceback" not in proc.stderr
+    proc = run_cli("render", stores["real"], "--system", "roettger", "--ranks", "2", "--compute-ranks", "2", "-q", check=False)
+    assert proc.returncode != 0 and "no visualization rank" in proc.stderr
+    proc = run_cli("render", stores["real"], "--system", "roettger", "--ranks", "4", "--compute-ranks", "2", "--wall", "1x1",
+                   "-q", check=False)
+    assert proc.returncode != 0 and "needs 1 visualization ranks" in proc.stderr
+
+
+def test_fan_stream_without_delta_resends_everything():
+    snd, rcv = FanSender(1), FanReceiver(1)
+    keys = np.arange(5, dtype=np.int64) * 16
+    lengths = np.full(5, 6, np.uint32)
+    index = np.arange(30, dtype=np.uint32)
+    for _ in range(2):
+        msg, st = snd.encode([(keys, lengths, index, index.astype(np.float32))], delta=False)
+        held = rcv.apply(np.frombuffer(msg, np.uint8))[0]
+        assert st.new_fans == 5 and np.array_equal(held.index, index)
+
+
+def test_children_only_propagation_would_break_the_level_rule(stores):
+    """The checker above is not vacuous: Röttger's d2 propagated from children alone (not from
+    the finer nodes touching a node from outside) leaves neighbouring leaves >= 2 levels apart."""
+    from massview.data.terrain.roettger import k_factor, local_d2
+    from massview.lod.roettger import select_leaves
+    from test_terrain_store import finest
+
+    st = TerrainStore(stores["real"])
+    h, n = finest(st), st.layout.n
+    K, d2, pushed = k_factor(2.0), [None] * (n - 1), None
+    for t in range(n - 1, -1, -1):
+        s = 2 ** (n - t - 1)
+        cur = local_d2(h[::s, ::s], 2 * s)
+        cur = cur if pushed is None else np.maximum(cur, pushed)
+        if t < n - 1:
+            d2[t] = cur
+        f = cur * K
+        pushed = np.maximum.reduce([f[0::2, 0::2], f[0::2, 1::2], f[1::2, 0::2], f[1::2, 1::2]]) if t else None
+    w = (st.layout.S - 1) * 1.0
+    worst = 0
+    for eye in ((w / 2, -w / 2, 1500.0), (-0.05 * w, -0.4 * w, 1200.0), (0.3 * w, -0.35 * w, 1100.0)):
+        for c in (0.3, 3.0, 30.0):
+            lv = select_leaves(np.zeros((1, 2), np.int64), n, d2, eye, (1.0, 1.0), 1.0, (236.0, 1076.0),
+                               RoettgerParams(C=2.0, c=c), (st.layout.S, st.layout.S))
+            depth = np.zeros((2 ** n, 2 ** n), np.int64)
+            for t in np.unique(lv.depth):
+                sel = lv.depth == t
+                g = np.full((2 ** int(t),) * 2, -1, np.int64)
+                g[lv.row[sel], lv.col[sel]] = t
+                g = np.repeat(np.repeat(g, 2 ** (n - int(t)), 0), 2 ** (n - int(t)), 1)
+                depth = np.maximum(depth, g)
+            worst = max(worst, np.abs(np.diff(depth, axis=0)).max(), np.abs(np.diff(depth, axis=1)).max())
+    assert worst >= 2

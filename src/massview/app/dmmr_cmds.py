@@ -1,14 +1,14 @@
 """Command-line options of the massive-model system (``--system dmmr``, issue M1).
 
-``add_dmmr_args`` adds its flags to ``render``/``view``; ``dmmr_config`` turns them into
-:class:`~massview.core.config.RenderConfig` fields.
+``add_dmmr_args`` adds its flags to ``render``/``view``; each flag's dest is the name of a
+:class:`~massview.core.config.RenderConfig` field, which ``render_config`` maps by name.
 """
 
 from __future__ import annotations
 
 import argparse
 
-__all__ = ["add_dmmr_args", "dmmr_config"]
+__all__ = ["add_dmmr_args"]
 
 
 def add_dmmr_args(p: argparse.ArgumentParser) -> None:
@@ -22,8 +22,3 @@ def add_dmmr_args(p: argparse.ArgumentParser) -> None:
                    help="dmmr: divide frame i, cull i-1, render i-2 concurrently (default on); off = synchronous")
     g.add_argument("--client-cache-mb", type=int, default=None, help="dmmr: client RAM cache, MiB (default: the scene's object bytes / clients)")
     g.add_argument("--stage-delay", default=None, help=argparse.SUPPRESS)
-
-
-def dmmr_config(args) -> dict:
-    names = ("visible_frames", "query_threshold", "occlusion", "occluder_lod", "stage_pipeline", "client_cache_mb", "stage_delay")
-    return {n: getattr(args, n, None) for n in names}

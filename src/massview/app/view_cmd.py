@@ -1,6 +1,7 @@
 """``massview view STORE --ranks N``: live parallel rendering streamed to a browser.
 
-Rank 0 serves the page (127.0.0.1 unless ``--host`` says otherwise) and holds the camera and
+Rank 0 serves the page (127.0.0.1 unless ``--host`` says otherwise; off loopback a random
+token in the printed URL is required, see :mod:`.viewer.server`) and holds the camera and
 settings the browser controls; every frame it broadcasts them, all ranks render the frame
 with the chosen decomposition and compositor, and rank 0 streams the composited image as JPEG
 with per-frame figures (fps, triangles per rank, imbalance, bytes per frame). Closing the page
@@ -23,7 +24,7 @@ from ..core.paths import load_path
 from ..parallel.composite import COMPOSITORS
 from ..parallel.decompose import SORT_FIRST_LAYOUTS, parse_decomposition
 from ..parallel.exchange import any_rank
-from ..systems import open_system, render_frame
+from ..systems import render_frame
 
 __all__ = ["run_view"]
 
@@ -37,11 +38,11 @@ def _jpeg(tile, quality: int = 80) -> bytes:
 
 
 def run_view(comm, args, cfg: RenderConfig) -> int:
+    from ..api import open_scene
+
     rank, n = comm.Get_rank(), comm.Get_size()
-    system = open_system(args.scene, cfg)
-    if hasattr(system, "setup"):  # systems with roles (T2) split the ranks and load their data
-        system.setup(comm)
-    frame_fn = getattr(system, "render_frame", None) or (lambda *a: render_frame(comm, system, *a))
+    scene = open_scene(args.scene)
+    system = scene.system(cfg)
     stop = {"flag": False}
 
     def on_sigint(signum, frame):
@@ -65,7 +66,8 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
         state = ViewerState(start, settings, {"decomposition": modes, "compositor": list(COMPOSITORS)}, base_speed)
         server = ViewerServer(state, args.host, args.port)
         server.start()
-        print(f"massview: serving http://{args.host}:{server.port}/ on {n} rank{'s' if n > 1 else ''} (Ctrl-C stops)", flush=True)
+        bound = "" if server.loopback else f"; bound to {args.host}, the token in the URL is required"
+        print(f"massview: serving {server.url} on {n} rank{'s' if n > 1 else ''} (Ctrl-C stops{bound})", flush=True)
     times: deque = deque(maxlen=20)
     frame = 0
     try:
@@ -76,7 +78,7 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
                 break
             fcfg = RenderConfig(**{**cfg.to_json(), **snap["settings"], "grid": cfg.grid})
             t0 = time.perf_counter()
-            res = frame_fn(fcfg, snap["camera"], frame)
+            res = render_frame(comm, system, fcfg, snap["camera"], frame)
             recs = comm.gather(res.stats.to_json(), root=0)
             times.append(time.perf_counter() - t0)
             if rank == 0:
@@ -92,8 +94,7 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
                     time.sleep(0.05)  # nobody watching: keep the ranks idle-ish, stay responsive
             frame += 1
     finally:
-        if hasattr(system, "close"):
-            system.close()
+        scene.close()
         if server is not None:
             server.stop()
     if rank == 0:

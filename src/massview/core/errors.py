@@ -17,6 +17,8 @@ __all__ = [
     "BlockNotFoundError",
     "CorruptBlockError",
     "IngestError",
+    "OutputError",
+    "RankJobError",
 ]
 
 
@@ -57,3 +59,16 @@ class CorruptBlockError(StoreError):
 
 class IngestError(MassviewError, ValueError):
     """An input file cannot be read or has a shape/dtype massview cannot ingest."""
+
+
+class OutputError(ConfigError, PermissionError):
+    """An output folder or file cannot be created or written (checked before any work starts)."""
+
+
+class RankJobError(ParallelError):
+    """An MPI job started by ``massview.render(ranks=N)`` failed; the message is the failing
+    rank's, ``returncode`` the job's exit status."""
+
+    def __init__(self, message: str, returncode: int):
+        super().__init__(message)
+        self.returncode = returncode

@@ -58,8 +58,8 @@ class FanSender:
         of the fans this visualization rank sees now."""
         parts, st = [np.array([len(layers)], "<u4").tobytes()], SectionStats(full=4, xyz=4)
         for k, (keys, lengths, index, height) in enumerate(layers):
-            prev = self.held[k] if delta else np.zeros(0, np.int64)
-            keep = np.isin(prev, keys)
+            prev = self.held[k]
+            keep = np.isin(prev, keys) if delta else np.zeros(len(prev), bool)  # no delta: drop all, resend all
             new = ~np.isin(keys, prev[keep]) if len(prev) else np.ones(len(keys), bool)
             nl, (ni, nh) = _take(np.asarray(lengths, np.uint32), [np.asarray(index, np.uint32), np.asarray(height, np.float32)], new)
             bits = np.packbits(keep.astype(np.uint8), bitorder="little")

@@ -56,17 +56,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.errors import ConfigError
+from ..data.terrain.roettger import C_RANGE, k_factor, local_d2, propagate_into
 
 __all__ = ["RoettgerParams", "Fans", "LodResult", "C_RANGE", "k_factor", "default_c", "local_d2", "propagate_into",
            "select_leaves", "emit_fans", "morton2", "node_ranges", "partition_depth", "portion_nodes", "portion_owner"]
-
-C_RANGE = (2.0, 64.0)
-
-
-def k_factor(C: float) -> float:
-    """Röttger's propagation factor K = C / (2 (C - 1)) for the minimum resolution C."""
-    return C / (2.0 * (C - 1.0))
-
 
 def default_c(tau: float, fovy_deg: float, height_px: int) -> float:
     """The desired resolution c for a pixel tolerance τ: c = √3 / (τ · pixel angle), so that
@@ -89,50 +82,6 @@ class RoettgerParams:
             raise ConfigError(f"--roettger-C must be in [{C_RANGE[0]:g}, {C_RANGE[1]:g}] (the level-difference proof needs C >= 2), got {self.C}")
         if not (self.c >= 0 and math.isfinite(self.c)):
             raise ConfigError(f"--roettger-c must be a finite number >= 0, got {self.c}")
-
-
-# -- roughness table ----------------------------------------------------------------------------
-def local_d2(grid: np.ndarray, d: int) -> np.ndarray:
-    """Local d2 of the nodes of edge ``d`` over ``grid`` = heights sampled every ``d/2``
-    samples, shape (2a+1, 2b+1) → (a, b) float32 (height units per sample)."""
-    g = np.asarray(grid, np.float32)
-    c00, c01, c10, c11 = g[:-2:2, :-2:2], g[:-2:2, 2::2], g[2::2, :-2:2], g[2::2, 2::2]
-    ctr = g[1:-1:2, 1:-1:2]
-    dev = np.abs(g[:-2:2, 1:-1:2] - (c00 + c01) * 0.5)
-    np.maximum(dev, np.abs(g[2::2, 1:-1:2] - (c10 + c11) * 0.5), out=dev)
-    np.maximum(dev, np.abs(g[1:-1:2, :-2:2] - (c00 + c10) * 0.5), out=dev)
-    np.maximum(dev, np.abs(g[1:-1:2, 2::2] - (c01 + c11) * 0.5), out=dev)
-    np.maximum(dev, np.abs(ctr - (c00 + c11) * 0.5), out=dev)
-    np.maximum(dev, np.abs(ctr - (c01 + c10) * 0.5), out=dev)
-    return dev / np.float32(d)
-
-
-def propagate_into(coarse: np.ndarray, fine: np.ndarray, row0: int, K: float) -> None:
-    """Max-merge ``K × fine`` into ``coarse`` (in place) for every coarse node that a fine node
-    lies in or touches along an edge from outside. ``fine`` holds fine node rows
-    ``row0 .. row0+h`` (row0 and h even) and all 2N columns; ``coarse`` is (N, N)."""
-    f = np.asarray(fine, np.float32) * np.float32(K)
-    q0 = row0 // 2
-    tl, tr, bl, br = f[0::2, 0::2], f[0::2, 1::2], f[1::2, 0::2], f[1::2, 1::2]
-    inside = np.maximum(np.maximum(tl, tr), np.maximum(bl, br))
-    _merge(coarse, q0, 0, inside)
-    _merge(coarse, q0 - 1, 0, np.maximum(tl, tr))  # top children touch the node above
-    _merge(coarse, q0 + 1, 0, np.maximum(bl, br))  # bottom children touch the node below
-    left, right = np.maximum(tl, bl), np.maximum(tr, br)
-    _merge(coarse, q0, -1, left)  # left children touch the node to the left
-    _merge(coarse, q0, 1, right)
-
-
-def _merge(coarse: np.ndarray, r0: int, dc: int, vals: np.ndarray) -> None:
-    """coarse[r0 + i, j + dc] = max(., vals[i, j]) where inside."""
-    H, W = coarse.shape
-    h, w = vals.shape
-    a, b = max(r0, 0), min(r0 + h, H)
-    c0, c1 = max(dc, 0), min(w + dc, W)
-    if a >= b or c0 >= c1:
-        return
-    dst = coarse[a:b, c0:c1]
-    np.maximum(dst, vals[a - r0: b - r0, c0 - dc: c1 - dc], out=dst)
 
 
 # -- node ranges (bounding spheres) -------------------------------------------------------------

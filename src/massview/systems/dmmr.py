@@ -370,13 +370,13 @@ class DmmrSystem:
             self._link, self._role, self._index, self._clients = _MpiLink(rc), rc.role, rc.role_rank, comm.Get_size() - 1
         self._client_obj = None
 
-    def render_frame(self, cfg: RenderConfig, camera: Camera | None, frame: int, sink=None):
-        """One synchronous frame on every rank (camera on rank 0): divide, cull, render,
-        assemble. Returns a :class:`~massview.systems.frameloop.FrameResult`."""
+    def render_frame(self, comm, cfg: RenderConfig, camera: Camera | None, frame: int, sink=None):
+        """One synchronous frame on every rank of ``comm`` (camera on rank 0): divide, cull,
+        render, assemble. Returns a :class:`~massview.systems.frameloop.FrameResult`."""
         from .frameloop import FrameResult
 
-        if not hasattr(self, "_link"):
-            raise RuntimeError("DmmrSystem.setup(comm) must run before render_frame")
+        if getattr(self, "_comm", None) is not comm:
+            self.setup(comm)
         link, role = self._link, self._role
         if role in ("server", "both"):
             t0 = time.perf_counter()

@@ -60,6 +60,8 @@ def image_diff(a: Image, b: Image) -> tuple[int, int, int]:
 def render_frame(comm, system, cfg: RenderConfig, camera: Camera | None, frame: int,
                  sink: Callable[[int, Image], None] | None = None) -> FrameResult:
     """Render one frame on every rank of ``comm``; ``camera`` matters on rank 0 only."""
+    if hasattr(system, "render_frame"):  # systems with roles (T2, M1, M2) run their own per-role frame
+        return system.render_frame(comm, cfg, camera, frame, sink)
     rank, n = comm.Get_rank(), comm.Get_size()
     stats = FrameStats(frame=frame, rank=rank)
     with stats.stage("total"):

@@ -41,6 +41,7 @@ from ..parallel.decompose import parse_wall, sort_first_tiles
 from ..parallel.roles import Role, recv_bytes, send_bytes, split_roles, wait_all
 from .frameloop import FrameResult, image_diff
 from .roettger_draw import FanDrawer, gather_layers
+from .roettger_paper import PaperPortion, paper_layout
 from .roettger_portion import LayerInfo, LayerPortion
 
 __all__ = ["RoettgerSystem", "validate", "roles"]
@@ -67,8 +68,18 @@ def validate(scene: str, cfg: RenderConfig, nranks: int) -> None:
         if c * r != vis:
             raise ConfigError(f"--wall {cfg.wall} needs {c * r} visualization ranks (one per tile); the run has {vis} "
                               f"(--ranks {nranks} minus --compute-ranks {cfg.compute_ranks})")
+    depth0 = partition_depth(cfg.compute_ranks)
     for spec in (scene, *cfg.layers):
-        LayerInfo.of(spec)  # a missing store or table fails here with its message
+        info = LayerInfo.of(spec)  # a missing store or table fails here with its message
+        if cfg.roettger_C is not None:
+            RoettgerParams(C=cfg.roettger_C)  # the proven range
+            if cfg.roettger_C < info.C_min:
+                raise ConfigError(f"--roettger-C {cfg.roettger_C:g} is below the C_min {info.C_min:g} the table of {spec} was "
+                                  f"propagated for; use --roettger-C >= {info.C_min:g} or re-run "
+                                  f"`massview prepare roettger {spec} --min-C {cfg.roettger_C:g}`")
+        if depth0 > info.n - 1:
+            raise ConfigError(f"{spec} is too small for {cfg.compute_ranks} computation ranks (partition depth {depth0}, its "
+                              f"quadtree has {info.n} levels); use fewer --compute-ranks")
 
 
 def _vis_tiles(cfg: RenderConfig, nvis: int, width: int, height: int) -> list[Viewport]:
@@ -79,8 +90,8 @@ def _vis_tiles(cfg: RenderConfig, nvis: int, width: int, height: int) -> list[Vi
 
 
 class RoettgerSystem:
-    """T2 over one or more terrain stores (layers). Call :meth:`setup` on every rank of the
-    run's communicator, then :meth:`render_frame` once per frame on every rank."""
+    """T2 over one or more terrain stores (layers): :meth:`render_frame` once per frame on
+    every rank of the run's communicator (the first call splits the roles and loads the data)."""
 
     sort_last_modes: tuple[str, ...] = ()
 
@@ -94,17 +105,25 @@ class RoettgerSystem:
         self._reference = None
 
     # -- setup ----------------------------------------------------------------------------
+    def layer_infos(self) -> list[LayerInfo]:
+        """Each layer's metadata (store attributes only) with its z offset and index grid."""
+        cfg = self.cfg
+        infos = [LayerInfo.of(s) for s in self.specs]
+        span = (infos[0].zrange[1] - infos[0].zrange[0]) * infos[0].vscale
+        infos = [LayerInfo(**{**i.__dict__, "zoffset": -k * _LAYER_GAP * span}) for k, i in enumerate(infos)]
+        if cfg.paper_partition:  # the overlapping portions index vertices in a wider grid
+            infos = [LayerInfo(**{**i.__dict__, "dim": paper_layout(i.rows, i.cols, cfg.compute_ranks, i.S)[2]}) for i in infos]
+        return infos
+
     def setup(self, comm) -> None:
+        """Split ``comm`` into the two roles and load the data (collective; done by the first
+        :meth:`render_frame` when not called before)."""
         cfg = self.cfg
         self.comm = comm
         self.rc = rc = split_roles(comm, roles(cfg))
         self.vis_ranks, self.comp_ranks = rc.ranks["visualization"], rc.ranks["computation"]
-        infos = None
-        if comm.Get_rank() == rc.leader("computation"):
-            infos = [LayerInfo.of(s) for s in self.specs]
-            span = (infos[0].zrange[1] - infos[0].zrange[0]) * infos[0].vscale
-            infos = [LayerInfo(**{**i.__dict__, "zoffset": -k * _LAYER_GAP * span}) for k, i in enumerate(infos)]
-        self.infos = comm.bcast(infos, root=rc.leader("computation"))
+        lead = rc.leader("computation")
+        self.infos = comm.bcast(self.layer_infos() if comm.Get_rank() == lead else None, root=lead)
         C = cfg.roettger_C if cfg.roettger_C is not None else max(i.C_min for i in self.infos)
         for i in self.infos:
             if C < i.C_min:
@@ -114,8 +133,11 @@ class RoettgerSystem:
         self.depth0 = partition_depth(len(self.comp_ranks))
         self.bytes_read = 0
         if rc.role == "computation":
-            nodes = portion_nodes(self.depth0, len(self.comp_ranks))[rc.role_rank]
-            self.portions = [LayerPortion(i, nodes, self.depth0) for i in self.infos]
+            if cfg.paper_partition:
+                self.portions = [PaperPortion(i, rc.role_rank, len(self.comp_ranks)) for i in self.infos]
+            else:
+                nodes = portion_nodes(self.depth0, len(self.comp_ranks))[rc.role_rank]
+                self.portions = [LayerPortion(i, nodes, self.depth0) for i in self.infos]
             self.bytes_read = sum(p.bytes_read for p in self.portions)
             self.senders = {v: FanSender(len(self.infos)) for v in self.vis_ranks}
         else:
@@ -125,7 +147,9 @@ class RoettgerSystem:
 
     @property
     def bounds(self):
-        los, his = zip(*(i.bounds() for i in self.infos))
+        """World box of all layers (from the stores' attributes when not set up yet)."""
+        infos = self.infos or self.layer_infos()
+        los, his = zip(*(i.bounds() for i in infos))
         return np.min(los, axis=0), np.max(his, axis=0)
 
     @property
@@ -139,7 +163,12 @@ class RoettgerSystem:
         return RoettgerParams(C=self.C, c=c, depth0=self.depth0)
 
     # -- frame ----------------------------------------------------------------------------
-    def render_frame(self, cfg: RenderConfig, camera: Camera | None, frame: int, sink=None) -> FrameResult:
+    def render_frame(self, comm, cfg: RenderConfig, camera: Camera | None, frame: int, sink=None) -> FrameResult:
+        """One frame on every rank of ``comm`` (``camera`` matters on rank 0, the
+        visualization leader); returns this rank's stats and, on display ranks, its tile."""
+        if self.rc is None:
+            self.setup(comm)
+        self.cfg = cfg
         comm, rc = self.comm, self.rc
         stats = FrameStats(frame=frame, rank=comm.Get_rank())
         stats.count("store_bytes_read", self.bytes_read if self._first else 0)
@@ -266,7 +295,7 @@ class RoettgerSystem:
         for p in self._reference:
             fans, h = p.fans(p.select(camera.position, params))  # Morton order of the whole DEM
             shift = p.n - self.depth0
-            row, col = fans.centre // p.info.S, fans.centre % p.info.S
+            row, col = fans.centre // p.info.index_dim, fans.centre % p.info.index_dim
             layers.append((fans.lengths, fans.index, h, self._owner[row >> shift, col >> shift]))
         return self._drawer.draw(camera, camera.viewport, layers, self.cfg.color_by_rank, FrameStats(-1, 0))
 

@@ -48,7 +48,7 @@ def gather_layers(held_by_rank: list, infos: list[LayerInfo]) -> list[Layer]:
         index = np.concatenate([p.index for p in parts]).astype(np.uint32)
         height = np.concatenate([p.height for p in parts]).astype(np.float32)
         rank = np.concatenate([np.full(len(p.lengths), k, np.int64) for k, p in enumerate(parts)])
-        order = canonical_order(lengths, index, info.S)
+        order = canonical_order(lengths, index, info.index_dim)
         lengths, (index, height) = _permute(lengths, [index, height], order)
         out.append((lengths, index, height, rank[order]))
     return out
@@ -61,7 +61,7 @@ class FanDrawer:
         self.ctx = create_context(egl_device)
         self.fans = FanRenderer(self.ctx)
         self.view = ViewRenderer(self.ctx)
-        self.geoms = [LayerGeometry(i.S, i.spacing, i.vscale, (i.rows, i.cols), i.zrange, i.zoffset) for i in infos]
+        self.geoms = [LayerGeometry(i.index_dim, i.spacing, i.vscale, (i.rows, i.cols), i.zrange, i.zoffset) for i in infos]
 
     @property
     def renderer(self) -> str:

@@ -24,7 +24,7 @@ from ..data.terrain import TerrainStore
 from ..data.terrain.roettger import RoettgerTable
 from ..lod.roettger import Fans, LodResult, RoettgerParams, emit_fans, node_ranges, select_leaves
 
-__all__ = ["LayerPortion", "LayerInfo"]
+__all__ = ["LayerPortion", "LayerInfo", "range_pyramid"]
 
 
 @dataclass(frozen=True)
@@ -42,10 +42,15 @@ class LayerInfo:
     zrange: tuple[float, float]
     C_min: float
     zoffset: float = 0.0
+    dim: int = 0  # samples per row of the vertex index (0: S; the paper partition's is larger)
 
     @property
     def S(self) -> int:
         return 2**self.n + 1
+
+    @property
+    def index_dim(self) -> int:
+        return self.dim or self.S
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         dx, dy = self.spacing
@@ -60,6 +65,18 @@ class LayerInfo:
         table = RoettgerTable(st)  # raises the clear "no table" message
         return cls(str(path), lay.n, lay.rows, lay.cols, st.spacing, st.vertical_scale, (float(zr[0]), float(zr[1])),
                    table.C_min, zoffset)
+
+
+def range_pyramid(h: np.ndarray, n: int, t0: int, tb: int) -> tuple[dict, dict]:
+    """Min and max heights of the nodes of depths t0..tb of a (2^n+1)² grid ``h`` (node
+    depth relative to the grid's root) → two dicts depth → (2^t, 2^t) float32."""
+    lo, hi = node_ranges(h, 2 ** (n - tb))
+    zmin, zmax = {tb: lo}, {tb: hi}
+    for t in range(tb - 1, t0 - 1, -1):
+        lo = np.minimum.reduce([lo[0::2, 0::2], lo[0::2, 1::2], lo[1::2, 0::2], lo[1::2, 1::2]])
+        hi = np.maximum.reduce([hi[0::2, 0::2], hi[0::2, 1::2], hi[1::2, 0::2], hi[1::2, 1::2]])
+        zmin[t], zmax[t] = lo, hi
+    return zmin, zmax
 
 
 class LayerPortion:
@@ -114,15 +131,11 @@ class LayerPortion:
         self.zmax = {t: np.zeros((2**t, 2**t), np.float32) for t in range(t0, tb + 1)}
         P = 2 ** (n - t0)
         for r, c in self.nodes:
-            win = self.heights[r * P: r * P + P + 1, c * P: c * P + P + 1]
-            lo, hi = node_ranges(win, 2 ** (n - tb))
-            for t in range(tb, t0 - 1, -1):
+            lo, hi = range_pyramid(self.heights[r * P: r * P + P + 1, c * P: c * P + P + 1], n - t0, 0, tb - t0)
+            for t in range(t0, tb + 1):
                 m = 2 ** (t - t0)
-                self.zmin[t][r * m: r * m + m, c * m: c * m + m] = lo
-                self.zmax[t][r * m: r * m + m, c * m: c * m + m] = hi
-                if t > t0:
-                    lo = np.minimum.reduce([lo[0::2, 0::2], lo[0::2, 1::2], lo[1::2, 0::2], lo[1::2, 1::2]])
-                    hi = np.maximum.reduce([hi[0::2, 0::2], hi[0::2, 1::2], hi[1::2, 0::2], hi[1::2, 1::2]])
+                self.zmin[t][r * m: r * m + m, c * m: c * m + m] = lo[t - t0]
+                self.zmax[t][r * m: r * m + m, c * m: c * m + m] = hi[t - t0]
 
     def zrange(self, t: np.ndarray, r: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         lo, hi = np.empty(len(t), np.float32), np.empty(len(t), np.float32)
@@ -145,4 +158,8 @@ class LayerPortion:
         i = self.info
         f = emit_fans(leaves, self.n, i.S, i.spacing, i.vscale, self.zrange)
         f.sphere[:, 2] += i.zoffset
-        return f, self.heights.reshape(-1)[f.index.astype(np.int64)]
+        heights = self.heights.reshape(-1)[f.index.astype(np.int64)]
+        if i.index_dim != i.S:
+            f.index = ((f.index // i.S) * i.index_dim + f.index % i.S).astype(np.uint32)
+            f.centre = (f.centre // i.S) * i.index_dim + f.centre % i.S
+        return f, heights

@@ -1,4 +1,6 @@
-"""``massview bench dmmr``: the massive-model system's experiments (Revanth & Narayanan 2012, §4).
+"""M1 (distributed massive models): the paper's Tables 1–3, occlusion on/off, Algorithm 1 vs equal tiles, pipelining, speed-up.
+
+The massive-model system's experiments (Revanth & Narayanan 2012, §4), ``massview bench dmmr``.
 
 Scenes are generated once into ``--workdir`` (non-instanced: every copy is separate geometry,
 as in the paper): power plants replicated ``--plants`` times (the paper: 4, 6, 8 copies of

@@ -26,13 +26,85 @@ from typing import Callable, Iterator
 import numpy as np
 
 from ...core.errors import StoreError
-from ...lod.roettger import C_RANGE, k_factor, local_d2, propagate_into
 from .store import TerrainStore
 
-__all__ = ["DEFAULT_C_MIN", "compute_table", "write_table", "prepare_roettger", "RoettgerTable", "has_table"]
+__all__ = ["C_RANGE", "k_factor", "local_d2", "propagate_into", "DEFAULT_C_MIN", "compute_table", "write_table",
+           "prepare_roettger", "RoettgerTable", "has_table", "table_from_grid"]
 
 DEFAULT_C_MIN = 4.0
+C_RANGE = (2.0, 64.0)  # the C for which the level-difference proof holds (lod/roettger.py)
+
+
+def k_factor(C: float) -> float:
+    """Röttger's propagation factor K = C / (2 (C - 1)) for the minimum resolution C."""
+    return C / (2.0 * (C - 1.0))
+
+
+# -- roughness (pure numpy) ----------------------------------------------------------------------
+def local_d2(grid: np.ndarray, d: int) -> np.ndarray:
+    """Local d2 of the nodes of edge ``d`` over ``grid`` = heights sampled every ``d/2``
+    samples, shape (2a+1, 2b+1) → (a, b) float32 (height units per sample)."""
+    g = np.asarray(grid, np.float32)
+    c00, c01, c10, c11 = g[:-2:2, :-2:2], g[:-2:2, 2::2], g[2::2, :-2:2], g[2::2, 2::2]
+    ctr = g[1:-1:2, 1:-1:2]
+    dev = np.abs(g[:-2:2, 1:-1:2] - (c00 + c01) * 0.5)
+    np.maximum(dev, np.abs(g[2::2, 1:-1:2] - (c10 + c11) * 0.5), out=dev)
+    np.maximum(dev, np.abs(g[1:-1:2, :-2:2] - (c00 + c10) * 0.5), out=dev)
+    np.maximum(dev, np.abs(g[1:-1:2, 2::2] - (c01 + c11) * 0.5), out=dev)
+    np.maximum(dev, np.abs(ctr - (c00 + c11) * 0.5), out=dev)
+    np.maximum(dev, np.abs(ctr - (c01 + c10) * 0.5), out=dev)
+    return dev / np.float32(d)
+
+
+def propagate_into(coarse: np.ndarray, fine: np.ndarray, row0: int, K: float) -> None:
+    """Max-merge ``K × fine`` into ``coarse`` (in place) for every coarse node that a fine node
+    lies in or touches along an edge from outside. ``fine`` holds fine node rows
+    ``row0 .. row0+h`` (row0 and h even) and all 2N columns; ``coarse`` is (N, N)."""
+    f = np.asarray(fine, np.float32) * np.float32(K)
+    q0 = row0 // 2
+    tl, tr, bl, br = f[0::2, 0::2], f[0::2, 1::2], f[1::2, 0::2], f[1::2, 1::2]
+    inside = np.maximum(np.maximum(tl, tr), np.maximum(bl, br))
+    _merge(coarse, q0, 0, inside)
+    _merge(coarse, q0 - 1, 0, np.maximum(tl, tr))  # top children touch the node above
+    _merge(coarse, q0 + 1, 0, np.maximum(bl, br))  # bottom children touch the node below
+    left, right = np.maximum(tl, bl), np.maximum(tr, br)
+    _merge(coarse, q0, -1, left)  # left children touch the node to the left
+    _merge(coarse, q0, 1, right)
+
+
+def _merge(coarse: np.ndarray, r0: int, dc: int, vals: np.ndarray) -> None:
+    """coarse[r0 + i, j + dc] = max(., vals[i, j]) where inside."""
+    H, W = coarse.shape
+    h, w = vals.shape
+    a, b = max(r0, 0), min(r0 + h, H)
+    c0, c1 = max(dc, 0), min(w + dc, W)
+    if a >= b or c0 >= c1:
+        return
+    dst = coarse[a:b, c0:c1]
+    np.maximum(dst, vals[a - r0: b - r0, c0 - dc: c1 - dc], out=dst)
+
+
 VERSION = 1
+
+
+def table_from_grid(h: np.ndarray, C_min: float) -> list[np.ndarray]:
+    """The propagated d2 of depths 0 .. m-2 of an in-memory (2^m+1)² grid (the paper's
+    overlapping portions build their own quadtree this way)."""
+    m = int(np.log2(h.shape[0] - 1))
+    K = k_factor(C_min)
+    out: list = [None] * max(m - 1, 0)
+    pushed = None
+    for t in range(m - 1, -1, -1):
+        s = 2 ** (m - t - 1)
+        cur = local_d2(h[::s, ::s], 2 * s)
+        if pushed is not None:
+            cur = np.maximum(cur, pushed)
+        if t < m - 1:
+            out[t] = cur
+        pushed = np.zeros((2 ** (t - 1),) * 2, np.float32) if t >= 1 else None
+        if pushed is not None:
+            propagate_into(pushed, cur, 0, K)
+    return out
 
 
 def _grid_strips(store: TerrainStore, level: int) -> Iterator[tuple[int, np.ndarray]]:
