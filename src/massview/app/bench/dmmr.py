@@ -1,4 +1,4 @@
-"""M1 (distributed massive models): the paper's Tables 1–3, occlusion on/off, Algorithm 1 vs equal tiles, pipelining, speed-up.
+"""M1 (distributed massive models): Tables 1–3, occlusion on/off, Algorithm 1 vs equal tiles, pipelining, speed-up.
 
 The massive-model system's experiments (Revanth & Narayanan 2012, §4), ``massview bench dmmr``.
 
