@@ -10,10 +10,11 @@ import time
 import numpy as np
 import pytest
 
+from conftest import run_cli, summary
 from massview.core.camera import Camera
 from massview.core.config import RenderConfig
 from massview.core.paths import load_path
-from massview.core.stats import FrameStats
+from massview.core.stats import FrameStats, read_stats
 from massview.core.task import Task
 from massview.lod.cull import boxes_in_frustum
 from massview.lod.scene import SkeletonCuller, build_group_tree, choose_levels, lod_scale, resolve_levels
@@ -233,16 +234,14 @@ SLOW = [(d, n) for d in SCENE_DECOMPS for n in (2, 3, 4) if (d, n) not in FAST]
 
 @pytest.fixture(scope="session")
 def city_store(tmp_path_factory):
-    from conftest import run_cli
+    from massview.data.generators.scenes import generate_scene
 
     out = tmp_path_factory.mktemp("scene") / "city.zarr"
-    run_cli("generate", "scene", "city", "--copies", 1, "--size", "small", "-o", out, "-q")
+    generate_scene("city", out, copies=2, size=0.12)
     return out
 
 
 def _parallel_equals_serial(tmp_path, store, decomposition, ranks, path="orbit", extra=()):
-    from conftest import run_cli, summary
-
     run_cli("render", store, "--ranks", ranks, "--decomposition", decomposition, "--path", path, "--frames", 3,
             "--size", "240x180", "--reference", "--out", tmp_path, "-q", *extra)
     s = summary(tmp_path)
@@ -268,10 +267,15 @@ def test_scene_parallel_equals_serial_all_rank_counts(tmp_path, city_store, deco
 def test_scene_small_budgets_async_stay_exact(tmp_path, city_store):
     """Budgets far below the view: meshes cycle and load meanwhile, frames never wait, and
     every rank still draws the agreed levels (reference matches)."""
-    from massview.core.stats import read_stats
-
     _parallel_equals_serial(tmp_path, city_store, "sort-first:kd", 3, path="walkthrough",
-                            extra=("--cache-mb", 2, "--gpu-mb", 2))
+                            extra=("--cache-mb", 2, "--gpu-mb", 2, "--loading", "async"))
     recs = read_stats(tmp_path / "stats.jsonl")
     assert any(r["counters"].get("objects_coarser", 0) + r["counters"].get("objects_missing", 0) > 0 for r in recs)
     assert max(r["counters"]["gpu_used_bytes"] for r in recs) <= 2 << 20
+
+
+def test_scene_complete_loading_with_budgets_too_small_says_so(tmp_path, city_store):
+    proc = run_cli("render", city_store, "--path", "walkthrough", "--frames", 1, "--size", "160x120", "--cache-mb", 1,
+                   "--gpu-mb", 1, "--loading", "complete", "--out", tmp_path, "-q", check=False)
+    assert proc.returncode != 0
+    assert "do not fit the budgets" in proc.stderr and "--gpu-mb" in proc.stderr

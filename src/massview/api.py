@@ -251,7 +251,7 @@ def validate(spec: str, cfg: RenderConfig, nranks: int) -> None:
     from .parallel.decompose import parse_decomposition, parse_wall, sort_first_tiles
     from .systems import scene_kind
 
-    modes = ("kpatch", "linear", "quadtree") if scene_kind(spec) == "terrain" else ()
+    modes = {"terrain": ("kpatch", "linear", "quadtree"), "scene": ("visible", "static")}.get(scene_kind(spec), ())
     if cfg.system == "roettger":  # T2: roles, wall per visualization rank, the stores' tables
         from .systems.roettger import validate as validate_roettger
 

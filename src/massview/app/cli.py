@@ -67,11 +67,11 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--wall", default=None, metavar="CxR", help="display wall: C×R display ranks each write their own tile")
     p.add_argument("--tile-targets", action="store_true", help="sort-first into tile-sized targets (off-axis frusta; equal to ~1e-4 of pixels)")
     p.add_argument("--color-by-rank", action="store_true", help="tint each rank's contribution")
-    p.add_argument("--tau", type=float, default=1.0, help="terrain: pixel tolerance of the LOD (default 1)")
-    p.add_argument("--cache-mb", type=int, default=256, help="terrain: RAM block cache per rank, MiB (default 256)")
-    p.add_argument("--gpu-mb", type=int, default=256, help="terrain: GL block pool per rank, MiB (default 256)")
+    p.add_argument("--tau", type=float, default=1.0, help="terrain and scenes: pixel tolerance of the LOD (default 1)")
+    p.add_argument("--cache-mb", type=int, default=256, help="terrain and scenes: RAM block cache per rank, MiB (default 256)")
+    p.add_argument("--gpu-mb", type=int, default=256, help="terrain and scenes: GL block pool per rank, MiB (default 256)")
     p.add_argument("--loading", choices=("async", "complete"), default="complete",
-                   help="terrain: complete = wait until every block the view needs is loaded (default for render: final-quality frames); "
+                   help="terrain and scenes: complete = wait until every block the view needs is loaded (default for render: final-quality frames); "
                         "async = never wait for data, draw coarser meanwhile (default for view)")
     p.add_argument("--reference", action="store_true", help="also render each frame on one rank and report max_abs_diff and diff_fraction")
     p.add_argument("--out", "-o", type=Path, default=Path("out/render"), help="output folder (default out/render)")
@@ -121,6 +121,9 @@ def build_parser() -> argparse.ArgumentParser:
     gt.add_argument("--block", type=int, default=257, help="M-block size for --format store (129, 257, 513)")
     gt.add_argument("--overwrite", action="store_true")
     gt.add_argument("--quiet", "-q", action="store_true")
+    from .scene_cmds import add_generate_parser, add_prepare_parser
+
+    add_generate_parser(gsub)
     prep = sub.add_parser("prepare", help="build a store from real data")
     psub = prep.add_subparsers(dest="what", required=True, metavar="WHAT")
     pt = psub.add_parser("terrain", help="elevation (GeoTIFF/COG, .npy, .npz, SRTM .hgt, raw) -> terrain store")
@@ -143,6 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .roettger_cmds import add_parsers as _roettger_parsers
 
     _roettger_parsers(psub)
+    add_prepare_parser(psub)
     inf = sub.add_parser("info", help="levels, blocks, size on disk, compression, georeference of a store")
     inf.add_argument("store")
     inf.add_argument("--json", action="store_true")
@@ -272,9 +276,10 @@ def main(argv: list[str] | None = None) -> int:
 
             return cmd_prepare_roettger(args)
         if args.command in ("generate", "prepare", "info", "verify"):
-            from . import terrain_cmds
+            from . import scene_cmds, terrain_cmds
 
-            return getattr(terrain_cmds, f"cmd_{args.command}")(args)
+            scene = getattr(args, "what", None) == "scene" or (args.command in ("info", "verify") and scene_cmds.is_scene(args.store))
+            return getattr(scene_cmds if scene else terrain_cmds, f"cmd_{args.command}")(args)
     except MassviewError as e:
         print(f"massview: error: {e}", file=sys.stderr)
         return 2 if isinstance(e, ConfigError) else 1

@@ -8,16 +8,6 @@ from .frameloop import FrameResult, display_tiles, render_frame
 __all__ = ["open_system", "scene_kind", "FrameResult", "display_tiles", "render_frame"]
 
 
-def _store_format(p) -> str:
-    """The ``format`` attribute of a zarr v3 group folder ("" when unreadable)."""
-    import json
-
-    try:
-        return str(json.loads((p / "zarr.json").read_text()).get("attributes", {}).get("format", ""))
-    except (OSError, ValueError, AttributeError):
-        return ""
-
-
 def scene_kind(spec: str) -> str:
     """"objects", "scene" or "terrain" for a scene name, or SceneNotFoundError saying what to give."""
     if spec.startswith("builtin:objects"):
@@ -25,7 +15,9 @@ def scene_kind(spec: str) -> str:
     from pathlib import Path
 
     p = Path(spec)
-    if p.is_dir() and (p / "zarr.json").exists() and "scene" in _store_format(p):
+    from ..data.scene import is_scene_store
+
+    if p.is_dir() and is_scene_store(p):
         return "scene"
     if p.is_dir() and (p / "zarr.json").exists():
         from ..data.terrain import TerrainStore

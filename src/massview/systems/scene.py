@@ -78,6 +78,7 @@ def _normal_matrices(model: np.ndarray) -> np.ndarray:
 
 class SceneSystem:
     sort_last_modes = SORT_LAST_MODES
+    max_requests = 384  # load requests issued per frame (most important first)
 
     def __init__(self, store, cache_bytes: int = 256 << 20, gpu_bytes: int = 256 << 20, egl_device: int | None = None,
                  loading: str = "async", workers: int = 2):
@@ -184,21 +185,27 @@ class SceneSystem:
             self._wait_for_loads()
 
     def _request(self, cut: Cut, claim: np.ndarray) -> None:
-        """Queue loads for claimed objects not drawn at their desired level: the desired level
-        by screen size, and the coarsest level first for objects with nothing resident."""
+        """Queue loads for claimed objects not drawn at their desired level: the coarsest level
+        first for objects with nothing resident (async), then the desired level, by screen
+        size; only the ``max_requests`` most important per frame (the loaders cannot do more,
+        and the cache drops requests not renewed)."""
         need = np.flatnonzero(claim & (cut.drawn != cut.desired))
         if len(need) == 0:
             return
         obj = cut.vis[need]
         cam = cut.camera
-        d = np.maximum(np.linalg.norm(self.sk.center[obj] - np.asarray(cam.position), axis=1) - self.sk.radius[obj], cam.near)
+        diff = self.sk.center[obj] - np.asarray(cam.position)
+        d = np.maximum(np.sqrt(np.einsum("ij,ij->i", diff, diff)) - self.sk.radius[obj], cam.near)
         prio = self.sk.radius[obj] * lod_scale(cam) / d
-        g = self.geometry[obj]
-        for gi, lv, p, empty, coarse in zip(g.tolist(), cut.desired[need].tolist(), prio.tolist(),
-                                            (cut.drawn[need] < 0).tolist(), (self.levels[obj] - 1).tolist()):
-            if empty and coarse != lv and self.loading != "complete":
-                self._want((gi, coarse), p + 1e12)
-            self._want((gi, lv), p)
+        g, lv = self.geometry[obj], cut.desired[need]
+        coarse = (self.levels[obj] - 1)
+        first = (cut.drawn[need] < 0) & (coarse != lv) & (self.loading != "complete")
+        keys_g = np.concatenate([g[first], g])
+        keys_l = np.concatenate([coarse[first], lv])
+        keys_p = np.concatenate([prio[first] + 1e12, prio])
+        top = np.argsort(-keys_p, kind="stable")[: self.max_requests]
+        for gi, li, p in zip(keys_g[top].tolist(), keys_l[top].tolist(), keys_p[top].tolist()):
+            self._want((gi, li), p)
 
     def _want(self, key, priority: float) -> None:
         self._wanted[key] = self._frame

@@ -8,7 +8,7 @@ this registry (the first docstring line of a module is its help text).
 
 from __future__ import annotations
 
-from . import composite, dmmr, ingest, roettger, terrain
+from . import composite, dmmr, ingest, roettger, scene, terrain
 
 __all__ = ["BENCHES"]
 
@@ -18,4 +18,5 @@ BENCHES = {
     "ingest": ingest,
     "roettger": roettger,
     "dmmr": dmmr,
+    "scene": scene,
 }

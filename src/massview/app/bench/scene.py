@@ -163,7 +163,7 @@ def run(args) -> int:
     return 0
 
 
-if __name__ == "__main__":  # until the bench registry wires it: python -m massview.app.bench.scene
+if __name__ == "__main__":  # also: python -m massview.app.bench.scene
     ap = argparse.ArgumentParser(prog="massview bench scene")
     add_arguments(ap)
     raise SystemExit(run(ap.parse_args()))

@@ -19,7 +19,7 @@ import numpy as np
 
 from .mesh import Mesh, quantization_error, vertex_normals
 
-__all__ = ["build_levels", "is_closed", "simplify_once", "BACKENDS", "surface_distance"]
+__all__ = ["build_levels", "is_closed", "simplify_once", "BACKENDS", "surface_distance", "surface_index"]
 
 BACKENDS = ("fast-simplification", "pyfqmr")
 _SAMPLES = 2048
@@ -31,8 +31,14 @@ def is_closed(indices: np.ndarray, positions: np.ndarray | None = None) -> bool:
     if len(indices) == 0:
         return False
     if positions is not None:
-        _, weld = np.unique(positions, axis=0, return_inverse=True)
+        p = np.asarray(positions, np.float64)
+        tol = max(float(np.ptp(p, axis=0).max()), 1e-30) * 1e-6  # weld closer than 1e-6 of the size
+        _, weld = np.unique(np.round(p / tol), axis=0, return_inverse=True)
         indices = weld.reshape(-1)[indices]
+        ok = (indices[:, 0] != indices[:, 1]) & (indices[:, 1] != indices[:, 2]) & (indices[:, 0] != indices[:, 2])
+        indices = indices[ok]  # welding collapses the sliver triangles at poles and seams
+        if len(indices) == 0:
+            return False
     e = np.sort(np.concatenate([indices[:, [0, 1]], indices[:, [1, 2]], indices[:, [2, 0]]]).astype(np.int64), axis=1)
     key = e[:, 0] * (int(indices.max()) + 1) + e[:, 1]
     _, counts = np.unique(key, return_counts=True)
@@ -83,16 +89,23 @@ def _point_triangle_distance(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.
     return np.where(inside, np.linalg.norm(q_in - x, axis=1), d_edge)
 
 
-def surface_distance(points: np.ndarray, p: np.ndarray, t: np.ndarray, k: int = 4) -> float:
-    """Largest distance from ``points`` (m,3) to the surface (p, t), each point measured to the
-    ``k`` triangles with the nearest centroids (an estimate of the one-sided Hausdorff distance)."""
+def surface_index(p: np.ndarray, t: np.ndarray):
+    """(triangle corners f8 (t,3,3), k-d tree of their centroids) for :func:`surface_distance`."""
     from scipy.spatial import cKDTree
 
+    tri = p[t].astype(np.float64)
+    return tri, cKDTree(tri.mean(axis=1))
+
+
+def surface_distance(points: np.ndarray, p: np.ndarray, t: np.ndarray, k: int = 4, index=None) -> float:
+    """Largest distance from ``points`` (m,3) to the surface (p, t), each point measured to the
+    ``k`` triangles with the nearest centroids (an estimate of the one-sided Hausdorff distance).
+    ``index`` may pass a prebuilt :func:`surface_index` of (p, t)."""
     if len(points) == 0 or len(t) == 0:
         return 0.0
-    tri = p[t].astype(np.float64)
+    tri, tree = index or surface_index(p, t)
     k = min(k, len(t))
-    _, nn = cKDTree(tri.mean(axis=1)).query(points, k=k)
+    _, nn = tree.query(points, k=k)
     nn = nn.reshape(len(points), k)
     x = np.repeat(points.astype(np.float64), k, axis=0)
     tt = tri[nn.ravel()]
@@ -116,7 +129,7 @@ def build_levels(mesh: Mesh, max_levels: int = 8, min_triangles: int = 64, backe
     p0 = mesh.positions.astype(np.float64)
     lo, hi = p0.min(axis=0), p0.max(axis=0)
     qerr = quantization_error(lo, hi)
-    tree = None
+    tree = index0 = None
     p, t = mesh.positions, mesh.indices.astype(np.int64)
     while len(levels) < max_levels:
         target = len(t) // 2
@@ -127,7 +140,8 @@ def build_levels(mesh: Mesh, max_levels: int = 8, min_triangles: int = 64, backe
             break
         tree = tree or cKDTree(p0)
         _, near = tree.query(q)
-        err = max(surface_distance(_sample(p0), q, f), surface_distance(_sample(q), mesh.positions, mesh.indices.astype(np.int64)))
+        index0 = index0 or surface_index(mesh.positions, mesh.indices.astype(np.int64))
+        err = max(surface_distance(_sample(p0), q, f), surface_distance(_sample(q), mesh.positions, mesh.indices, index=index0))
         errors.append(max(errors[-1], err + qerr))
         levels.append(Mesh(q, vertex_normals(q, f), mesh.colors[near], f.astype(np.uint32)))
         p, t = q, f

@@ -28,6 +28,7 @@ holds its children's.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -85,6 +86,62 @@ GROUP_FIELDS = ("parent", "box_lo", "box_hi", "depth")
 GEOMETRY_TABLES = ("offset", "nbytes", "vertices", "triangles", "error", "crc", "qlo", "qhi", "closed", "levels", "radius")
 
 
+class ShardReader:
+    """Reads byte ranges of one ``geometry/data/<l>`` array straight from its shard files
+    (zarr's sharding layout: inner chunks then an index of (offset, nbytes) u64 pairs and a
+    crc32c at the end; inner chunks blosc-compressed). One call costs a pread and a blosc
+    decode per chunk instead of zarr's event-loop round trip (~3 ms). Thread-safe."""
+
+    def __init__(self, root: Path, meta: dict):
+        sh = meta["codecs"][0]["configuration"]
+        self.root = root
+        self.cb = int(sh["chunk_shape"][0])
+        self.per = int(meta["chunk_grid"]["configuration"]["chunk_shape"][0]) // self.cb
+        self._index: dict[int, np.ndarray | None] = {}
+
+    @staticmethod
+    def supports(meta: dict) -> bool:
+        try:
+            sh = meta["codecs"][0]
+            inner = [c["name"] for c in sh["configuration"]["codecs"]]
+            return (sh["name"] == "sharding_indexed" and sh["configuration"]["index_location"] == "end" and inner == ["bytes", "blosc"]
+                    and [c["name"] for c in sh["configuration"]["index_codecs"]] == ["bytes", "crc32c"]
+                    and meta["chunk_key_encoding"]["name"] == "default")
+        except (KeyError, IndexError, TypeError):
+            return False
+
+    def _shard_index(self, s: int) -> np.ndarray | None:
+        if s not in self._index:
+            f = self.root / "c" / str(s)
+            if not f.exists():
+                self._index[s] = None
+            else:
+                n = self.per * 16 + 4
+                with open(f, "rb") as fh:
+                    fh.seek(-n, 2)
+                    self._index[s] = np.frombuffer(fh.read(n)[:-4], "<u8").reshape(self.per, 2)
+        return self._index[s]
+
+    def read(self, off: int, nb: int) -> np.ndarray:
+        from numcodecs import blosc
+
+        c0, c1 = off // self.cb, -(-(off + nb) // self.cb)
+        out = np.zeros((c1 - c0) * self.cb, np.uint8)
+        for c in range(c0, c1):
+            s, i = divmod(c, self.per)
+            idx = self._shard_index(s)
+            if idx is None or idx[i, 0] == 2**64 - 1:
+                continue  # never written: fill value
+            with open(self.root / "c" / str(s), "rb") as fh:
+                raw = os.pread(fh.fileno(), int(idx[i, 1]), int(idx[i, 0]))
+            chunk = np.frombuffer(blosc.decompress(raw), np.uint8)
+            if len(chunk) != self.cb:
+                raise ValueError(f"chunk {c} decodes to {len(chunk)} bytes, not {self.cb}")
+            out[(c - c0) * self.cb:(c - c0 + 1) * self.cb] = chunk
+        a = off - c0 * self.cb
+        return out[a:a + nb]
+
+
 def is_scene_store(path) -> bool:
     """True when ``path`` is a zarr group whose format attribute names a scene store."""
     import json
@@ -125,11 +182,22 @@ class SceneStore:
         try:
             self.tables = {k: np.asarray(g[f"geometry/{k}"][...]) for k in GEOMETRY_TABLES}
             self._data = [g[f"geometry/data/{lv}"] for lv in range(self.levels_max)]
+            self._direct = [self._shard_reader(lv) for lv in range(self.levels_max)]
             if self.attrs.get("complete"):
                 self.skeleton = Skeleton(**{k: np.asarray(g[f"skeleton/{k}"][...]) for k in SKELETON_FIELDS})
                 self.groups = GroupTree(**{k: np.asarray(g[f"groups/{k}"][...]) for k in GROUP_FIELDS})
         except KeyError as e:
             raise StoreError(f"{self.path}: array {e} is missing; the store is damaged — rebuild it with --overwrite") from None
+
+    def _shard_reader(self, lv: int) -> ShardReader | None:
+        import json
+
+        root = self.path / "geometry" / "data" / str(lv)
+        try:
+            meta = json.loads((root / "zarr.json").read_text())
+        except (OSError, ValueError):
+            return None
+        return ShardReader(root, meta) if ShardReader.supports(meta) else None
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -161,7 +229,8 @@ class SceneStore:
             raise BlockNotFoundError(f"{self.path}: geometry {gid} has {int(self.tables['levels'][gid])} levels, not {lv + 1}")
         off, nb = int(self.tables["offset"][gid, lv]), int(self.tables["nbytes"][gid, lv])
         try:
-            buf = np.asarray(self._data[lv][off:off + nb])
+            d = self._direct[lv]
+            buf = d.read(off, nb) if d is not None else np.asarray(self._data[lv][off:off + nb])
         except Exception as e:  # noqa: BLE001 - codec errors come in many types
             raise CorruptBlockError(f"{self._where(gid, lv)} does not decode ({type(e).__name__}: {e}); "
                                     "the store is damaged — rebuild it with --overwrite") from None
