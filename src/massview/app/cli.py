@@ -23,10 +23,11 @@ from ..core.errors import ConfigError, MassviewError
 from ..core.paths import BUILTIN_PATHS
 from ..parallel.composite import COMPOSITORS
 from ..parallel.codec import CODECS
+from .dmmr_cmds import add_dmmr_args
 
 __all__ = ["main", "build_parser"]
 
-DECOMPOSITIONS = ("sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd", "sort-last",
+DECOMPOSITIONS = ("sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd", "sort-first:balanced", "sort-last",
                   "sort-last:kpatch", "sort-last:linear", "sort-last:quadtree", "sort-last:visible", "sort-last:static")
 
 
@@ -80,13 +81,14 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     from .reliefboards_cmds import add_render_args as _add_reliefboard_args
 
     _add_reliefboard_args(p)
+    add_dmmr_args(p)
 
 
 def _add_roettger_args(p: argparse.ArgumentParser) -> None:
     """T2 flags (``--system roettger``: computation + visualization ranks)."""
     p.add_argument("layers", nargs="*", default=[], help="T2: further terrain stores drawn as stacked layers")
-    p.add_argument("--system", choices=("auto", "roettger", "reliefboards"), default="auto",
-                   help="auto (by scene: T1 for terrain), roettger (T2) or reliefboards (M2)")
+    p.add_argument("--system", choices=("auto", "roettger", "dmmr", "reliefboards"), default="auto",
+                   help="auto (by scene: T1 for terrain, the scene renderer for scene stores), roettger (T2), dmmr (M1: rank 0 server, other ranks clients) or reliefboards (M2)")
     p.add_argument("--compute-ranks", type=_positive, default=1, help="T2: computation ranks; the other ranks visualize (default 1)")
     p.add_argument("--paper-partition", action="store_true", help="T2: the paper's overlapping (2^m+1)² portions instead of the exact partition")
     p.add_argument("--triangle-budget", type=_positive, default=None, help="T2: at most N triangles per frame (≥ 0.9 N when the view has more)")

@@ -8,7 +8,7 @@ this registry (the first docstring line of a module is its help text).
 
 from __future__ import annotations
 
-from . import composite, ingest, reliefboards, roettger, scene, scene_ingest, terrain
+from . import composite, dmmr, ingest, reliefboards, roettger, scene, scene_ingest, terrain
 
 __all__ = ["BENCHES"]
 
@@ -20,4 +20,5 @@ BENCHES = {
     "scene": scene,
     "roettger": roettger,
     "reliefboards": reliefboards,
+    "dmmr": dmmr,
 }
