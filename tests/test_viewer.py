@@ -70,7 +70,7 @@ def test_viewer_streams_reacts_and_survives_bad_input(viewer):
         page = browser.new_page()
         page.goto(url)
         page.wait_for_function("window.mv && window.mv.frames >= 2 && window.mv.stats", timeout=60000)
-        assert page.evaluate("document.getElementById('decomposition').options.length") == 7
+        assert page.evaluate("document.getElementById('decomposition').options.length") == 8  # 5 sort-first layouts (incl. balanced) + 3 sort-last
 
         # a key press changes the next frames (the camera moves)
         before = page.evaluate("window.mv.stats")

@@ -24,10 +24,11 @@ from ..core.errors import ConfigError, MassviewError
 from ..core.paths import BUILTIN_PATHS
 from ..parallel.composite import COMPOSITORS
 from ..parallel.codec import CODECS
+from .dmmr_cmds import add_dmmr_args
 
 __all__ = ["main", "build_parser"]
 
-DECOMPOSITIONS = ("sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd", "sort-last",
+DECOMPOSITIONS = ("sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd", "sort-first:balanced", "sort-last",
                   "sort-last:kpatch", "sort-last:linear", "sort-last:quadtree", "sort-last:visible", "sort-last:static")
 
 
@@ -82,12 +83,17 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary table")
     p.add_argument("--fault", default=None, help=argparse.SUPPRESS)
     _add_roettger_args(p)
+    from .reliefboards_cmds import add_render_args as _add_reliefboard_args
+
+    _add_reliefboard_args(p)
+    add_dmmr_args(p)
 
 
 def _add_roettger_args(p: argparse.ArgumentParser) -> None:
     """T2 flags (``--system roettger``: computation + visualization ranks)."""
     p.add_argument("layers", nargs="*", default=[], help="T2: further terrain stores drawn as stacked layers")
-    p.add_argument("--system", choices=("auto", "roettger"), default="auto", help="auto (by scene: T1 for terrain) or roettger (T2)")
+    p.add_argument("--system", choices=("auto", "roettger", "dmmr", "reliefboards"), default="auto",
+                   help="auto (by scene: T1 for terrain, the scene renderer for scene stores), roettger (T2), dmmr (M1: rank 0 server, other ranks clients) or reliefboards (M2)")
     p.add_argument("--compute-ranks", type=_positive, default=1, help="T2: computation ranks; the other ranks visualize (default 1)")
     p.add_argument("--paper-partition", action="store_true", help="T2: the paper's overlapping (2^m+1)² portions instead of the exact partition")
     p.add_argument("--triangle-budget", type=_positive, default=None, help="T2: at most N triangles per frame (≥ 0.9 N when the view has more)")
@@ -150,6 +156,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .roettger_cmds import add_parsers as _roettger_parsers
 
     _roettger_parsers(psub)
+    from .reliefboards_cmds import add_parsers as _reliefboard_parsers
+
+    _reliefboard_parsers(psub)
     inf = sub.add_parser("info", help="levels, blocks, size on disk, compression, georeference of a store")
     inf.add_argument("store")
     inf.add_argument("--json", action="store_true")
@@ -199,6 +208,10 @@ def cmd_view(args, argv) -> int:
     from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
 
     cfg = render_config(args)
+    if cfg.system == "reliefboards":
+        from .reliefboards_cmds import cmd_view as _reliefboards_view
+
+        return _reliefboards_view(args, argv, cfg)
     if not (0 <= args.port <= 65535):
         raise ConfigError(f"--port must be in 0..65535, got {args.port}")
     if not in_mpi_job():
@@ -224,6 +237,13 @@ def _launched_by_us() -> bool:
 def cmd_report(args) -> int:
     from .report import load_run, print_summary, write_report
 
+    if not (args.dir / "stats.jsonl").exists() and args.dir.is_dir():
+        from .reliefboards_report import m2_runs, write_collection_report
+
+        if m2_runs(args.dir):  # a folder of reliefboards runs: Figures 9 and 11 across backend counts
+            for path in write_collection_report(args.dir):
+                print(f"wrote {path}")
+            return 0
     summary, records = load_run(args.dir)
     print_summary(summary)
     path = write_report(args.dir, records, summary)
@@ -263,6 +283,10 @@ def main(argv: list[str] | None = None) -> int:
         return run_job(argv[1])
     args = build_parser().parse_args(argv)
     try:
+        if args.command == "render" and args.system == "reliefboards":
+            from .reliefboards_cmds import cmd_render as _reliefboards
+
+            return _reliefboards(args, argv, render_config(args))
         if args.command == "render":
             return cmd_render(args)
         if args.command == "view":
@@ -277,6 +301,10 @@ def main(argv: list[str] | None = None) -> int:
             return run_demo(args)
         if args.command == "upgrade":
             return upgrade_cmds.cmd_upgrade(args)
+        if args.command == "prepare" and args.what == "reliefboards":
+            from .reliefboards_cmds import cmd_prepare
+
+            return cmd_prepare(args)
         if args.command == "prepare" and args.what == "roettger":
             from .roettger_cmds import cmd_prepare_roettger
 

@@ -99,7 +99,14 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
     records, diffs = [], []
     stats_file = open(out / "stats.jsonl", "w") if rank == 0 and out is not None else None
     try:
-        for f in range(nframes):
+        if hasattr(system, "run_path"):  # a system with its own pipelined frame loop (M1)
+            got = system.run_path(comm, cameras, cfg, sink)
+            for rec in (got[0] if got else []):
+                records.append(rec)
+                if stats_file:
+                    stats_file.write(json.dumps(rec) + "\n")
+            diffs = got[1] if got else []
+        for f in range(0 if hasattr(system, "run_path") else nframes):
             res = render_frame(comm, system, cfg, cameras[f] if rank == 0 else None, f, sink)
             gathered = comm.gather((res.stats.to_json(), res.diff), root=0)
             if rank == 0:

@@ -50,6 +50,10 @@ def print_summary(summary: dict, console=None) -> None:
 
 
 def write_report(out: Path, records: list[dict], summary: dict) -> Path:
+    if summary.get("system") == "reliefboards":
+        from .reliefboards_report import write_run_report
+
+        return write_run_report(out, records, summary)
     import matplotlib
 
     matplotlib.use("Agg")

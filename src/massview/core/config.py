@@ -53,7 +53,7 @@ class RenderConfig:
     egl_device: int | None = None
     fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
     # T2 (--system roettger): computation ranks, partition, budget, Röttger's C and c, layers
-    system: str = "auto"  # "auto" (by scene), or "roettger"
+    system: str = "auto"  # "auto" (by scene), "roettger" (T2), "dmmr" (M1) or "reliefboards" (M2)
     layers: tuple[str, ...] = ()  # further stores drawn as stacked layers (T2)
     compute_ranks: int = 1
     paper_partition: bool = False
@@ -61,6 +61,14 @@ class RenderConfig:
     roettger_C: float | None = None  # None: the store table's C_min
     roettger_c: float | None = None  # None: from --tau (massview.lod.roettger.default_c)
     fan_delta: bool = True  # send only the fans that changed since the previous frame
+    # M1 (--system dmmr): server + clients
+    visible_frames: int = 4  # dmmr: frames a passed occlusion query keeps an object visible
+    query_threshold: int = 0  # dmmr: samples (pixels) a box must pass to count as visible
+    occlusion: str = "on"  # dmmr: occlusion culling on the clients, "on" or "off"
+    occluder_lod: str = "exact"  # dmmr: depth pre-pass at the rendered level ("exact") or the coarsest ("coarse")
+    stage_pipeline: str = "on"  # dmmr: divide i / visibility i-1 / render i-2 concurrently, or "off"
+    client_cache_mb: int | None = None  # dmmr: client RAM cache (default: scene object bytes / clients)
+    stage_delay: str | None = None  # testing aid: "divide:MS,visibility:MS,render:MS" sleeps per stage
 
     def __post_init__(self) -> None:
         if self.frames < 1:
@@ -73,8 +81,8 @@ class RenderConfig:
             raise ConfigError("--cache-mb and --gpu-mb must be at least 1")
         if not self.tau > 0:
             raise ConfigError(f"--tau (pixel tolerance) must be positive, got {self.tau}")
-        if self.system not in ("auto", "roettger"):
-            raise ConfigError(f"--system must be auto or roettger, got {self.system!r}")
+        if self.system not in ("auto", "roettger", "dmmr", "reliefboards"):
+            raise ConfigError(f"--system must be auto, roettger, dmmr or reliefboards, got {self.system!r}")
         if self.compute_ranks < 1:
             raise ConfigError(f"--compute-ranks must be at least 1, got {self.compute_ranks}")
         if self.triangle_budget is not None and self.triangle_budget < 1:
@@ -83,6 +91,7 @@ class RenderConfig:
             raise ConfigError("several stores (layers) need --system roettger")
         object.__setattr__(self, "layers", tuple(self.layers))
         self._check_shading()
+        self._check_dmmr()
 
     def _check_shading(self) -> None:
         if not (math.isfinite(self.exaggeration) and self.exaggeration > 0):
@@ -95,6 +104,21 @@ class RenderConfig:
             raise ConfigError(f"--colormap must name a colour ramp, got {self.colormap!r}")
         if not (math.isfinite(self.haze) and self.haze >= 0):
             raise ConfigError(f"--haze must be 0 (off) or a positive strength, got {self.haze}")
+
+    def _check_dmmr(self) -> None:
+        if self.visible_frames < 1 or self.query_threshold < 0:
+            raise ConfigError("--visible-frames must be at least 1 and --query-threshold at least 0")
+        for name in ("occlusion", "stage_pipeline"):
+            if getattr(self, name) not in ("on", "off"):
+                raise ConfigError(f"--{name.replace('_', '-')} must be on or off, got {getattr(self, name)!r}")
+        if self.occluder_lod not in ("exact", "coarse"):
+            raise ConfigError(f"--occluder-lod must be exact or coarse, got {self.occluder_lod!r}")
+        if self.client_cache_mb is not None and self.client_cache_mb < 1:
+            raise ConfigError("--client-cache-mb must be at least 1")
+        for part in (self.stage_delay or "").split(","):
+            name, _, ms = part.partition(":")
+            if part and (name not in ("divide", "visibility", "render") or not ms.replace(".", "", 1).isdigit()):
+                raise ConfigError(f"--stage-delay {self.stage_delay!r}: expected divide:MS,visibility:MS,render:MS")
 
     @classmethod
     def from_env(cls, env=None, **explicit) -> "RenderConfig":

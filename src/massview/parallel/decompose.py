@@ -9,8 +9,11 @@ Sort-first layouts split the image (names as in Goswami et al. 2010, §5 / Fig. 
   aspect, or given);
 * ``kd`` — a weighted recursive split of the screen: per-item screen rectangles and weights
   (e.g. triangle counts) are spread over a grid of 8-px cells and each node is cut where the
-  weight on either side matches the ranks it gets. Alternating axes (``alternate=True``) is
-  the load-balanced frustum division of the massive-model system.
+  weight on either side matches the ranks it gets;
+* ``balanced`` — the massive-model system's load-balanced frustum division (Revanth &
+  Narayanan 2012, Algorithm 1, :mod:`massview.lod.split`): split-plane sweep over the items'
+  screen footprints, alternating vertical/horizontal, for any rank count (``kd`` with
+  ``alternate=True`` is the same).
 
 Sort-last gives rank i the database range R_i = [i/N, (i+1)/N) over the full frame.
 """
@@ -23,6 +26,7 @@ import numpy as np
 
 from ..core.camera import Viewport
 from ..core.errors import ConfigError
+from ..lod.split import balanced_tiles
 
 __all__ = [
     "SORT_FIRST_LAYOUTS",
@@ -35,7 +39,7 @@ __all__ = [
     "parse_wall",
 ]
 
-SORT_FIRST_LAYOUTS = ("horizontal", "vertical", "grid", "kd")
+SORT_FIRST_LAYOUTS = ("horizontal", "vertical", "grid", "kd", "balanced")
 _CELL = 8
 
 
@@ -86,10 +90,12 @@ def sort_first_tiles(layout: str, n: int, width: int, height: int, grid: tuple[i
         if rows * cols != n:
             raise ConfigError(f"--grid {rows}x{cols} has {rows * cols} tiles for {n} ranks; make rows × cols equal the rank count")
         return grid_tiles(width, height, rows, cols)
-    if layout == "kd":
+    if layout in ("kd", "balanced"):
         if rects is None or weights is None:
             rects, weights = np.zeros((0, 4)), np.zeros(0)
-        return kd_tiles(n, width, height, rects, weights, alternate)
+        if layout == "balanced" or alternate:
+            return balanced_tiles(n, width, height, rects, weights)
+        return kd_tiles(n, width, height, rects, weights)
     raise ConfigError(f"unknown sort-first layout {layout!r}; use one of {', '.join(SORT_FIRST_LAYOUTS)}")
 
 

@@ -40,6 +40,10 @@ def open_system(spec: str, cfg=None):
 
         return RoettgerSystem((spec, *cfg.layers), cfg)
     kind = scene_kind(spec)
+    if getattr(cfg, "system", "auto") == "dmmr":  # M1: server + clients over a scene (or builtin:objects)
+        from .dmmr import DmmrSystem
+
+        return DmmrSystem(spec, cfg)
     if kind == "objects":
         from .objects import ObjectsSystem
 

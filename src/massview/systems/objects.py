@@ -61,7 +61,7 @@ class ObjectsSystem:
         if kind == "sort-last":
             return [Task(i, full, data_range=r) for i, r in enumerate(sort_last_ranges(nranks))]
         rects = weights = None
-        if layout == "kd":
+        if layout in ("kd", "balanced"):
             vis = self.visible(camera)
             rects = screen_rects(camera, self.scene.box_lo[vis], self.scene.box_hi[vis])
             weights = self.scene.triangles[vis]

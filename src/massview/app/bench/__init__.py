@@ -8,7 +8,7 @@ this registry (the first docstring line of a module is its help text).
 
 from __future__ import annotations
 
-from . import composite, ingest, roettger, scene, scene_ingest, terrain
+from . import composite, dmmr, ingest, reliefboards, roettger, scene, scene_ingest, terrain
 
 __all__ = ["BENCHES"]
 
@@ -19,4 +19,6 @@ BENCHES = {
     "scene-ingest": scene_ingest,
     "scene": scene,
     "roettger": roettger,
+    "reliefboards": reliefboards,
+    "dmmr": dmmr,
 }

@@ -62,6 +62,16 @@ function showStats(s) {
   $("tris").textContent = s.triangles_per_rank.map((t) => (t / 1000).toFixed(1) + "k").join(", ");
   $("imb").textContent = s.imbalance.toFixed(3);
   $("bytes").textContent = (s.bytes_per_frame / 1e6).toFixed(2) + " MB";
+  if (s.m2) showReliefboards(s.m2);
+}
+
+function showReliefboards(m) {  // M2: requests in flight and the angle-error histogram
+  $("m2").hidden = false;
+  $("m2boards").textContent = m.boards; $("m2orig").textContent = m.far_originals;
+  $("m2flight").textContent = m.in_flight.join(", "); $("m2ans").textContent = m.answered;
+  const c = $("m2hist"), g = c.getContext("2d"), n = m.angle_hist.length, top = Math.max(1, ...m.angle_hist);
+  g.clearRect(0, 0, c.width, c.height); g.fillStyle = "#7fb3ff";
+  m.angle_hist.forEach((v, i) => { const h = (v / top) * (c.height - 2); g.fillRect(i * c.width / n + 1, c.height - h, c.width / n - 2, h); });
 }
 
 function send(obj) { if (mv.ws && mv.ws.readyState === 1) mv.ws.send(JSON.stringify(obj)); }

@@ -1,0 +1,24 @@
+"""Command-line options of the massive-model system (``--system dmmr``, issue M1).
+
+``add_dmmr_args`` adds its flags to ``render``/``view``; each flag's dest is the name of a
+:class:`~massview.core.config.RenderConfig` field, which ``render_config`` maps by name.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["add_dmmr_args"]
+
+
+def add_dmmr_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("massive models (--system dmmr: distributed massive model rendering; rank 0 server, other ranks clients)")
+    g.add_argument("--visible-frames", type=int, default=None, help="dmmr: frames an object stays visible after passing a query (default 4)")
+    g.add_argument("--query-threshold", type=int, default=None, help="dmmr: pixels a box must show to be visible (default 0)")
+    g.add_argument("--occlusion", choices=("on", "off"), default=None, help="dmmr: occlusion culling on the clients (default on)")
+    g.add_argument("--occluder-lod", choices=("exact", "coarse"), default=None,
+                   help="dmmr: depth pre-pass at the rendered level (exact, default: conservative) or the coarsest level (the paper's)")
+    g.add_argument("--stage-pipeline", choices=("on", "off"), default=None,
+                   help="dmmr: divide frame i, cull i-1, render i-2 concurrently (default on); off = synchronous")
+    g.add_argument("--client-cache-mb", type=int, default=None, help="dmmr: client RAM cache, MiB (default: the scene's object bytes / clients)")
+    g.add_argument("--stage-delay", default=None, help=argparse.SUPPRESS)

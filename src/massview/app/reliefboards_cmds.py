@@ -1,0 +1,265 @@
+"""``massview render SCENE --system reliefboards``: M2 along a camera path, and its §7 metrics.
+
+Outputs in ``DIR`` as for ``massview render``: ``frames/NNNNN.png``, ``stats.jsonl`` (one record
+per frame of the visualization rank, with the M2 counters) and ``summary.json`` with the §7
+figures: frame time, triangles by kind, requests, mean/max response time, angle-error
+distribution (min, quartiles, mean, max), time to a complete view, per-backend loads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..core.config import RenderConfig
+from ..core.errors import ConfigError
+from ..core.paths import load_path
+from ..core.stats import summarize
+
+__all__ = ["add_render_args", "options_from_args", "cmd_render", "run", "m2_summary"]
+
+
+def _stall(spec: str) -> tuple[int, float | None]:
+    rank, _, sec = spec.partition(":")
+    try:
+        return int(rank), (float(sec) if sec else None)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{spec!r}: expected RANK or RANK:SECONDS, e.g. 2 or 2:0.5") from None
+
+
+def add_render_args(p: argparse.ArgumentParser) -> None:
+    """The M2 flags of ``massview render --system reliefboards``."""
+    g = p.add_argument_group("reliefboards (--system reliefboards)")
+    g.add_argument("--tnz", type=int, default=None, help="near-zone triangles t_nz (default 350000: the paper's 3.5 M scaled to llvmpipe)")
+    g.add_argument("--epsilon", type=float, default=11.5, help="angle error (deg) past which a board is renewed (default 11.5)")
+    g.add_argument("--max-error", type=float, default=45.0, help="angle error (deg) past which the original is drawn (default 45)")
+    g.add_argument("--size-threshold", type=float, default=0.30, help="relative projected-size change that renews a board (default 0.3)")
+    g.add_argument("--board-px", type=int, default=128, help="largest projected board side p in pixels (default 128)")
+    g.add_argument("--min-triangles", type=int, default=None, help="objects with fewer triangles are infeasible (default 2·p²)")
+    g.add_argument("--replicas", type=int, default=3, help="replicas of each object on the backends (default 3)")
+    g.add_argument("--placement-seed", type=int, default=0, help="seed of the random replica placement")
+    g.add_argument("--stall-backend", type=_stall, default=None, metavar="RANK[:SEC]",
+                   help="simulate a stalled backend (holds every request until the end) or a slow one (SEC more per board)")
+
+
+def options_from_args(args):
+    from ..systems.reliefboards import ReliefboardOptions
+
+    stall = args.stall_backend or (None, None)
+    kw = dict(epsilon_deg=args.epsilon, max_error_deg=args.max_error, size_threshold=args.size_threshold,
+              p=args.board_px, replicas=args.replicas, seed=args.placement_seed, min_triangles=args.min_triangles,
+              stall_backend=stall[0], stall_s=stall[1])
+    if args.tnz is not None:
+        kw["t_nz"] = args.tnz
+    return ReliefboardOptions(**kw)
+
+
+def _quantiles(values) -> dict:
+    v = np.asarray(values, np.float64)
+    if v.size == 0:
+        return {"count": 0}
+    q = np.percentile(v, [0, 25, 50, 75, 100])
+    q = [round(float(x), 3) for x in q]
+    return {"count": int(v.size), "min": q[0], "q1": q[1], "median": q[2],
+            "q3": q[3], "max": q[4], "mean": round(float(v.mean()), 3)}
+
+
+def m2_summary(records: list[dict]) -> dict:
+    """The §7 figures of a run from its per-frame records."""
+    c = [r["counters"] for r in records]
+    frame_ms = np.array([r["times_ms"]["total"] for r in records])
+    resp = [x for k in c for x in k.get("response_ms", [])]
+    angles = [x for k in c for x in k.get("angle_error", [])]
+    complete = [i for i, k in enumerate(c) if k.get("view_complete")]
+    t_complete = float(frame_ms[: complete[0] + 1].sum()) if complete else None
+    return {
+        "frame_ms_p50": round(float(np.percentile(frame_ms, 50)), 3),
+        "frame_ms_p99": round(float(np.percentile(frame_ms, 99)), 3),
+        "tris_near_mean": float(np.mean([k["tris_near"] for k in c])),
+        "tris_far_original_mean": float(np.mean([k["tris_far_original"] for k in c])),
+        "tris_board_mean": float(np.mean([k["tris_board"] for k in c])),
+        "requests": int(sum(k.get("requests", 0) for k in c)),
+        "answered": int(sum(k.get("answered", 0) for k in c)),
+        "pending_at_end": int(c[-1]["pending"]) if c else 0,
+        "response_ms": _quantiles(resp),
+        "angle_error_deg": _quantiles(angles),
+        "first_complete_frame": complete[0] if complete else None,
+        "ms_to_complete_view": round(t_complete, 3) if t_complete is not None else None,
+        "loads_per_backend": np.sum([k.get("loads", []) for k in c if k.get("loads")], axis=0).tolist() if c else [],
+        "board_passes_on_visualization_rank": int(max((k.get("board_passes_here", 0) for k in c), default=0)),
+    }
+
+
+def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool = True, write_frames: bool = True):
+    """Render ``cfg.frames`` frames of ``cfg.path`` with M2; returns the summary on rank 0."""
+    from ..systems.boardscene import open_board_objects
+    from ..systems.reliefboards import run_reliefboards
+    from .render_cmd import write_png
+
+    rank = comm.Get_rank()
+    fovy = 45.0
+    objects = open_board_objects(scene, opts.cluster_params(cfg.height, fovy))
+    cameras = load_path(cfg.path, *objects.bounds).cameras(cfg.frames, cfg.width, cfg.height) if rank == 0 else None
+    if rank == 0 and cameras and abs(cameras[0].fovy - fovy) > 1e-9:
+        raise ConfigError(f"--path {cfg.path}: the reliefboards system classifies objects for fovy {fovy}, the path has {cameras[0].fovy}")
+    stats_file = None
+    if rank == 0 and out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        stats_file = open(out / "stats.jsonl", "w")
+
+    def sink(f, image, stats):
+        if stats_file is not None:
+            if write_frames:
+                write_png(out / "frames" / f"{f:05d}.png", image)
+            stats_file.write(json.dumps(stats.to_json()) + "\n")
+
+    try:
+        res = run_reliefboards(comm, objects, opts, cameras, sink, cfg.reference, cfg.egl_device, cfg.color_by_rank)
+    finally:
+        if stats_file is not None:
+            stats_file.close()
+    if res is None:
+        return None
+    summary = _summary(res, scene, cfg, opts, objects, comm.Get_size() - 1)
+    if out is not None:
+        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _summary(res, scene: str, cfg: RenderConfig, opts, objects, backends: int) -> dict:
+    records, extra = res
+    summary = summarize(records, scene=scene, system="reliefboards", size=[cfg.width, cfg.height], path=cfg.path,
+                        renderer=extra["renderer"], backends=backends)
+    summary.update(m2_summary(records))
+    summary.update(objects=objects.count, feasible=int(objects.feasible.sum()), d_nz=objects.d_nz, sl_c=objects.sl_c,
+                   t_nz=opts.t_nz, late_boards=extra["late_boards"], backend_counters=extra["backends"])
+    if cfg.reference:
+        summary["max_abs_diff"] = max(r["counters"]["ref_max_abs_diff"] for r in records)
+        summary["diff_fraction"] = max(r["counters"]["ref_diff_fraction"] for r in records)
+    return summary
+
+
+def cmd_render(args, argv, cfg: RenderConfig) -> int:
+    """``massview render --system reliefboards``: relaunch under mpiexec, run, print."""
+    from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
+
+    opts = options_from_args(args)
+    load_path(cfg.path, [0, 0, 0], [1, 1, 1])
+    if not in_mpi_job():
+        if (args.ranks or 1) < 2:
+            raise ConfigError("--system reliefboards needs a visualization rank and at least one backend: give --ranks 2 or more")
+        return relaunch(argv, args.ranks)
+    comm = world()
+    summary = guarded(comm, run, comm, args.scene, cfg, opts, args.out, args.quiet)
+    if summary is not None and not args.quiet:
+        keys = ("mean_frame_ms", "frame_ms_p99", "requests", "answered", "response_ms", "angle_error_deg", "ms_to_complete_view",
+                "loads_per_backend")
+        for k in keys:
+            print(f"{k}: {summary.get(k)}", file=sys.stdout)
+        print(f"wrote {args.out}/summary.json, {args.out}/stats.jsonl and the frames")
+    return 0
+
+
+def cmd_view(args, argv, cfg: RenderConfig) -> int:
+    """``massview view --system reliefboards``: relaunch under mpiexec, serve the viewer."""
+    from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
+    from .reliefboards_view import run_view_reliefboards
+
+    opts = options_from_args(args)
+    if not (0 <= args.port <= 65535):
+        raise ConfigError(f"--port must be in 0..65535, got {args.port}")
+    if not in_mpi_job():
+        if (args.ranks or 1) < 2:
+            raise ConfigError("--system reliefboards needs a visualization rank and at least one backend: give --ranks 2 or more")
+        return relaunch(argv, args.ranks)
+    comm = world()
+    return guarded(comm, run_view_reliefboards, comm, args, cfg, opts)
+
+
+# -- massview prepare reliefboards ----------------------------------------------------------------
+def add_parsers(prepare_sub) -> None:
+    """``massview prepare reliefboards SCENE``: §4 clustering stored in the scene store."""
+    p = prepare_sub.add_parser("reliefboards", help="M2: cluster a scene store into feasible objects (§4), stored in the store")
+    p.add_argument("scene", help="a scene store (massview prepare scene / generate scene)")
+    p.add_argument("--tnz", type=int, default=350_000, help="near-zone triangles t_nz (default 350000: 3.5 M scaled to llvmpipe)")
+    p.add_argument("--board-px", type=int, default=128, help="largest projected board side p in pixels (default 128)")
+    p.add_argument("--size", default="1024x768", help="display WIDTHxHEIGHT; its height is r_y (default 1024x768, the paper's)")
+    p.add_argument("--fovy", type=float, default=45.0, help="vertical field of view in degrees (default 45)")
+    p.add_argument("--min-triangles", type=int, default=None, help="clusters with fewer triangles are infeasible (default 2·p²)")
+    p.add_argument("--candidates", type=int, default=8, help="nearby candidate clusters per cluster (default 8)")
+    p.add_argument("--picture", type=Path, default=None, help="also write a PNG of the clusters (as the paper's Figure 5)")
+    p.add_argument("--quiet", "-q", action="store_true")
+
+
+def cmd_prepare(args) -> int:
+    from ..core.config import parse_size
+    from ..data.board_clusters import write_clusters
+    from ..lod.clusters import ClusterParams, cluster_scene
+    from ..systems.boardscene import open_scene_store
+
+    _, height = parse_size(args.size)
+    params = ClusterParams(t_nz=args.tnz, p=args.board_px, r_y=height, fovy=args.fovy, k=args.candidates,
+                           min_triangles=args.min_triangles)
+    store = open_scene_store(args.scene)
+    sk = store.skeleton
+    tris = np.asarray(sk.triangles, np.int64)
+    tris = tris[:, 0] if tris.ndim == 2 else tris
+    cl = cluster_scene(np.asarray(sk.box_lo, np.float64), np.asarray(sk.box_hi, np.float64), tris, params)
+    write_clusters(args.scene, cl.labels, cl.status, {"t_nz": params.t_nz, "p": params.p, "r_y": params.r_y, "fovy": params.fovy,
+                                                      "min_triangles": params.board_triangles, "d_nz": cl.d_nz, "sl_c": cl.sl_c})
+    counts = np.bincount(cl.status, minlength=3)
+    if not args.quiet:
+        print(f"{args.scene}: {len(tris)} objects -> {len(cl.status)} clusters: {counts[0]} feasible, {counts[1]} too large "
+              f"(> sl_c = {cl.sl_c:.4g}), {counts[2]} with fewer than {params.board_triangles} triangles; d_nz = {cl.d_nz:.4g}")
+    if args.picture is not None:
+        write_cluster_picture(args.scene, args.picture, params, parse_size(args.size))
+        if not args.quiet:
+            print(f"wrote {args.picture}")
+    return 0
+
+
+def write_cluster_picture(scene: str, path: Path, params, size=(1024, 768)) -> Path:
+    """The clusters as in the paper's Figure 5: too large green (as wireframe here, so that
+    walls do not hide the rest), feasible clusters in shades of red, clusters with too few
+    triangles in other colours."""
+    from PIL import Image as PILImage
+
+    from ..core.camera import Camera
+    from ..core.stats import FrameStats
+    from ..lod.clusters import FEASIBLE, TOO_LARGE
+    from ..render.context import create_context
+    from ..render.meshes import MeshRenderer
+    from ..render.view import ViewRenderer
+    from ..systems.boardscene import open_board_objects
+
+    obj = open_board_objects(scene, params)
+    lo, hi = obj.bounds
+    c, ext = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+    eye = c + np.array([0.55, -0.75, 0.45]) * ext
+    cam = Camera.look_at(eye, c, fovy=params.fovy, near=ext * 0.01, far=ext * 4, width=size[0], height=size[1])
+    ctx = create_context()
+    meshes, view = MeshRenderer(ctx, *obj.concatenated()), ViewRenderer(ctx)
+    rng = np.random.default_rng(1)
+
+    def draw(mvp):
+        ctx.wireframe = True  # too large: green wireframe, so the clusters inside stay visible
+        meshes.draw(np.flatnonzero(obj.status == TOO_LARGE), mvp, (0.2, 0.85, 0.2, 0.9))
+        ctx.wireframe = False
+        for i in np.flatnonzero(obj.status != TOO_LARGE):
+            if obj.status[i] == FEASIBLE:
+                tint = (rng.uniform(0.55, 1.0), rng.uniform(0.0, 0.15), rng.uniform(0.0, 0.15), 0.8)
+            else:
+                tint = (*rng.uniform(0.2, 0.9, 3) * np.array([0.5, 0.7, 1.0]), 0.8)
+            meshes.draw(np.array([i]), mvp, tuple(float(v) for v in tint))
+        return 0
+
+    img = view.render(cam, cam.viewport, draw, FrameStats(frame=0, rank=0))
+    meshes.release()
+    view.release()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PILImage.fromarray(img.color[..., :3]).save(path, optimize=True)
+    return path

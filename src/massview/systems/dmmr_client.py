@@ -1,0 +1,199 @@
+"""A client of the massive-model system (Revanth & Narayanan 2012, §3.5–3.8).
+
+Two modules, each on its own GL context (the paper's two GPUs), run as the last two stages
+of the frame pipeline:
+
+* :meth:`DmmrClient.visibility` (GPU 1): the sub-frustum's potential occluders and the
+  previous frame's visible objects are drawn to depth, every other object is tested with a
+  batched hardware occlusion query on its box (:mod:`massview.render.queries`), and objects
+  that pass are marked visible for ``--visible-frames`` frames
+  (:class:`~massview.lod.visibility.VisibilityState`);
+* :meth:`DmmrClient.render` (GPU 2): the visible list is made resident through the
+  three-level cache (:class:`~massview.render.geometry_cache.GeometryCache`: GPU ← RAM ←
+  store; meshes visible in the previous frame are still on the GPU and are reused), drawn
+  into the client's viewport with the full-frame matrices and a scissor (bit-exact with a
+  serial render), read back and compressed with the runtime's codec.
+
+Both GL pools share one RAM cache. Occluders are drawn at the level the frame renders
+(``--occluder-lod exact``: conservative, the images equal the reference) or at the coarsest
+level (``coarse``, as the paper: cheaper, but a simplified occluder may poke out in front of
+the object and hide something visible — the reference diff reports it).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..core.camera import Camera, Viewport
+from ..core.config import RenderConfig
+from ..core.image import Image
+from ..core.stats import FrameStats
+from ..data.cache import BlockCache
+from ..lod.visibility import VisibilityState, boxes_reach_near
+from ..parallel.codec import encode_image
+from ..render.context import create_context
+from ..render.geometry_cache import GeometryCache, packed_loader
+from ..render.queries import OcclusionQuerier
+from ..render.scene import MeshPool, SceneRenderer
+from ..render.view import ViewRenderer
+
+__all__ = ["ClientTask", "Visible", "DmmrClient", "SceneDrawer", "normal_matrices"]
+
+
+@dataclass(frozen=True)
+class ClientTask:
+    """What the server sends a client for one frame: the camera, the client's viewport, the
+    sorted object ids in its sub-frustum and the LOD level chosen for each."""
+
+    frame: int
+    camera: Camera
+    viewport: Viewport
+    items: np.ndarray
+    levels: np.ndarray
+
+
+@dataclass
+class Visible:
+    """The visibility module's output for the renderer: indices into ``task.items``."""
+
+    task: ClientTask
+    keep: np.ndarray
+    stats: FrameStats = field(repr=False, default=None)
+
+
+def normal_matrices(model: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) inverse-transpose of each model matrix's linear part."""
+    lin = model[:, :3, :3]
+    out = np.tile(np.eye(3), (len(model), 1, 1))
+    ok = np.abs(np.linalg.det(lin)) > 1e-300
+    out[ok] = np.linalg.inv(lin[ok]).transpose(0, 2, 1)
+    return out
+
+
+class SceneDrawer:
+    """One GL context with its own mesh pool (GPU cache level) over a shared RAM cache."""
+
+    def __init__(self, sk, ram: BlockCache, gpu_bytes: int, egl_device: int | None):
+        self.ctx = create_context(egl_device)
+        self.geometry = np.asarray(sk.geometry, np.int64)
+        self.model = np.asarray(sk.transform, np.float64)
+        self.normal = normal_matrices(self.model)
+        with self.ctx:
+            n_geom = int(self.geometry.max(initial=-1)) + 1
+            self.pool = MeshPool(self.ctx, n_geom, int(np.asarray(sk.triangles).shape[1]), gpu_bytes)
+            self.cache = GeometryCache(self.pool, ram)
+            self.renderer = SceneRenderer(self.ctx, self.pool)
+            self.view = ViewRenderer(self.ctx)
+
+    def ensure(self, obj: np.ndarray, lv: np.ndarray):
+        return self.cache.ensure(zip(self.geometry[obj].tolist(), np.asarray(lv).tolist()))
+
+    def draw_fn(self, camera: Camera, obj: np.ndarray, lv: np.ndarray, tint=(0.0, 0.0, 0.0, 0.0)):
+        """``draw(mvp) -> triangles`` for objects ``obj`` at levels ``lv`` (resident)."""
+        eye = np.asarray(camera.position)
+        shift = np.eye(4)
+        shift[:3, 3] = eye
+
+        def draw(mvp: np.ndarray) -> int:
+            return self.renderer.draw(self.geometry[obj], lv, self.model[obj], self.normal[obj], eye, mvp @ shift, tint)
+
+        return draw
+
+    def release(self) -> None:
+        with self.ctx:
+            self.view.release()
+            self.renderer.release()
+            self.pool.release()
+        self.ctx.release()
+
+
+class DmmrClient:
+    """One client; ``visibility`` and ``render`` may run on two threads (one context each)."""
+
+    def __init__(self, store, cfg: RenderConfig, rank: int, ram_bytes: int):
+        self.sk = store.skeleton
+        self.cfg, self.rank = cfg, rank
+        self.box_lo = np.asarray(self.sk.box_lo, np.float64)
+        self.box_hi = np.asarray(self.sk.box_hi, np.float64)
+        self.occluder = np.asarray(self.sk.occluder, bool)
+        self.coarsest = np.asarray(self.sk.levels, np.int64) - 1
+        self.ram = BlockCache(packed_loader(store), ram_bytes, workers=2)
+        self.state = VisibilityState(len(self.box_lo), cfg.visible_frames)
+        self._vis: tuple[SceneDrawer, OcclusionQuerier] | None = None
+        self._ren: SceneDrawer | None = None
+
+    def _vis_gl(self):
+        if self._vis is None:
+            d = SceneDrawer(self.sk, self.ram, self.cfg.gpu_mb << 20, self.cfg.egl_device)
+            with d.ctx:
+                self._vis = (d, OcclusionQuerier(d.ctx))
+        return self._vis
+
+    def visibility(self, task: ClientTask, stats: FrameStats) -> Visible:
+        """Module 2 of §3.3 for one frame; fills ``stats`` (stage ``visibility``)."""
+        items = task.items
+        stats.count("objects_received", len(items))
+        if self.cfg.occlusion != "on" or len(items) == 0:
+            return Visible(task, np.arange(len(items)), stats)
+        drawer, querier = self._vis_gl()
+        cam = task.camera
+        with drawer.ctx, stats.stage("visibility"):
+            near = boxes_reach_near(cam, self.box_lo[items], self.box_hi[items])
+            plan = self.state.plan(task.frame, items, self.occluder, near)
+            pos = np.searchsorted(items, plan.depth_pass)
+            lv = task.levels[pos] if self.cfg.occluder_lod == "exact" else self.coarsest[plan.depth_pass]
+            with stats.stage("vis_load"):
+                c = drawer.ensure(plan.depth_pass, lv)
+            res = querier.test(cam, task.viewport, drawer.draw_fn(cam, plan.depth_pass, lv),
+                               self.box_lo[plan.query], self.box_hi[plan.query], self.cfg.query_threshold)
+            visible = self.state.finish(plan, res.passed)
+        stats.times_ms["vis_issue"] = res.issue_ms
+        stats.times_ms["vis_retrieve"] = res.retrieve_ms
+        for k, v in (("depth_pass_objects", len(plan.depth_pass)), ("queries_issued", res.issued), ("query_waits", res.waits),
+                     ("culled_by_occlusion", int((~res.passed).sum())), ("marked_visible", len(plan.marked)),
+                     ("near_visible", len(plan.near)), ("depth_pass_triangles", res.depth_triangles)):
+            stats.count(k, v)
+        for k, v in c.to_counters("vis_").items():
+            stats.count(k, v)
+        return Visible(task, np.searchsorted(items, visible), stats)
+
+    def render(self, vis: Visible, stats: FrameStats, tint=(0.0, 0.0, 0.0, 0.0)) -> tuple[Image, bytes]:
+        """Module 3: load, draw, read back and compress the sub-frame."""
+        if self._ren is None:
+            self._ren = SceneDrawer(self.sk, self.ram, self.cfg.gpu_mb << 20, self.cfg.egl_device)
+        d, task = self._ren, vis.task
+        obj, lv = task.items[vis.keep], task.levels[vis.keep]
+        stats.count("objects_drawn", len(obj))
+        with d.ctx:
+            t0 = time.perf_counter()
+            c = d.ensure(obj, lv)
+            stats.times_ms["load"] = (time.perf_counter() - t0) * 1e3
+            img = d.view.render(task.camera, task.viewport, d.draw_fn(task.camera, obj, lv, tint), stats)
+        for k, v in c.to_counters().items():
+            stats.count(k, v)
+        stats.count("ram_resident_bytes", self.ram.resident_bytes)
+        stats.count("gpu_used_bytes", d.pool.used_bytes)
+        with stats.stage("encode"):
+            payload = encode_image(img, self.cfg.codec)
+        return img, payload
+
+    def release_visibility(self) -> None:
+        """Free GPU 1's context (call on the thread that used it)."""
+        if self._vis is not None:
+            d, q = self._vis
+            with d.ctx:
+                q.release()
+            d.release()
+            self._vis = None
+
+    def release_render(self) -> None:
+        """Free GPU 2's context (call on the thread that used it)."""
+        if self._ren is not None:
+            self._ren.release()
+            self._ren = None
+
+    def close(self) -> None:
+        self.ram.close()

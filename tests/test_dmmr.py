@@ -1,0 +1,142 @@
+"""M1 end to end (`massview render SCENE --system dmmr`): real mpiexec, real GL, the one-rank
+reference (every object in the frustum, no occlusion culling) as the oracle."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from massview.core.config import RenderConfig
+from massview.core.errors import ConfigError
+from massview.core.paths import load_path
+from massview.systems.dmmr import DmmrSystem
+
+from conftest import load_png, run_cli, save_diff, summary
+
+SCENE = "builtin:objects?n=400&seed=3"
+SIZE = "320x240"
+
+
+def dmmr(out, ranks, *extra, frames=3, scene=SCENE):
+    run_cli("render", scene, "--system", "dmmr", "--ranks", ranks, "--frames", frames, "--size", SIZE,
+            "--out", out, "--reference", "-q", *extra)
+    recs = [json.loads(line) for line in (out / "stats.jsonl").read_text().splitlines()]
+    return summary(out), recs
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("ranks,decomposition", [(3, None), (4, None), (5, None), (4, "sort-first:grid")])
+def test_parallel_equals_serial_without_occlusion_culling(tmp_path, ranks, decomposition):
+    extra = ("--decomposition", decomposition) if decomposition else ()  # grid: the equal-tile baseline
+    s, recs = dmmr(tmp_path, ranks, "--occlusion", "off", *extra)
+    assert s["ranks"] == ranks and s["frames"] == 3
+    assert s["max_abs_diff"] == 0 and s["diff_fraction"] == 0.0
+    clients = [r for r in recs if r["rank"] > 0]
+    assert {r["rank"] for r in clients} == set(range(1, ranks))
+    assert all(r["counters"].get("queries_issued", 0) == 0 for r in clients)
+
+
+@pytest.fixture(scope="module")
+def plant(tmp_path_factory):
+    """A small generated power plant (≈3.5 k objects, 8 levels of groups, occluder walls)."""
+    from massview.data.generators.scenes import generate_scene
+
+    out = tmp_path_factory.mktemp("plant") / "plant.zarr"
+    generate_scene("plant", out, copies=1, size=0.15, seed=1)
+    return out
+
+
+@pytest.mark.mpi
+def test_occlusion_culling_keeps_the_image_and_draws_fewer_triangles(tmp_path, plant):
+    on, recs = dmmr(tmp_path, 3, "--path", "walkthrough", scene=plant)
+    assert on["max_abs_diff"] == 0 and on["diff_fraction"] == 0.0  # equal to the reference: no culling, one rank
+    server = [r for r in recs if r["rank"] == 0]
+    reference_triangles = np.mean([r["counters"]["triangles_in_frustum"] for r in server])  # what the reference draws
+    assert on["triangles_per_frame"] < 0.5 * reference_triangles
+    clients = [r for r in recs if r["rank"] > 0]
+    assert sum(r["counters"].get("culled_by_occlusion", 0) for r in clients) > 0
+    assert max(r["counters"].get("queries_issued", 0) for r in clients) > 1
+    for r in clients:  # batched: one wait per frame however many queries (none when all are marked)
+        assert r["counters"].get("query_waits", 0) == (1 if r["counters"].get("queries_issued", 0) else 0)
+
+
+@pytest.mark.mpi
+@pytest.mark.slow
+def test_stage_pipeline_period_is_the_slowest_stage_and_latency_three_frames(tmp_path):
+    delay = "divide:150,visibility:450,render:150"
+    args = ("--stage-delay", delay, "--occlusion", "off")
+    _, piped = dmmr(tmp_path / "on", 2, *args, frames=8, scene="builtin:objects?n=60")
+    _, sync = dmmr(tmp_path / "off", 2, *args, "--stage-pipeline", "off", frames=5, scene="builtin:objects?n=60")
+
+    def server(recs):
+        rs = sorted((r for r in recs if r["rank"] == 0), key=lambda r: r["frame"])
+        return [r["times_ms"]["total"] for r in rs[2:]], [r["counters"]["frames_in_flight"] for r in rs]
+
+    period_p, flight_p = server(piped)
+    period_s, flight_s = server(sync)
+    assert max(flight_p) == 3 and max(flight_s) == 1
+    slowest, total = 450, 750
+    assert np.median(period_s) >= 0.95 * total
+    assert 0.95 * slowest <= np.median(period_p) < np.median(period_s) * 0.85
+
+
+def test_one_rank_in_process_matches_the_reference_and_reports_per_stage():
+    cfg = RenderConfig(width=240, height=180, frames=3, system="dmmr", reference=True, gpu_mb=64, client_cache_mb=32)
+    sys_ = DmmrSystem("builtin:objects?n=200&seed=1", cfg)
+    try:
+        cams = load_path("orbit", *sys_.bounds).cameras(3, 240, 180)
+        frames = {}
+        class _Self:
+            def Get_rank(self):
+                return 0
+
+            def Get_size(self):
+                return 1
+
+            def bcast(self, v, root=0):
+                return v
+
+        records, diffs = sys_.run_path(_Self(), cams, cfg, lambda f, img: frames.__setitem__(f, img))
+        assert sorted(frames) == [0, 1, 2]
+        assert all(d[0] == 0 for _, d in diffs) and len(diffs) == 3
+        client = [r for r in records if r["rank"] == 1]
+        assert len(client) == 3
+        for key in ("visibility", "load", "draw", "readback", "encode", "send"):
+            assert key in client[0]["times_ms"]
+        for key in ("queries_issued", "culled_by_occlusion", "gpu_hits", "ram_hits", "disk_loads", "bytes_uploaded"):
+            assert key in client[0]["counters"]
+        c0 = client[0]["counters"]
+        assert c0["vis_disk_loads"] > 0 and c0["disk_loads"] + c0["ram_hits"] > 0  # GPU 1 read the store first
+        assert client[-1]["counters"]["bytes_uploaded"] < c0["bytes_uploaded"]  # GPU buffers reused along the path
+        records, _ = sys_.run_path(_Self(), [cams[0]] * 3, cfg)  # a static camera
+        c = {r["frame"]: r["counters"] for r in records if r["rank"] == 1}
+        assert c[1]["bytes_uploaded"] == 0 and c[1]["gpu_hits"] == c[1]["objects_drawn"] > 0  # GPU 2: nothing new
+        assert c[1]["vis_bytes_uploaded"] > 0 and c[2]["vis_bytes_uploaded"] == 0  # GPU 1: frame 0's visible set joins the depth pass once
+    finally:
+        sys_.close()
+
+
+def test_bad_dmmr_options_are_clear_errors():
+    with pytest.raises(ConfigError, match="--visible-frames"):
+        RenderConfig(visible_frames=0)
+    with pytest.raises(ConfigError, match="--occluder-lod"):
+        RenderConfig(occluder_lod="fine")
+    p = run_cli("render", SCENE, "--system", "dmmr", "--occlusion", "maybe", check=False)
+    assert p.returncode != 0 and "--occlusion" in p.stderr
+
+
+def test_frame_at_a_time_path_for_the_viewer_matches_the_reference():
+    from massview.parallel.runtime import self_comm
+
+    cfg = RenderConfig(width=240, height=180, system="dmmr", reference=True, gpu_mb=64, client_cache_mb=32, color_by_rank=False)
+    sys_ = DmmrSystem("builtin:objects?n=200&seed=2", cfg)
+    try:
+        comm = self_comm()
+        for f, cam in enumerate(load_path("turn", *sys_.bounds).cameras(3, 240, 180)):
+            res = sys_.render_frame(comm, cfg, cam, f)
+            assert res.tile is not None and res.diff[0] == 0
+            assert res.stats.counters["objects_in_frustum"] > 0
+    finally:
+        sys_.close()
