@@ -68,6 +68,8 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gpu-mb", type=int, default=256, help="terrain: GL block pool per rank, MiB (default 256)")
     p.add_argument("--loading", choices=("async", "complete"), default="async",
                    help="terrain: async = never wait for data, draw coarser meanwhile (default); complete = wait until every block the view needs is loaded")
+    p.add_argument("--pipeline", choices=("on", "off"), default=None,
+                   help="render: on = composite and deliver frame i on a thread while frame i+1 is drawn (same images); off = one frame after the other (default)")
     p.add_argument("--reference", action="store_true", help="also render each frame on one rank and report max_abs_diff and diff_fraction")
     p.add_argument("--out", "-o", type=Path, default=Path("out/render"), help="output folder (default out/render)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary table")
@@ -130,6 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--size", default="1280x1024")
     bc.add_argument("--repeat", type=_positive, default=5, help="timed repetitions per case (default 5)")
     bc.add_argument("--codec", default="blosc2", choices=tuple(CODECS))
+    bc.add_argument("--scene", default="builtin:objects", help="scene or terrain store rendered into the partial images")
     bc.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
     bt = bsub.add_parser("terrain", help="decompositions x ranks (triangles, imbalance, LOD time) and LOD vs a plain mesh")
     bt.add_argument("store")
@@ -156,6 +159,7 @@ def render_config(args) -> RenderConfig:
         width=w, height=h, frames=args.frames, path=args.path, grid=args.grid, wall=args.wall,
         tile_targets=args.tile_targets, reference=args.reference, color_by_rank=args.color_by_rank, fault=args.fault,
         tau=args.tau, cache_mb=args.cache_mb, gpu_mb=args.gpu_mb, loading=args.loading,
+        pipeline=getattr(args, "pipeline", None),
     )
 
 

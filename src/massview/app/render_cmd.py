@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 
 from PIL import Image as PILImage
@@ -17,7 +18,8 @@ from ..core.image import Image
 from ..core.paths import load_path
 from ..core.stats import summarize
 from ..parallel.decompose import parse_decomposition
-from ..systems import display_tiles, open_system, render_frame
+from ..systems import display_tiles, open_system
+from ..systems.frameloop import render_frames
 
 __all__ = ["run_render", "write_png"]
 
@@ -60,9 +62,10 @@ def run_render(comm, scene: str, cfg: RenderConfig, out: Path, quiet: bool = Fal
         progress.start()
     records, diffs = [], []
     stats_file = open(out / "stats.jsonl", "w") if rank == 0 else None
+    t_start = time.perf_counter()
     try:
-        for f in range(cfg.frames):
-            res = render_frame(comm, system, cfg, cameras[f] if rank == 0 else None, f, sink if is_display else None)
+        for res in render_frames(comm, system, cfg, cameras, sink if is_display else None):
+            f = res.stats.frame
             gathered = comm.gather((res.stats.to_json(), res.diff), root=0)
             if rank == 0:
                 for rec, diff in gathered:
@@ -78,6 +81,7 @@ def run_render(comm, scene: str, cfg: RenderConfig, out: Path, quiet: bool = Fal
             progress.stop()
         if stats_file:
             stats_file.close()
+    wall_s = time.perf_counter() - t_start
     if hasattr(system, "close"):
         system.close()
     rss = comm.gather(_peak_rss(), root=0)
@@ -95,7 +99,11 @@ def run_render(comm, scene: str, cfg: RenderConfig, out: Path, quiet: bool = Fal
         codec=cfg.codec,
         renderer=system.renderer,
         peak_rss_mib_per_rank=[round(v / 2**20, 1) for v in rss],
+        pipeline=cfg.pipeline,
+        wall_s=round(wall_s, 3),
+        throughput_fps=round(cfg.frames / wall_s, 3) if wall_s > 0 else None,  # frames delivered per second
     )
+    summary["latency_ms"] = summary.get("mean_frame_ms")  # a frame's draw start to delivery (max over ranks)
     if cfg.reference:
         per_frame = {}
         for f, (mx, nd, npx) in diffs:

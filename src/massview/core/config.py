@@ -47,6 +47,7 @@ class RenderConfig:
     loading: str = "async"  # terrain: "async" (never wait) or "complete" (wait for every needed block)
     egl_device: int | None = None
     fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
+    pipeline: str = "off"  # "on": composite/deliver frame i on a thread while frame i+1 is drawn
 
     def __post_init__(self) -> None:
         if self.frames < 1:
@@ -57,6 +58,8 @@ class RenderConfig:
             raise ConfigError(f"--loading must be async or complete, got {self.loading!r}")
         if self.cache_mb < 1 or self.gpu_mb < 1:
             raise ConfigError("--cache-mb and --gpu-mb must be at least 1")
+        if self.pipeline not in ("on", "off"):
+            raise ConfigError(f"--pipeline must be on or off, got {self.pipeline!r}")
         if not self.tau > 0:
             raise ConfigError(f"--tau (pixel tolerance) must be positive, got {self.tau}")
 
