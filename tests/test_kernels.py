@@ -76,6 +76,16 @@ def test_paste_into_a_tile_equals_paste_of_the_decoded_part(seed):
     assert same(new, old)
 
 
+@pytest.mark.parametrize("codec", sorted(CODECS))
+def test_paste_with_fill_writes_every_pixel_like_a_decoded_paste(codec):
+    rng = np.random.default_rng(5)
+    tile = Viewport(4, 9, 53, 31)
+    img = contract_image(rng, tile, 0.4)
+    out = Image(rng.integers(0, 256, (31, 53, 4), dtype=np.uint8), rng.random((31, 53)).astype(np.float32), tile)
+    paste_into(out, ref.encode_image(img, codec), fill=True)
+    assert same(out, ref.decode_image(ref.encode_image(img, codec)))
+
+
 def test_corrupt_runs_are_refused_not_written_out_of_bounds():
     img = contract_image(np.random.default_rng(3), Viewport(0, 0, 16, 8), 0.5)
     msg = bytearray(encode_image(img, "none"))

@@ -20,6 +20,7 @@ from ..core.errors import ConfigError, MassviewError
 from ..core.paths import BUILTIN_PATHS
 from ..parallel.composite import COMPOSITORS
 from ..parallel.codec import CODECS
+from ..parallel.runtime import reuse_freed_memory
 
 __all__ = ["main", "build_parser"]
 
@@ -273,6 +274,7 @@ def _report_peak_rss() -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     _report_peak_rss()
+    reuse_freed_memory()  # per-frame images reuse freed pages (issue 20)
     args = build_parser().parse_args(argv)
     try:
         if args.command == "render":

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..core.camera import Viewport
 from ..core.errors import ConfigError, ParallelError
-from ..core.image import Image, blank_image
+from ..core.image import BACKGROUND_RGBA, Image, blank_image
 from . import kernels
 
 __all__ = ["CODECS", "encode_image", "encode_region", "decode_image", "decode_runs", "merge_into", "paste_into"]
@@ -29,6 +29,7 @@ _HEADER = struct.Struct("<4s4i3I")
 _MAGIC = b"MVI1"
 CODECS = {"none": 0, "lz4": 1, "blosc2": 2}
 _NAMES = {v: k for k, v in CODECS.items()}
+_BG32 = np.array(BACKGROUND_RGBA, np.uint8).view(np.uint32)[0]
 
 
 def _blosc2():
@@ -123,13 +124,16 @@ def merge_into(acc: Image, data, front: bool) -> None:
     kernels.merge_runs(runs, color, depth, acc.color.view(np.uint32)[..., 0], acc.depth, front)
 
 
-def paste_into(out: Image, data) -> None:
-    """Write the message's active pixels into ``out`` (its viewport must lie inside ``out``'s;
-    the background pixels of ``out`` there are expected to be background already)."""
+def paste_into(out: Image, data, fill: bool = False) -> None:
+    """Write the message's pixels into ``out`` (its viewport must lie inside ``out``'s): the
+    active ones, and with ``fill`` the background ones too (else those are left as they are)."""
     vp, runs, color, depth = decode_runs(data)
     if vp.empty:
         return
     if vp.intersect(out.viewport) != vp:
         raise ParallelError(f"sub-image {vp} does not lie inside the tile {out.viewport}")
     d, c, _ = _views(out, vp)
+    if fill:
+        d.fill(np.float32(1.0))
+        c.fill(_BG32)
     kernels.paste_runs(runs, color, depth, c, d)

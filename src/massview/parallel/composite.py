@@ -129,6 +129,20 @@ def _radix_rounds(comm, img: Image, members: list[int], factors: list[int], stat
     return current
 
 
+def _tile_buffer(vp: Viewport, blank: bool) -> Image:
+    if blank:
+        return blank_image(vp)
+    return Image(np.empty((vp.h, vp.w, 4), np.uint8), np.empty((vp.h, vp.w), np.float32), vp)
+
+
+def _copy_region(out: Image, src: Image, vp: Viewport) -> None:
+    """Copy the pixels of ``vp`` from ``src`` into ``out`` (both must contain ``vp``)."""
+    def sl(img):
+        return (slice(vp.y - img.viewport.y, vp.y - img.viewport.y + vp.h), slice(vp.x - img.viewport.x, vp.x - img.viewport.x + vp.w))
+    np.copyto(out.color[sl(out)], src.color[sl(src)])
+    np.copyto(out.depth[sl(out)], src.depth[sl(src)])
+
+
 def _count_touched(stats, nbytes: int) -> None:
     """Count the bytes compositing must read and write at the least — pixels 8 B each: the bands
     sent and the own band read, the result written; the messages written and read — into
@@ -193,11 +207,12 @@ def deliver(comm, piece: Image, tiles: list[tuple[int, Viewport]], stats: FrameS
     if my_tile is None:
         return None
     with stats.stage("composite"):
-        out = blank_image(my_tile)
+        covered = sum(regions[r].intersect(my_tile).area for r in sources) == my_tile.area
+        out = _tile_buffer(my_tile, blank=not covered)  # regions partition the frame: each pixel written once
         if local is not None:
-            out.paste(piece.crop(local))
+            _copy_region(out, piece, local)
         for s in sources:
             if s != me:
-                paste_into(out, got[s])
+                paste_into(out, got[s], fill=covered)
     _count_touched(stats, out.nbytes)
     return out

@@ -54,66 +54,94 @@ def count_runs(depth):
 @njit(cache=True, nogil=True)
 def fill_runs(depth, color, runs, out_color, out_depth):
     """Write the runs and the active pixels' color (uint32) and depth of a 2-D view into the
-    preallocated ``runs``/``out_color``/``out_depth`` (sized by :func:`count_runs`)."""
+    preallocated ``runs``/``out_color``/``out_depth`` (sized by :func:`count_runs`). Each run
+    is found by a tight scan that copies its active pixels as it goes."""
     h, w = depth.shape
-    r, k, length, prev = 0, 0, 0, False
+    one = np.float32(1.0)
+    r, k, length, active = 0, 0, 0, False
     for y in range(h):
-        for x in range(w):
-            d = depth[y, x]
-            a = d != np.float32(1.0)
-            if a != prev:
+        x = 0
+        while x < w:
+            x0 = x
+            if active:
+                while x < w and depth[y, x] != one:
+                    out_depth[k] = depth[y, x]
+                    out_color[k] = color[y, x]
+                    k += 1
+                    x += 1
+            else:
+                while x < w and depth[y, x] == one:
+                    x += 1
+            length += x - x0
+            if x < w:  # the run ends inside this row
                 runs[r] = length
                 r += 1
                 length = 0
-                prev = a
-            length += 1
-            if a:
-                out_color[k] = color[y, x]
-                out_depth[k] = d
-                k += 1
+                active = not active
     runs[r] = length
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _merge_segment(d_in, c_in, k, acc_depth, acc_color, y, x, n, front):
+    if front:  # the part is from a lower rank: it wins unless the accumulator is nearer
+        for i in range(n):
+            d, a = d_in[k + i], acc_depth[y, x + i]
+            if not (a < d):
+                acc_depth[y, x + i] = d
+                acc_color[y, x + i] = c_in[k + i]
+    else:
+        for i in range(n):
+            if d_in[k + i] < acc_depth[y, x + i]:
+                acc_depth[y, x + i] = d_in[k + i]
+                acc_color[y, x + i] = c_in[k + i]
 
 
 @njit(cache=True, nogil=True)
 def merge_runs(runs, c_in, d_in, acc_color, acc_depth, front):
-    """Depth-combine a run-coded part into the 2-D ``acc_*`` views in place. ``front``: the
-    part comes from a lower rank (it wins ties)."""
+    """Depth-combine a run-coded part into the 2-D ``acc_*`` views in place, one row segment
+    of an active run at a time. ``front``: the part comes from a lower rank (it wins ties)."""
     w = acc_depth.shape[1]
-    p, k = 0, 0
+    y, x, k = 0, 0, 0  # (y, x): where the run starts; no division per run
     for r in range(runs.size):
-        n = np.int64(runs[r])
+        rem = np.int64(runs[r])
         if r & 1:
-            y, x = p // w, p % w
-            for _ in range(n):
-                d = d_in[k]
-                a = acc_depth[y, x]
-                if (not (a < d)) if front else (d < a):
-                    acc_depth[y, x] = d
-                    acc_color[y, x] = c_in[k]
-                k += 1
-                x += 1
+            while rem:
+                seg = min(rem, w - x)
+                _merge_segment(d_in, c_in, k, acc_depth, acc_color, y, x, seg, front)
+                k += seg
+                rem -= seg
+                x += seg
                 if x == w:
-                    x = 0
-                    y += 1
-        p += n
+                    x, y = 0, y + 1
+        else:
+            x += rem
+            while x >= w and w:
+                x -= w
+                y += 1
 
 
 @njit(cache=True, nogil=True)
 def paste_runs(runs, c_in, d_in, out_color, out_depth):
-    """Copy a run-coded part's active pixels into the 2-D ``out_*`` views (background pixels
-    are left as they are: the destination starts as background)."""
+    """Copy a run-coded part's active pixels into the 2-D ``out_*`` views, one row segment at
+    a time; background pixels are left as they are (clear them first: a vectorized fill beats
+    interleaving the short background runs here)."""
     w = out_depth.shape[1]
-    p, k = 0, 0
+    y, x, k = 0, 0, 0  # (y, x): where the run starts; no division per run
     for r in range(runs.size):
-        n = np.int64(runs[r])
+        rem = np.int64(runs[r])
         if r & 1:
-            y, x = p // w, p % w
-            for _ in range(n):
-                out_depth[y, x] = d_in[k]
-                out_color[y, x] = c_in[k]
-                k += 1
-                x += 1
+            while rem:
+                seg = min(rem, w - x)
+                for i in range(seg):
+                    out_depth[y, x + i] = d_in[k + i]
+                    out_color[y, x + i] = c_in[k + i]
+                k += seg
+                rem -= seg
+                x += seg
                 if x == w:
-                    x = 0
-                    y += 1
-        p += n
+                    x, y = 0, y + 1
+        else:
+            x += rem
+            while x >= w and w:
+                x -= w
+                y += 1
