@@ -8,7 +8,7 @@ the floor measured in the same job, and the CPU time of the slowest rank (its th
 kernels cost apart from waiting for a core or a peer on a shared machine). The floor of a rank is
 
     bytes it receives ÷ point-to-point bandwidth (ping-pong between ranks 0 and 1)
-  + bytes it must read and write (``bytes_touched``: pixels 8 B each of the bands it sends and
+  + bytes it must read and write (``touched_*`` counters: pixels 8 B each of the bands it sends and
     keeps and of the result, plus its messages) ÷ memory bandwidth (every rank copying at once)
 
 and a case's floor is the largest over its ranks. Nothing here asserts a time.
@@ -60,7 +60,7 @@ def worker(args) -> int:
             if dt < best:
                 best, best_cpu, best_stats = dt, cpu, st
         sent = comm.allreduce(best_stats.bytes_sent)
-        floor = max_over_ranks(comm, best_stats.bytes_recv / bw + best_stats.counters.get("bytes_touched", 0) / mem_bw)
+        floor = max_over_ranks(comm, best_stats.bytes_recv / bw + (best_stats.counters.get("touched_encode", 0) + best_stats.counters.get("touched_composite", 0)) / mem_bw)
         stages = comm.gather(best_stats.times_ms, root=0)
         if rank == 0:
             mean_stage = {k: float(np.mean([s.get(k, 0.0) for s in stages])) for k in ("encode", "transfer", "composite")}

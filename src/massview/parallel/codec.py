@@ -71,14 +71,11 @@ def _views(img: Image, vp: Viewport) -> tuple[np.ndarray, np.ndarray, Viewport]:
 
 def encode_region(img: Image, vp: Viewport, codec: str = "blosc2") -> bytes:
     """Encode the part of ``img`` inside ``vp`` (destination pixels) without cropping it first:
-    one counting pass, then one pass writing runs, colors and depths into the wire buffer."""
+    runs, colors and depths are written into the wire buffer in place."""
     if codec not in CODECS:
         raise ConfigError(f"unknown image codec {codec!r}; use one of {', '.join(CODECS)}")
     depth, color, v = _views(img, vp)
-    nruns, nact = kernels.count_runs(depth)
-    raw = np.empty(nruns * 4 + nact * 8, np.uint8)
-    a, b = nruns * 4, nruns * 4 + nact * 4
-    kernels.fill_runs(depth, color, raw[:a].view(np.uint32), raw[a:b].view(np.uint32), raw[b:].view(np.float32))
+    raw, nruns, nact = kernels.pack_runs(depth, color)
     head = _HEADER.pack(_MAGIC, v.x, v.y, v.w, v.h, CODECS[codec], nruns, nact)
     return head + (raw.tobytes() if codec == "none" else _compress(codec, raw))
 

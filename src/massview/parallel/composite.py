@@ -124,7 +124,8 @@ def _radix_rounds(comm, img: Image, members: list[int], factors: list[int], stat
         with stats.stage("composite"):
             current = _owned(_band(current, bands[digit]), owned or rnd > 0)
             _merge_round(current, [got.get(g) for g in group], digit)
-        _count_touched(stats, (k + 1) * current.nbytes + sum(len(m) for m in sends.values()) + sum(m.size for m in got.values()))
+        _count_touched(stats, "encode", (k - 1) * current.nbytes + sum(len(m) for m in sends.values()))
+        _count_touched(stats, "composite", 2 * current.nbytes + sum(m.size for m in got.values()))
         stride *= k
     return current
 
@@ -143,11 +144,12 @@ def _copy_region(out: Image, src: Image, vp: Viewport) -> None:
     np.copyto(out.depth[sl(out)], src.depth[sl(src)])
 
 
-def _count_touched(stats, nbytes: int) -> None:
-    """Count the bytes compositing must read and write at the least — pixels 8 B each: the bands
-    sent and the own band read, the result written; the messages written and read — into
-    ``stats.counters["bytes_touched"]``: the memory term of ``massview bench composite``'s floor."""
-    stats.count("bytes_touched", nbytes)
+def _count_touched(stats, stage: str, nbytes: int) -> None:
+    """Count the bytes a stage must read and write at the least into ``touched_<stage>``: the
+    memory term of the floors of ``massview bench composite`` and ``bench frame``. Pixels are
+    8 B each. encode: the pixels sent are read, the messages written; composite: the own
+    band read and the result written, the messages read."""
+    stats.count(f"touched_{stage}", nbytes)
 
 
 def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: FrameStats | None = None, codec: str = "blosc2") -> Image:
@@ -171,7 +173,7 @@ def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: 
         if me % 2:
             with stats.stage("encode"):
                 msg = {me - 1: encode_image(img, codec)}
-            _count_touched(stats, img.nbytes + len(msg[me - 1]))
+            _count_touched(stats, "encode", img.nbytes + len(msg[me - 1]))
             with stats.stage("transfer"):
                 exchange(comm, msg, [], stats, 100)
             return Image(img.color[:0, :0], img.depth[:0, :0], Viewport(0, 0, 0, 0))
@@ -180,7 +182,7 @@ def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: 
         with stats.stage("composite"):
             img = _owned(img, False)
             merge_into(img, got[me + 1], front=False)
-        _count_touched(stats, 2 * img.nbytes + got[me + 1].size)
+        _count_touched(stats, "composite", 2 * img.nbytes + got[me + 1].size)
     members = [r for r in range(n) if r >= 2 * extra or r % 2 == 0]
     return _radix_rounds(comm, img, members, [2] * (p.bit_length() - 1), stats, codec, 0, owned=me < 2 * extra)
 
@@ -203,7 +205,7 @@ def deliver(comm, piece: Image, tiles: list[tuple[int, Viewport]], stats: FrameS
     local = sends.pop(me, None)
     with stats.stage("transfer"):
         got = exchange(comm, sends, [s for s in sources if s != me], stats, 200)
-    _count_touched(stats, piece.nbytes + sum(len(m) for m in sends.values()) + sum(m.size for m in got.values()))
+    _count_touched(stats, "encode", piece.nbytes + sum(len(m) for m in sends.values()))
     if my_tile is None:
         return None
     with stats.stage("composite"):
@@ -214,5 +216,5 @@ def deliver(comm, piece: Image, tiles: list[tuple[int, Viewport]], stats: FrameS
         for s in sources:
             if s != me:
                 paste_into(out, got[s], fill=covered)
-    _count_touched(stats, out.nbytes)
+    _count_touched(stats, "composite", out.nbytes + sum(m.size for m in got.values()))
     return out

@@ -1,147 +1,82 @@
-"""Pixel kernels of the sub-image codec and depth compositing, compiled with numba.
+"""Pixel kernels of the sub-image codec and depth compositing: vectorized numpy, in place.
 
-Each kernel is one pass over its pixels with no temporaries: it reads the source arrays and
-writes straight into a preallocated destination (the wire buffer when encoding, the
-accumulating band when combining, the display tile when pasting). Images are handled as 2-D
-views — depth ``(h, w) float32`` and color as ``(h, w) uint32`` (one RGBA8 pixel per word) —
-with any row stride, so row bands and tile crops are never copied first.
+Images are handled as 2-D views — depth ``(h, w) float32`` and color ``(h, w) uint32`` (one
+RGBA8 pixel per word) — so row bands and tile crops are never copied first. Every kernel
+writes straight into a preallocated destination: the wire buffer when packing (runs, colors
+and depths land in their final places with ``np.compress(out=)``), the accumulating band when
+merging, the display tile when pasting. The only temporaries are one boolean mask per image
+(1 B a pixel) and the gathered active pixels of a received part.
 
 A received sub-image is its run list (``uint32``, alternating background/active starting with
 background, over the row-major pixels of its viewport; see :mod:`.codec`) and the color and
-depth of its active pixels only; the kernels walk the active runs directly. The combine rule is
-:func:`.composite.combine`'s, bit for bit: a part behind the accumulator (a higher rank) wins
-where ``d < acc``; a part in front (a lower rank) wins unless ``acc < d``. Background pixels
-(depth exactly 1.0, background color, the :class:`~massview.core.image.Image` contract) are
-skipped: against any depth in [0, 1] they change nothing.
+depth of its active pixels only; the kernels touch the accumulator at those pixels only. The
+combine rule is :func:`.composite.combine`'s, bit for bit: a part behind the accumulator (a
+higher rank) wins where ``d < acc``; a part in front (a lower rank) wins unless ``acc < d``.
+Background pixels of a part (depth exactly 1.0 and the background color, the
+:class:`~massview.core.image.Image` contract) are skipped: against depths in [0, 1] they
+change nothing.
 
-Why numba (``massview bench kernels`` is the measurement, figures in the README): the
-vectorized in-place numpy version of these loops needs index arrays and boolean masks the
-size of the image, and was 3–8× slower on 1280×1024 frames here; numexpr evaluates
-element-wise expressions only (no runs, no gather/scatter). numba costs ~0.2 s of import and,
-with ``cache=True``, ~0.1 s to load the compiled kernels on later runs (the first run on a
-machine compiles them once, a few seconds, into ``__pycache__`` or ``NUMBA_CACHE_DIR``).
-Kernels release the GIL (``nogil``) so a communication thread can run beside them.
+Why numpy (``scripts/compare_kernels.py`` is the measurement, figures in the README): the
+same loops compiled with numba (``scripts/numba_kernels.py``, ``cache=True``) save 0.1–0.6 ms
+per band at 1280×1024 but cost 0.5–1.8 s per rank per run to import numba and load the cached
+kernels (a first compile on a machine adds seconds) — more than they save in any run shorter
+than a few thousand frames. numexpr evaluates element-wise expressions only (no runs, no
+gather/scatter); on a dense full-band combine it halves numpy's ``where`` but the run-based
+kernels here beat both. The byte codecs run on one thread per rank (see :mod:`.codec`).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-__all__ = ["count_runs", "fill_runs", "merge_runs", "paste_runs"]
+__all__ = ["pack_runs", "active_mask", "merge_runs", "paste_runs"]
 
-
-@njit(cache=True, nogil=True)
-def count_runs(depth):
-    """(number of runs, number of active pixels) of a 2-D float32 depth view. Branch-free
-    sums over each row, so that the loop vectorizes."""
-    h, w = depth.shape
-    one = np.float32(1.0)
-    changes, nact, prev = 0, 0, False
-    for y in range(h):
-        row = depth[y]
-        if w:
-            changes += (row[0] != one) != prev
-        for x in range(1, w):
-            changes += (row[x] != one) != (row[x - 1] != one)
-        for x in range(w):
-            nact += row[x] != one
-        if w:
-            prev = row[w - 1] != one
-    return changes + 1, nact
+_ONE = np.float32(1.0)
 
 
-@njit(cache=True, nogil=True)
-def fill_runs(depth, color, runs, out_color, out_depth):
-    """Write the runs and the active pixels' color (uint32) and depth of a 2-D view into the
-    preallocated ``runs``/``out_color``/``out_depth`` (sized by :func:`count_runs`). Each run
-    is found by a tight scan that copies its active pixels as it goes."""
-    h, w = depth.shape
-    one = np.float32(1.0)
-    r, k, length, active = 0, 0, 0, False
-    for y in range(h):
-        x = 0
-        while x < w:
-            x0 = x
-            if active:
-                while x < w and depth[y, x] != one:
-                    out_depth[k] = depth[y, x]
-                    out_color[k] = color[y, x]
-                    k += 1
-                    x += 1
-            else:
-                while x < w and depth[y, x] == one:
-                    x += 1
-            length += x - x0
-            if x < w:  # the run ends inside this row
-                runs[r] = length
-                r += 1
-                length = 0
-                active = not active
-    runs[r] = length
+def pack_runs(depth: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """The body of a wire message for a 2-D view: ``runs uint32 | color uint32[active] |
+    depth float32[active]`` in one new uint8 buffer; returns (buffer, run count, active count)."""
+    active = depth != _ONE
+    flat = active.reshape(-1)
+    nact = int(np.count_nonzero(flat))
+    edges = np.flatnonzero(flat[1:] != flat[:-1]) + 1
+    lead = int(flat.size > 0 and bool(flat[0]))  # an empty background run first
+    nruns = edges.size + 1 + lead
+    raw = np.empty(nruns * 4 + nact * 8, np.uint8)
+    bounds = np.concatenate(([0] * (1 + lead), edges, [flat.size]))
+    np.subtract(bounds[1:], bounds[:-1], out=raw[: nruns * 4].view(np.uint32), casting="unsafe")
+    a, b = nruns * 4, nruns * 4 + nact * 4
+    np.compress(flat, color.reshape(-1), out=raw[a:b].view(np.uint32))
+    np.compress(flat, depth.reshape(-1), out=raw[b:].view(np.float32))
+    return raw, nruns, nact
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _merge_segment(d_in, c_in, k, acc_depth, acc_color, y, x, n, front):
-    if front:  # the part is from a lower rank: it wins unless the accumulator is nearer
-        for i in range(n):
-            d, a = d_in[k + i], acc_depth[y, x + i]
-            if not (a < d):
-                acc_depth[y, x + i] = d
-                acc_color[y, x + i] = c_in[k + i]
-    else:
-        for i in range(n):
-            if d_in[k + i] < acc_depth[y, x + i]:
-                acc_depth[y, x + i] = d_in[k + i]
-                acc_color[y, x + i] = c_in[k + i]
+def active_mask(runs: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The ``(h, w)`` boolean mask of the active pixels a run list describes."""
+    flags = np.zeros(runs.size, bool)
+    flags[1::2] = True
+    return np.repeat(flags, runs).reshape(shape)
 
 
-@njit(cache=True, nogil=True)
-def merge_runs(runs, c_in, d_in, acc_color, acc_depth, front):
-    """Depth-combine a run-coded part into the 2-D ``acc_*`` views in place, one row segment
-    of an active run at a time. ``front``: the part comes from a lower rank (it wins ties)."""
-    w = acc_depth.shape[1]
-    y, x, k = 0, 0, 0  # (y, x): where the run starts; no division per run
-    for r in range(runs.size):
-        rem = np.int64(runs[r])
-        if r & 1:
-            while rem:
-                seg = min(rem, w - x)
-                _merge_segment(d_in, c_in, k, acc_depth, acc_color, y, x, seg, front)
-                k += seg
-                rem -= seg
-                x += seg
-                if x == w:
-                    x, y = 0, y + 1
-        else:
-            x += rem
-            while x >= w and w:
-                x -= w
-                y += 1
+def merge_runs(runs, c_in, d_in, acc_color, acc_depth, front: bool) -> None:
+    """Depth-combine a run-coded part into the 2-D ``acc_*`` views in place, at its active
+    pixels only. ``front``: the part comes from a lower rank (it wins ties)."""
+    if not d_in.size:
+        return
+    mask = active_mask(runs, acc_depth.shape)
+    depth, color = acc_depth[mask], acc_color[mask]
+    take = ~(depth < d_in) if front else d_in < depth
+    np.copyto(depth, d_in, where=take)
+    np.copyto(color, c_in, where=take)
+    acc_depth[mask] = depth
+    acc_color[mask] = color
 
 
-@njit(cache=True, nogil=True)
-def paste_runs(runs, c_in, d_in, out_color, out_depth):
-    """Copy a run-coded part's active pixels into the 2-D ``out_*`` views, one row segment at
-    a time; background pixels are left as they are (clear them first: a vectorized fill beats
-    interleaving the short background runs here)."""
-    w = out_depth.shape[1]
-    y, x, k = 0, 0, 0  # (y, x): where the run starts; no division per run
-    for r in range(runs.size):
-        rem = np.int64(runs[r])
-        if r & 1:
-            while rem:
-                seg = min(rem, w - x)
-                for i in range(seg):
-                    out_depth[y, x + i] = d_in[k + i]
-                    out_color[y, x + i] = c_in[k + i]
-                k += seg
-                rem -= seg
-                x += seg
-                if x == w:
-                    x, y = 0, y + 1
-        else:
-            x += rem
-            while x >= w and w:
-                x -= w
-                y += 1
+def paste_runs(runs, c_in, d_in, out_color, out_depth) -> None:
+    """Write a run-coded part's active pixels into the 2-D ``out_*`` views; background
+    pixels are left as they are."""
+    if d_in.size:
+        mask = active_mask(runs, out_depth.shape)
+        out_depth[mask] = d_in
+        out_color[mask] = c_in
