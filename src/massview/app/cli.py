@@ -143,9 +143,10 @@ def build_parser() -> argparse.ArgumentParser:
     bt.add_argument("--tau", type=float, default=1.0)
     bt.add_argument("--max-plain", type=int, default=40_000_000, help="largest plain mesh to draw as the baseline (triangles)")
     bt.add_argument("--skip-parallel", action="store_true", help="only the one-rank LOD vs plain-mesh comparison")
-    from .bench import frame as bench_frame  # (registered in app/bench's BENCHES once that lands)
+    from .bench import frame as bench_frame, paraview as bench_paraview  # (to BENCHES once app/bench lands)
 
     bench_frame.add_arguments(bsub.add_parser("frame", help="the whole terrain frame per stage vs floors, 1-4 ranks, sync vs pipelined"))
+    bench_paraview.add_arguments(bsub.add_parser("paraview", help="massview beside ParaView pvbatch + IceT (when pvbatch is installed)"))
     bi = bsub.add_parser("ingest", help="prepare a synthetic DEM: MB/s, compression ratio, peak RSS")
     bi.add_argument("--size", type=_positive, default=16385, help="samples per side (default 16385: 1 GiB float32)")
     bi.add_argument("--seed", type=int, default=1)
@@ -242,10 +243,10 @@ def cmd_report(args) -> int:
 
 
 def cmd_bench(args, argv) -> int:
-    if args.bench == "frame":
-        from .bench import frame
+    if args.bench in ("frame", "paraview"):
+        from .bench import frame, paraview
 
-        return frame.run(args)
+        return (frame if args.bench == "frame" else paraview).run(args)
     if args.bench == "terrain":
         from . import bench_terrain
 

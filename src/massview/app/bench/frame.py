@@ -124,7 +124,7 @@ def _floors(st: FrameStats, pixels: int, bw: float, mem: float, rate: float) -> 
 def _loop(comm, system, cfg, cams, pixels, bw, mem, rate) -> dict:
     from ...systems.frameloop import render_frames
 
-    stages, floors, totals = [], [], []
+    stages, floors, totals, tris = [], [], [], []
     comm.Barrier()
     t0 = time.perf_counter()
     for res in render_frames(comm, system, cfg, cams):
@@ -132,9 +132,10 @@ def _loop(comm, system, cfg, cams, pixels, bw, mem, rate) -> dict:
         stages.append([max_over_ranks(comm, st.times_ms.get(s, 0.0) / 1e3) for s in STAGES])
         floors.append([max_over_ranks(comm, v) for v in _floors(st, pixels, bw, mem, rate).values()])
         totals.append(max_over_ranks(comm, st.times_ms["total"] / 1e3))
+        tris.append(comm.allreduce(st.triangles))
     wall = max_over_ranks(comm, time.perf_counter() - t0)
     return {"stage_ms": (np.mean(stages, 0) * 1e3).tolist(), "floor_ms": (np.mean(floors, 0) * 1e3).tolist(),
-            "latency_ms": float(np.mean(totals) * 1e3), "throughput_fps": cfg.frames / wall}
+            "latency_ms": float(np.mean(totals) * 1e3), "throughput_fps": cfg.frames / wall, "triangles": float(np.mean(tris))}
 
 
 def worker(args) -> int:
@@ -148,7 +149,7 @@ def worker(args) -> int:
                        compositor=args.compositor, loading="complete")
     system = open_system(args.store, cfg)
     cams = load_path("flyover", *system.bounds).cameras(args.frames, w, h)
-    for f in (0, args.frames // 2, args.frames - 1):  # warm up: loads, GL and kernel caches
+    for f in range(args.frames):  # warm up along the whole path: loads, GL buffers, caches
         render_frame(comm, system, cfg, cams[f] if rank == 0 else None, -1)
     rate = _plain_rate(system, cams[0])
     bw, mem = measure_bandwidth(comm), measure_memory_bandwidth(comm)
