@@ -138,7 +138,12 @@ def test_kpatch_balance_on_turn(tmp_path, terrain_store):
         run_cli("render", terrain_store, "--ranks", 4, "--decomposition", f"sort-last:{mode}", "--path", "turn",
                 "--frames", 4, "--size", "320x240", "--out", d, "-q")
         out[mode] = summary(d)["imbalance"]
-    assert out["kpatch"] <= 1.02
+        if mode == "kpatch":  # equal shares of the front: ranks differ by at most one patch (256 triangles) per frame
+            recs = [json.loads(x) for x in (d / "stats.jsonl").read_text().splitlines()]
+            for f in {r["frame"] for r in recs}:
+                tri = [r["triangles"] for r in recs if r["frame"] == f]
+                assert max(tri) - min(tri) <= 256
+    assert out["kpatch"] <= 1.05  # complete loading (the default): small fronts at 320x240, one patch is ~3 %
     assert out["linear"] > out["kpatch"] and out["quadtree"] > out["kpatch"]
 
 
@@ -147,7 +152,7 @@ def test_small_budgets_never_wait_and_stay_correct(tmp_path, terrain_store):
     """Async loading with budgets far below the data: frames complete, coarser where data is
     missing, and every rank still draws the same cut (reference matches)."""
     run_cli("render", terrain_store, "--ranks", 2, "--decomposition", "sort-first:vertical", "--path", "zoom",
-            "--frames", 6, "--size", "320x240", "--cache-mb", 4, "--gpu-mb", 4, "--reference", "--out", tmp_path, "-q")
+            "--frames", 6, "--size", "320x240", "--cache-mb", 4, "--gpu-mb", 4, "--loading", "async", "--reference", "--out", tmp_path, "-q")
     s = summary(tmp_path)
     assert s["max_abs_diff"] == 0 and s["frames"] == 6
     recs = [json.loads(x) for x in (tmp_path / "stats.jsonl").read_text().splitlines()]

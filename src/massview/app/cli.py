@@ -1,11 +1,14 @@
-"""The ``massview`` command line.
+"""The ``massview`` command line: a thin shell over :mod:`massview.api`.
 
-Commands: ``render`` (a camera path on N ranks), ``report`` (table and plot of a run),
-``bench composite`` (compositing cost against the measured network floor).
+Commands: ``render`` (a camera path on N ranks, :func:`massview.render`), ``view`` (live, in
+the browser), ``report`` (table and plot of a run), ``demo``, ``generate``/``prepare``/
+``info``/``verify`` (terrain data) and ``bench NAME`` (built from the registry
+:data:`massview.app.bench.BENCHES`).
 
-Commands that take ``--ranks N`` relaunch themselves under the installed ``mpiexec`` when they
-are not already inside an MPI job; under an external ``mpiexec -n N massview ...`` they use all
-the ranks they were given. Errors print as one message, no traceback, and exit non-zero.
+``render --ranks N`` starts a real MPI job through the API (``mpiexec -n N python -m massview
+__job DIR``, see :mod:`massview.api`); ``view --ranks N`` relaunches itself under ``mpiexec``.
+Under an external ``mpiexec -n N massview ...`` both use all the ranks they were given. Errors
+print as one message, no traceback, and exit non-zero.
 """
 
 from __future__ import annotations
@@ -67,8 +70,9 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tau", type=float, default=1.0, help="terrain: pixel tolerance of the LOD (default 1)")
     p.add_argument("--cache-mb", type=int, default=256, help="terrain: RAM block cache per rank, MiB (default 256)")
     p.add_argument("--gpu-mb", type=int, default=256, help="terrain: GL block pool per rank, MiB (default 256)")
-    p.add_argument("--loading", choices=("async", "complete"), default="async",
-                   help="terrain: async = never wait for data, draw coarser meanwhile (default); complete = wait until every block the view needs is loaded")
+    p.add_argument("--loading", choices=("async", "complete"), default="complete",
+                   help="terrain: complete = wait until every block the view needs is loaded (default for render: final-quality frames); "
+                        "async = never wait for data, draw coarser meanwhile (default for view)")
     p.add_argument("--pipeline", choices=("on", "off"), default=None,
                    help="render: on = composite and deliver frame i on a thread while frame i+1 is drawn (same images); off = one frame after the other (default)")
     p.add_argument("--reference", action="store_true", help="also render each frame on one rank and report max_abs_diff and diff_fraction")
@@ -86,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_render_args(v)
     v.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0 picks a free one)")
     v.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
-    v.set_defaults(size="960x540", out=None)
+    v.set_defaults(size="960x540", out=None, loading="async")
     rep = sub.add_parser("report", help="summary table and report.png of a render folder")
     rep.add_argument("dir", type=Path)
     dm = sub.add_parser("demo", help="the main job on built-in data: terrain flyover on local ranks, video and report")
@@ -116,6 +120,10 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--array", default=None, help="array name inside an .npz")
     pt.add_argument("--shape", default=None, help="ROWSxCOLS of a raw binary input")
     pt.add_argument("--dtype", default=None, help="dtype of a raw binary input, e.g. float32, <i2, >u2")
+    pt.add_argument("--spacing", default=None, metavar="DX[,DY]",
+                    help="sample spacing for inputs without a georeference (.npy, .npz, raw, plain TIFF), in the CRS's units "
+                         "(metres without --crs); default: FILE.json beside the input, else 1 m (with a warning)")
+    pt.add_argument("--crs", default=None, help="CRS of an input without one, e.g. EPSG:32632 (anything rasterio understands)")
     pt.add_argument("--color", default=None, help="orthophoto (RGB GeoTIFF covering the DEM) for the colour pyramid")
     pt.add_argument("--no-color", action="store_true", help="no colour pyramid")
     pt.add_argument("--overwrite", action="store_true", help="rebuild a complete store")
@@ -128,32 +136,10 @@ def build_parser() -> argparse.ArgumentParser:
     ver.add_argument("--quiet", "-q", action="store_true")
     b = sub.add_parser("bench", help="benchmarks (figures as ratios against a baseline measured in the same run)")
     bsub = b.add_subparsers(dest="bench", required=True, metavar="WHAT")
-    bc = bsub.add_parser("composite", help="compositing cost per algorithm and rank count vs the network floor")
-    bc.add_argument("--ranks", default="2,3,4", help="rank counts, comma-separated (default 2,3,4)")
-    bc.add_argument("--size", default="1280x1024")
-    bc.add_argument("--repeat", type=_positive, default=5, help="timed repetitions per case (default 5)")
-    bc.add_argument("--codec", default="blosc2", choices=tuple(CODECS))
-    bc.add_argument("--scene", default="builtin:objects", help="scene or terrain store rendered into the partial images")
-    bc.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
-    bt = bsub.add_parser("terrain", help="decompositions x ranks (triangles, imbalance, LOD time) and LOD vs a plain mesh")
-    bt.add_argument("store")
-    bt.add_argument("--ranks", default="1,2,3,4")
-    bt.add_argument("--size", default="1280x1024")
-    bt.add_argument("--frames", type=_positive, default=6)
-    bt.add_argument("--tau", type=float, default=1.0)
-    bt.add_argument("--max-plain", type=int, default=40_000_000, help="largest plain mesh to draw as the baseline (triangles)")
-    bt.add_argument("--skip-parallel", action="store_true", help="only the one-rank LOD vs plain-mesh comparison")
-    from .bench import frame as bench_frame, paraview as bench_paraview  # (to BENCHES once app/bench lands)
+    from .bench import BENCHES
 
-    bench_frame.add_arguments(bsub.add_parser("frame", help="the whole terrain frame per stage vs floors, 1-4 ranks, sync vs pipelined"))
-    bench_paraview.add_arguments(bsub.add_parser("paraview", help="massview beside ParaView pvbatch + IceT (when pvbatch is installed)"))
-    bi = bsub.add_parser("ingest", help="prepare a synthetic DEM: MB/s, compression ratio, peak RSS")
-    bi.add_argument("--size", type=_positive, default=16385, help="samples per side (default 16385: 1 GiB float32)")
-    bi.add_argument("--seed", type=int, default=1)
-    bi.add_argument("--block", type=int, default=257)
-    bi.add_argument("--workdir", default="out/bench", help="where the DEM is generated once and the store written")
-    bi.add_argument("--no-color", action="store_true")
-    bi.add_argument("--keep", action="store_true", help="keep the store afterwards")
+    for name, mod in BENCHES.items():
+        mod.add_arguments(bsub.add_parser(name, help=(mod.__doc__ or name).strip().splitlines()[0]))
     return ap
 
 
@@ -168,44 +154,21 @@ def render_config(args) -> RenderConfig:
     )
 
 
-def _validate_render(args, cfg: RenderConfig, nranks: int) -> None:
-    """Cheap checks before any rank starts, so a bad flag is reported once."""
-    from ..core.paths import load_path
-    from ..parallel.decompose import parse_decomposition, parse_wall, sort_first_tiles
-
-    from ..systems import scene_kind
-
-    modes = ("kpatch", "linear", "quadtree") if scene_kind(args.scene) == "terrain" else ()
-    parse_decomposition(cfg.decomposition, modes)
-    if cfg.decomposition == "sort-first:grid":
-        sort_first_tiles("grid", nranks, cfg.width, cfg.height, cfg.grid)
-    if cfg.wall:
-        parse_wall(cfg.wall, nranks, cfg.width, cfg.height)
-    load_path(cfg.path, [0, 0, 0], [1, 1, 1])
-
-
-def cmd_render(args, argv) -> int:
-    from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
+def cmd_render(args) -> int:
+    from .. import api
+    from ..parallel.runtime import in_mpi_job, world
 
     cfg = render_config(args)
-    if not in_mpi_job():
-        nranks = args.ranks or 1
-        _validate_render(args, cfg, nranks)
-        if nranks > 1:
-            return relaunch(argv, nranks)
-    comm = world()
-    if comm.Get_rank() == 0:
-        if in_mpi_job():
-            _validate_render(args, cfg, comm.Get_size())
-        if args.ranks and args.ranks != comm.Get_size() and not _launched_by_us():
-            print(f"massview: note: running on the {comm.Get_size()} ranks mpiexec gave, not --ranks {args.ranks}", file=sys.stderr)
-    from .render_cmd import run_render
-
-    summary = guarded(comm, run_render, comm, args.scene, cfg, args.out, args.quiet)
-    if summary is not None and not args.quiet:
+    if in_mpi_job() and world().Get_rank() == 0 and args.ranks and args.ranks != world().Get_size() and not _launched_by_us():
+        print(f"massview: note: running on the {world().Get_size()} ranks mpiexec gave, not --ranks {args.ranks}", file=sys.stderr)
+    try:
+        res = api.render(args.scene, cfg.path, ranks=args.ranks, out=args.out, images=False, progress=not args.quiet, config=cfg)
+    except api.RankJobError as e:  # the failing rank printed its message already
+        return e.returncode
+    if res is not None and not args.quiet:
         from .report import print_summary
 
-        print_summary(summary)
+        print_summary(res.summary)
         print(f"wrote {args.out}/summary.json, {args.out}/stats.jsonl and the frames")
     return 0
 
@@ -217,7 +180,11 @@ def cmd_view(args, argv) -> int:
     if not (0 <= args.port <= 65535):
         raise ConfigError(f"--port must be in 0..65535, got {args.port}")
     if not in_mpi_job():
-        _validate_render(args, cfg, args.ranks or 1)
+        from ..api import validate
+        from ..core.paths import load_path
+
+        validate(args.scene, cfg, args.ranks or 1)
+        load_path(cfg.path, [0, 0, 0], [1, 1, 1])
         if (args.ranks or 1) > 1:
             return relaunch(argv, args.ranks)
     comm = world()
@@ -242,24 +209,10 @@ def cmd_report(args) -> int:
     return 0
 
 
-def cmd_bench(args, argv) -> int:
-    if args.bench in ("frame", "paraview"):
-        from .bench import frame, paraview
+def cmd_bench(args) -> int:
+    from .bench import BENCHES
 
-        return (frame if args.bench == "frame" else paraview).run(args)
-    if args.bench == "terrain":
-        from . import bench_terrain
-
-        return bench_terrain.run(args)
-    if args.bench == "ingest":
-        from . import bench_ingest
-
-        return bench_ingest.run(args)
-    from . import bench_composite
-
-    if args.worker is not None:
-        return bench_composite.worker(args)
-    return bench_composite.run(args)
+    return BENCHES[args.bench].run(args)
 
 
 def _report_peak_rss() -> None:
@@ -283,16 +236,20 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     _report_peak_rss()
     reuse_freed_memory()  # per-frame images reuse freed pages (issue 20)
+    if argv[:1] == ["__job"] and len(argv) == 2:  # a rank of a job started by massview.api.render
+        from ..api import run_job
+
+        return run_job(argv[1])
     args = build_parser().parse_args(argv)
     try:
         if args.command == "render":
-            return cmd_render(args, argv)
+            return cmd_render(args)
         if args.command == "view":
             return cmd_view(args, argv)
         if args.command == "report":
             return cmd_report(args)
         if args.command == "bench":
-            return cmd_bench(args, argv)
+            return cmd_bench(args)
         if args.command == "demo":
             from .demo import run_demo
 

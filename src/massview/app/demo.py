@@ -41,11 +41,13 @@ def write_video(frames_dir: Path, out: Path, fps: int = 30) -> Path:
 def run_demo(args) -> int:
     from rich.console import Console
 
-    from ..parallel.runtime import relaunch
+    from .. import api
+    from .outputs import check_output_dir
     from .report import load_run, print_summary, write_report
     from .terrain_cmds import progress_bar
 
     console = Console(stderr=True)
+    out = check_output_dir(Path(args.out), "--out")  # before minutes of work, not after
     cache = Path(os.path.expanduser(args.cache_dir))
     store = cache / f"demo_terrain_{args.terrain_size}.zarr"
     if not (store / "zarr.json").exists() or not _complete(store):
@@ -53,20 +55,17 @@ def run_demo(args) -> int:
         from ..data.terrain import prepare_terrain
         from ..data.terrain.synthetic import SyntheticSource
 
-        cache.mkdir(parents=True, exist_ok=True)
+        check_output_dir(cache, "--cache-dir")
         with progress_bar() as prog:
             prepare_terrain(SyntheticSource(args.terrain_size, 1), store, vertical_scale=2.5, overwrite=True, progress=prog)
     else:
         console.print(f"[bold]1/3[/] using the cached demo terrain {store}")
-    out = Path(args.out)
     console.print(f"[bold]2/3[/] rendering {args.frames} frames of the flyover at 1280x720 on {args.ranks} ranks (sort-last:kpatch, binary-swap) ...")
-    argv = ["render", str(store), "--decomposition", "sort-last:kpatch", "--compositor", "binary-swap", "--path", "flyover",
-            "--frames", str(args.frames), "--size", "1280x720", "--loading", "complete", "--out", str(out), "-q"]
-    from .cli import main as cli_main
-
-    rc = relaunch(argv, args.ranks) if args.ranks > 1 else cli_main(argv)
-    if rc != 0:
-        return rc
+    try:
+        api.render(store, "flyover", ranks=args.ranks, out=out, images=False, frames=args.frames, size=(1280, 720),
+                   decomposition="sort-last:kpatch", compositor="binary-swap", loading="complete")
+    except api.RankJobError as e:  # the failing rank printed its message already
+        return e.returncode
     console.print("[bold]3/3[/] writing demo.mp4 and report.png ...")
     video = write_video(out / "frames", out / "demo.mp4")
     summary, records = load_run(out)

@@ -6,7 +6,7 @@ import sys
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..core.errors import ConfigError, StoreError
+from ..core.errors import ConfigError, OutputError, StoreError
 
 __all__ = ["cmd_generate", "cmd_prepare", "cmd_info", "cmd_verify", "progress_bar"]
 
@@ -37,12 +37,23 @@ def progress_bar(quiet: bool = False):
         yield update
 
 
+def _warn(messages) -> None:
+    for m in messages:
+        print(f"massview: warning: {m}", file=sys.stderr)
+
+
 def cmd_generate(args) -> int:
+    from ..data.generators.terrain import SYNTHETIC_SPACING
     from ..data.terrain import prepare_terrain
+    from ..data.terrain.sources import write_sidecar
     from ..data.terrain.synthetic import SyntheticSource, write_synthetic
+    from .outputs import check_output_file
 
     out = Path(args.out)
     fmt = args.format or {".npy": "npy", ".tif": "tif", ".tiff": "tif"}.get(out.suffix.lower(), "store")
+    check_output_file(out, "output")
+    if fmt != "store" and out.is_dir():
+        raise OutputError(f"output {out}: is a folder; give a file name for --format {fmt}")
     with progress_bar(args.quiet) as prog:
         if fmt == "store":
             res = prepare_terrain(SyntheticSource(args.size, args.seed), out, block=args.block, overwrite=args.overwrite, progress=prog)
@@ -51,7 +62,11 @@ def cmd_generate(args) -> int:
             if out.exists() and not args.overwrite:
                 raise ConfigError(f"{out} exists; pass --overwrite to replace it")
             write_synthetic(out, args.size, args.seed, fmt, lambda a, t: prog("generate", a, t))
-            msg = f"wrote {out} ({args.size}x{args.size} float32)"
+            msg = f"wrote {out} ({args.size}x{args.size} float32, {SYNTHETIC_SPACING:g} m sample spacing)"
+            if fmt == "npy":  # .npy has no georeference: record it beside the file, and say what to pass
+                side = write_sidecar(out, (SYNTHETIC_SPACING, SYNTHETIC_SPACING))
+                msg += (f"\n.npy holds no georeference: the spacing is recorded in {side}, which `massview prepare terrain` "
+                        f"reads; elsewhere pass --spacing {SYNTHETIC_SPACING:g}")
     print(msg)
     return 0
 
@@ -68,8 +83,11 @@ def _shape(spec: str | None):
 
 def cmd_prepare(args) -> int:
     from ..data.terrain import open_source, prepare_terrain
+    from .outputs import check_output_file
 
-    src = open_source(args.input, nodata=args.nodata, array=args.array, shape=_shape(args.shape), dtype=args.dtype)
+    check_output_file(Path(args.output), "-o")
+    src = open_source(args.input, nodata=args.nodata, array=args.array, shape=_shape(args.shape), dtype=args.dtype,
+                      spacing=args.spacing, crs=args.crs)
     ortho = open_source(args.color) if args.color else None
     with progress_bar(args.quiet) as prog:
         res = prepare_terrain(src, Path(args.output), block=args.block, vertical_scale=args.vertical_scale,
@@ -78,6 +96,7 @@ def cmd_prepare(args) -> int:
     print(f"{'resumed and completed' if res.resumed else 'wrote'} {res.path}: {res.layout.rows}x{res.layout.cols} samples, "
           f"{res.layout.levels} levels of {res.layout.M}² blocks, {res.filled} nodata samples filled, "
           f"{res.seconds:.1f} s ({mb / max(res.seconds, 1e-9):.1f} MB/s)")
+    _warn(res.warnings)
     return 0
 
 
@@ -95,7 +114,9 @@ def store_info(path: Path) -> dict:
         "block": lay.M, "K": lay.K, "levels": lay.levels,
         "blocks_per_level": [lay.blocks(lv) ** 2 for lv in range(lay.levels)],
         "spacing_m": a.get("spacing"), "vertical_scale": a.get("vertical_scale"), "height_range": a.get("height_range"),
-        "crs": a.get("crs"), "transform": a.get("transform"), "nodata": a.get("nodata"), "source": a.get("source"),
+        "crs": a.get("crs"), "transform": a.get("transform"), "nodata": a.get("nodata"),
+        "filled_fraction": round(int((a.get("nodata") or {}).get("filled", 0)) / max(lay.rows * lay.cols, 1), 6),
+        "source": a.get("source"),
         "color": a.get("color"), "disk_bytes": disk, "height_disk_bytes": hdisk, "raw_height_bytes": raw,
         "compression_ratio": round(raw / hdisk, 3) if hdisk else None,
     }

@@ -23,7 +23,7 @@ from ..core.paths import load_path
 from ..parallel.composite import COMPOSITORS
 from ..parallel.decompose import SORT_FIRST_LAYOUTS, parse_decomposition
 from ..parallel.exchange import any_rank
-from ..systems import open_system, render_frame
+from ..systems import render_frame
 
 __all__ = ["run_view"]
 
@@ -37,8 +37,11 @@ def _jpeg(tile, quality: int = 80) -> bytes:
 
 
 def run_view(comm, args, cfg: RenderConfig) -> int:
+    from ..api import open_scene
+
     rank, n = comm.Get_rank(), comm.Get_size()
-    system = open_system(args.scene, cfg)
+    scene = open_scene(args.scene)
+    system = scene.system(cfg)
     stop = {"flag": False}
 
     def on_sigint(signum, frame):
@@ -89,8 +92,7 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
                     time.sleep(0.05)  # nobody watching: keep the ranks idle-ish, stay responsive
             frame += 1
     finally:
-        if hasattr(system, "close"):
-            system.close()
+        scene.close()
         if server is not None:
             server.stop()
     if rank == 0:

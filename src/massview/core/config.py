@@ -44,7 +44,7 @@ class RenderConfig:
     tau: float = 1.0
     cache_mb: int = 256  # terrain: RAM block cache budget (MiB)
     gpu_mb: int = 256  # terrain: GL block pool budget (MiB)
-    loading: str = "async"  # terrain: "async" (never wait) or "complete" (wait for every needed block)
+    loading: str = "complete"  # terrain: "complete" (wait for every block the view needs: offline frames) or "async" (never wait: the viewer)
     egl_device: int | None = None
     fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
     pipeline: str = "off"  # "on": composite/deliver frame i on a thread while frame i+1 is drawn

@@ -17,6 +17,7 @@ __all__ = [
     "BlockNotFoundError",
     "CorruptBlockError",
     "IngestError",
+    "OutputError",
 ]
 
 
@@ -57,3 +58,7 @@ class CorruptBlockError(StoreError):
 
 class IngestError(MassviewError, ValueError):
     """An input file cannot be read or has a shape/dtype massview cannot ingest."""
+
+
+class OutputError(ConfigError, PermissionError):
+    """An output folder or file cannot be created or written (checked before any work starts)."""

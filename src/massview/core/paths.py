@@ -8,6 +8,10 @@ A path maps a parameter t ∈ [0, 1] to a :class:`Camera`. Keyframe files are JS
      ],
      "fovy": 45, "near": 0.5, "far": 5000}
 
+``near``/``far`` are optional: without them the clip planes are fitted to the scene
+(:func:`scene_clip`), as for the built-in paths, so a file written for a 100 km terrain is not
+clipped at a fixed 10 km.
+
 Positions and look-at points are interpolated with centripetal-free uniform Catmull-Rom
 splines in time; orientations given directly are slerped. Built-in paths (``turn``, ``zoom``,
 ``forward``, ``orbit``, ``flyover``) are fitted to a scene's axis-aligned bounding box, +z up.
@@ -25,9 +29,23 @@ import numpy as np
 from .camera import Camera, look_at_quaternion
 from .errors import ConfigError
 
-__all__ = ["BUILTIN_PATHS", "CameraPath", "KeyframePath", "ParametricPath", "load_path"]
+__all__ = ["BUILTIN_PATHS", "CameraPath", "KeyframePath", "ParametricPath", "load_path", "scene_clip"]
 
 BUILTIN_PATHS = ("turn", "zoom", "forward", "orbit", "flyover")
+
+
+def scene_clip(lo, hi, positions=None) -> tuple[float, float]:
+    """Clip planes (near, far) in world units fitted to the box ``lo``..``hi``: near = 2e-4 of
+    the box diagonal, far = 4 diagonals — reaching further when ``positions`` (n, 3) lie far
+    outside the box, so the whole box stays inside the far plane from every position."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    diag = float(max(np.linalg.norm(hi - lo), 1e-9))
+    far = diag * 4.0
+    if positions is not None and len(positions):
+        c = (lo + hi) / 2
+        reach = float(np.max(np.linalg.norm(np.asarray(positions, np.float64) - c, axis=1))) + diag / 2
+        far = max(far, reach * 1.5)
+    return diag * 2e-4, far
 
 
 class CameraPath:
@@ -84,11 +102,22 @@ class KeyframePath(CameraPath):
     targets: np.ndarray | None
     orientations: np.ndarray | None
     fovy: float = 45.0
-    near: float = 0.1
-    far: float = 10000.0
+    near: float | None = None  # None: fitted to the scene by load_path (scene_clip)
+    far: float | None = None
 
     def clip(self):
+        if self.near is None or self.far is None:
+            raise ConfigError("keyframe path without near/far: load it with load_path(file, lo, hi) to fit them to the scene")
         return self.near, self.far
+
+    def fit_clip(self, lo, hi) -> "KeyframePath":
+        """Fill a missing ``near``/``far`` from the scene box and the keyframe positions."""
+        near, far = scene_clip(lo, hi, self.positions)
+        self.near = near if self.near is None else self.near
+        self.far = far if self.far is None else self.far
+        if not 0 < self.near < self.far:
+            raise ConfigError(f"keyframe path: needs 0 < near < far, got near={self.near} far={self.far}")
+        return self
 
     def pose(self, t):
         tt = self.times[0] + t * (self.times[-1] - self.times[0])
@@ -122,8 +151,11 @@ class KeyframePath(CameraPath):
             raise ConfigError(f"{source}: malformed keyframe ({e}); each needs 'time', 'position' [x,y,z] and 'look_at' [x,y,z]") from None
         if positions.shape[1:] != (3,) or np.any(np.diff(times) < 0):
             raise ConfigError(f"{source}: positions must be [x, y, z] and times non-decreasing")
-        return cls(times, positions, targets, orients, float(data.get("fovy", 45.0)),
-                   float(data.get("near", 0.1)), float(data.get("far", 10000.0)))
+        try:
+            near, far = (None if data.get(k) is None else float(data[k]) for k in ("near", "far"))
+        except (TypeError, ValueError):
+            raise ConfigError(f"{source}: 'near' and 'far' must be numbers (world units)") from None
+        return cls(times, positions, targets, orients, float(data.get("fovy", 45.0)), near, far)
 
 
 @dataclass
@@ -146,8 +178,7 @@ class ParametricPath(CameraPath):
         return float(max(np.linalg.norm((self.hi - self.lo)[:2]), 1e-9))
 
     def clip(self):
-        diag = float(np.linalg.norm(self.hi - self.lo))
-        return diag * 2e-4, diag * 4.0
+        return scene_clip(self.lo, self.hi)
 
     def pose(self, t):
         c = (self.lo + self.hi) / 2
@@ -189,7 +220,8 @@ class ParametricPath(CameraPath):
 
 
 def load_path(spec: str, lo, hi) -> CameraPath:
-    """A built-in path name fitted to the box lo..hi, or a keyframe ``.json`` file."""
+    """A built-in path name fitted to the box lo..hi, or a keyframe ``.json`` file (its missing
+    clip planes fitted to the box)."""
     if spec in BUILTIN_PATHS:
         return ParametricPath(spec, lo, hi)
     p = Path(spec)
@@ -201,4 +233,6 @@ def load_path(spec: str, lo, hi) -> CameraPath:
         raise ConfigError(f"--path {spec}: file not found") from None
     except json.JSONDecodeError as e:
         raise ConfigError(f"--path {spec}: not valid JSON ({e})") from None
-    return KeyframePath.from_json(data, source=str(p))
+    if not isinstance(data, dict):
+        raise ConfigError(f"--path {spec}: expected a JSON object with a 'keyframes' list")
+    return KeyframePath.from_json(data, source=str(p)).fit_clip(lo, hi)

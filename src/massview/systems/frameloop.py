@@ -96,19 +96,21 @@ def render_frame(comm, system, cfg: RenderConfig, camera: Camera | None, frame: 
     return result
 
 
-def render_frames(comm, system, cfg: RenderConfig, cameras, sink: Callable[[int, Image], None] | None = None) -> Iterator[FrameResult]:
-    """Render ``cfg.frames`` frames (``cameras[f]`` on rank 0, ignored elsewhere) and yield
+def render_frames(comm, system, cfg: RenderConfig, cameras, sink: Callable[[int, Image], None] | None = None,
+                  frames: int | None = None) -> Iterator[FrameResult]:
+    """Render ``frames`` frames (default ``cfg.frames``; ``cameras[f]`` on rank 0, ignored elsewhere) and yield
     their results in frame order, on every rank in the same order (callers may run
     collectives on ``comm`` between results). ``cfg.pipeline == "off"``: one
     :func:`render_frame` after the other; ``"on"``: :class:`~.pipeline.FramePipeline`."""
     camera_of = (lambda f: cameras[f]) if comm.Get_rank() == 0 else (lambda f: None)
+    frames = cfg.frames if frames is None else frames
     if cfg.pipeline == "off":
-        for f in range(cfg.frames):
+        for f in range(frames):
             yield render_frame(comm, system, cfg, camera_of(f), f, sink)
         return
     from .pipeline import FramePipeline
 
     with FramePipeline(comm, system, cfg, sink) as pipe:
-        for f in range(cfg.frames):
+        for f in range(frames):
             yield from pipe.submit(camera_of(f), f)
         yield from pipe.drain()

@@ -87,6 +87,11 @@ class TerrainSystem:
                                                    (self.lay.rows, self.lay.cols)), ViewRenderer(ctx))
         return self._gl
 
+    def renderers(self):
+        """This rank's GL objects, created on first use: (context, block pool, terrain renderer,
+        view renderer) — for tools drawing beside the system (``bench terrain``'s plain mesh)."""
+        return self._renderers()
+
     @property
     def renderer(self) -> str:
         return renderer_string(self._renderers()[0])

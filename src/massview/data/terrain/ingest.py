@@ -11,7 +11,14 @@ continues where it stopped and a half-written store never opens as a good one):
    strip above, so borders are bit-identical in both blocks.
 2. **levels 1..L** by vertex decimation of 2 × 2 child blocks.
 3. **metadata** (and computed colour): every block is read back once; min/max, dropped-sample
-   errors, K-patch diamond errors and square z-ranges (:mod:`meta`).
+   errors, K-patch diamond errors and square z-ranges (:mod:`meta`). ``height_range`` is the
+   full-resolution (level 0) min/max, i.e. the data's own range.
+
+Bad data does not pass silently: an input with no valid sample at all (all nodata, NaN or
+±inf) raises :class:`IngestError` naming the file after level 0, and the store this run
+created is removed (a resumed one stays incomplete, so it never opens). More than half the
+samples filled, or no georeference (1 m spacing assumed), is reported in
+``PrepareResult.warnings`` (the CLI prints them).
 
 Peak memory is one strip (M × padded width float32, 17 MB at 16k) plus the diamond arrays.
 """
@@ -19,6 +26,7 @@ Peak memory is one strip (M × padded width float32, 17 MB at 16k) plus the diam
 from __future__ import annotations
 
 import math
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +55,12 @@ class PrepareResult:
     filled: int
     resumed: bool
     input_bytes: int
+    warnings: list[str]
+
+    @property
+    def filled_fraction(self) -> float:
+        """Filled (nodata/NaN/±inf) samples over all input samples."""
+        return self.filled / max(self.layout.rows * self.layout.cols, 1)
 
 
 def fill_nodata(a: np.ndarray, max_iter: int = 256) -> int:
@@ -116,9 +130,35 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
              "source": src.name, "source_dtype": str(src.dtype), "color": None}
     g, resumed = create_store(out, lay, attrs, color is not None, overwrite)
     prog = progress or (lambda phase, adv, total: None)
-    nb0 = lay.blocks(0)
+    try:
+        filled = _level0(g, src, lay, block, resumed, prog)
+    except IngestError:
+        if not resumed:  # created by this run, nothing of value in it: leave no store behind
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    _coarser_levels(g, lay, prog)
 
-    # 1. level 0 ------------------------------------------------------------------------
+    # 3. metadata and colour --------------------------------------------------------------
+    store = TerrainStore(out, require_complete=False)
+    meta = compute_metadata(store, prog, write_color=color is not None, ortho=ortho, vertical_scale=vertical_scale)
+    write_metadata(g, lay, meta)
+    g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
+    g.attrs["complete"] = True
+    seconds = time.perf_counter() - t0
+    res = PrepareResult(Path(out), lay, seconds, filled, resumed, src.rows * src.cols * src.dtype.itemsize, [])
+    if res.filled_fraction > 0.5:
+        res.warnings.append(f"{src.name}: {res.filled_fraction:.0%} of the samples were nodata/NaN/inf and were filled from their "
+                            "neighbours; check the nodata value (--nodata) and the extent")
+    if src.transform is None:
+        res.warnings.append(f"{src.name} has no georeference: assumed 1 m sample spacing; pass --spacing DX[,DY] (and --crs) "
+                            "if the samples are further apart")
+    return res
+
+
+def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress) -> int:
+    """Phase 1; returns the number of filled samples (all runs). Raises IngestError when no
+    input sample is valid."""
+    nb0 = lay.blocks(0)
     done0 = g["blocks/0/done"]
     flags = np.asarray(done0[...])
     heights0 = g["heights/0"]
@@ -139,8 +179,15 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
         g.attrs["nodata"] = nod
         prev_row = strip[-1].copy()
         prog("level 0", nb0, nb0 * nb0)
+    if filled >= src.rows * src.cols:
+        what = "NaN or ±inf" if src.nodata is None else f"nodata ({src.nodata:g}), NaN or ±inf"
+        raise IngestError(f"{src.name}: every one of its {src.rows}x{src.cols} samples is {what}; there is no elevation to "
+                          "build a store from (check the file, or give the right --nodata)")
+    return filled
 
-    # 2. coarser levels by decimation ---------------------------------------------------
+
+def _coarser_levels(g, lay: TerrainLayout, prog: Progress) -> None:
+    """Phase 2: levels 1..L by decimation of 2 × 2 child blocks (resumable per block row)."""
     for lv in range(1, lay.levels):
         nb = lay.blocks(lv)
         done = g[f"blocks/{lv}/done"]
@@ -152,15 +199,6 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
                 dst[i] = np.stack([_decimate(two[:, 2 * j: 2 * j + 2]) for j in range(nb)])
                 done[i, :] = 1
             prog(f"level {lv}", nb, nb * nb)
-
-    # 3. metadata and colour --------------------------------------------------------------
-    store = TerrainStore(out, require_complete=False)
-    meta = compute_metadata(store, prog, write_color=color is not None, ortho=ortho, vertical_scale=vertical_scale)
-    write_metadata(g, lay, meta)
-    g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
-    g.attrs["complete"] = True
-    seconds = time.perf_counter() - t0
-    return PrepareResult(Path(out), lay, seconds, filled, resumed, src.rows * src.cols * src.dtype.itemsize)
 
 
 def _decimate(quad: np.ndarray) -> np.ndarray:
@@ -208,7 +246,7 @@ def compute_metadata(store: TerrainStore, prog: Progress, write_color: bool = Fa
     for lv in range(lay.L + 1, lay.J):
         acc.add_block(lv, 0, 0, top[:: 2 ** (lv - lay.L), :: 2 ** (lv - lay.L)])
     sq, dg, zmin, zmax = acc.finish()
-    zlo, zhi = float(minmax[-1][..., 0].min()), float(minmax[-1][..., 1].max())
+    zlo, zhi = float(minmax[0][..., 0].min()), float(minmax[0][..., 1].max())  # the data's range (level 0)
     if write_color:
         _write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
     return Metadata(minmax, block_errors_from(dmax), sq, dg, zmin, zmax, zlo, zhi)

@@ -8,6 +8,12 @@ are converted to float32 (exact for 16-bit and for 32-bit values below 2^24).
 Formats: GeoTIFF / Cloud-Optimized GeoTIFF (rasterio, windowed), ``.npy`` (row reads),
 SRTM ``.hgt`` (big-endian int16, 1201² or 3601², georeferenced from the file name),
 ``.npz`` (a named array), raw binary (explicit shape and dtype), and the synthetic generator.
+
+Georeference of inputs that carry none (``.npy``, ``.npz``, raw, plain TIFF): a sidecar
+``FILE.json`` beside the input (``{"spacing": [dx, dy], "crs": "EPSG:..." | null}``, written by
+``massview generate terrain --format npy``), or ``spacing``/``crs`` given to :func:`open_source`
+(``prepare terrain --spacing DX[,DY] --crs CRS``), which win over the sidecar. Spacing is in
+the CRS's units (metres without a CRS). Without either, 1 m is assumed (and ``prepare`` warns).
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ import numpy as np
 
 from ...core.errors import IngestError
 
-__all__ = ["RasterSource", "open_source", "ArraySource", "crs_name"]
+__all__ = ["RasterSource", "open_source", "ArraySource", "crs_name", "sidecar_path", "write_sidecar", "parse_spacing"]
 
 
 class RasterSource:
@@ -197,9 +203,73 @@ class HgtSource(ArraySource):
         super().__init__(arr, path.name, nodata=-32768, crs=crs, transform=transform)
 
 
+def sidecar_path(path) -> Path:
+    """The georeference sidecar of an input file: ``FILE.json`` beside ``FILE``."""
+    p = Path(path)
+    return p.with_name(p.name + ".json")
+
+
+def write_sidecar(path, spacing: tuple[float, float], crs: str | None = None) -> Path:
+    """Record the sample spacing (and CRS) of an input without a georeference of its own."""
+    import json
+
+    side = sidecar_path(path)
+    side.write_text(json.dumps({"spacing": [float(spacing[0]), float(spacing[1])], "crs": crs}) + "\n")
+    return side
+
+
+def parse_spacing(spec, what: str = "--spacing") -> tuple[float, float]:
+    """``DX`` or ``DX,DY`` (or a 2-sequence) -> (dx, dy), both finite and positive."""
+    try:
+        vals = [float(v) for v in (spec.split(",") if isinstance(spec, str) else spec)]
+    except (TypeError, ValueError):
+        raise IngestError(f"{what} {spec!r}: expected DX or DX,DY (sample spacing, e.g. 30 or 30,30)") from None
+    if len(vals) == 1:
+        vals *= 2
+    if len(vals) != 2 or not all(math.isfinite(v) and v > 0 for v in vals):
+        raise IngestError(f"{what} {spec!r}: expected one or two positive numbers, DX or DX,DY")
+    return vals[0], vals[1]
+
+
+def _crs_wkt(crs: str, what: str) -> str:
+    try:
+        from rasterio.crs import CRS
+
+        return CRS.from_user_input(crs).to_wkt()
+    except Exception as e:  # noqa: BLE001 - rasterio raises CRSError and others
+        raise IngestError(f"{what} {crs!r}: not a CRS rasterio understands ({e}); give e.g. EPSG:32632 or a WKT string") from None
+
+
+def _georeference(src: RasterSource, p: Path, spacing, crs) -> None:
+    """Apply the sidecar, then explicit spacing/CRS, to a source (see the module docstring)."""
+    side = sidecar_path(p)
+    if src.transform is None and spacing is None and side.exists():
+        import json
+
+        try:
+            meta = json.loads(side.read_text())
+            spacing, crs = meta["spacing"], crs or meta.get("crs")
+        except (ValueError, KeyError, TypeError) as e:
+            raise IngestError(f"{side}: not a georeference sidecar ({e}); expected {{\"spacing\": [dx, dy], \"crs\": ...}}") from None
+        what = str(side)
+    else:
+        what = "--spacing"
+    if spacing is not None:
+        if src.transform is not None:
+            raise IngestError(f"{p}: has its own georeference (spacing {src.spacing()[0]:g} x {src.spacing()[1]:g}); "
+                              "--spacing is for inputs without one")
+        dx, dy = parse_spacing(spacing, what)
+        src.transform = (0.0, dx, 0.0, 0.0, 0.0, -dy)
+    if crs is not None:
+        if src.crs is not None:
+            raise IngestError(f"{p}: has its own CRS ({crs_name(src.crs)}); --crs is for inputs without one")
+        src.crs = _crs_wkt(crs, "--crs")
+
+
 def open_source(path, *, nodata=None, array: str | None = None, shape: tuple[int, int] | None = None,
-                dtype: str | None = None) -> RasterSource:
-    """Open an elevation input by its extension (see module docstring)."""
+                dtype: str | None = None, spacing=None, crs: str | None = None) -> RasterSource:
+    """Open an elevation input by its extension (see module docstring). ``spacing`` (``DX`` or
+    ``DX,DY``) and ``crs`` georeference an input that has none."""
     p = Path(path)
     if not p.exists():
         raise IngestError(f"{p}: no such file")
@@ -234,4 +304,5 @@ def open_source(path, *, nodata=None, array: str | None = None, shape: tuple[int
         raise IngestError(f"{p}: unknown input format {suffix or '(no extension)'}; use .tif/.tiff, .npy, .npz, .hgt or raw (.raw/.bin with --shape and --dtype)")
     if nodata is not None:
         src.nodata = nodata
+    _georeference(src, p, spacing, crs)
     return src

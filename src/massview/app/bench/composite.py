@@ -1,4 +1,6 @@
-"""``massview bench composite``: sort-last compositing cost per algorithm and rank count.
+"""Sort-last compositing cost per algorithm and rank count vs its network + memory floor.
+
+``massview bench composite``:
 
 For each rank count, a job under ``mpiexec`` renders one sort-last partial image per rank of
 ``--scene`` (default ``builtin:objects``; range R_i, full frame), then composites and delivers
@@ -23,20 +25,33 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.config import RenderConfig, parse_size
-from ..core.paths import load_path
-from ..core.stats import FrameStats
-from ..core.task import Task
-from ..parallel.composite import COMPOSITORS, composite, deliver
-from ..parallel.decompose import sort_last_ranges
-from ..parallel.exchange import max_over_ranks, measure_bandwidth, measure_memory_bandwidth
-from ..parallel.runtime import relaunch, world
+from ...core.config import RenderConfig, parse_size
+from ...core.paths import load_path
+from ...core.stats import FrameStats
+from ...core.task import Task
+from ...parallel.composite import COMPOSITORS, composite, deliver
+from ...parallel.decompose import sort_last_ranges
+from ...parallel.exchange import max_over_ranks, measure_bandwidth, measure_memory_bandwidth
+from ...parallel.runtime import relaunch, world
 
-__all__ = ["run", "worker"]
+__all__ = ["add_arguments", "run", "worker"]
+
+
+def add_arguments(p) -> None:
+    import argparse
+
+    from ...parallel.codec import CODECS
+
+    p.add_argument("--ranks", default="2,3,4", help="rank counts, comma-separated (default 2,3,4)")
+    p.add_argument("--size", default="1280x1024")
+    p.add_argument("--repeat", type=int, default=5, help="timed repetitions per case (default 5)")
+    p.add_argument("--codec", default="blosc2", choices=tuple(CODECS))
+    p.add_argument("--scene", default="builtin:objects", help="scene or terrain store rendered into the partial images")
+    p.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
 
 
 def worker(args) -> int:
-    from ..systems import open_system
+    from ...systems import open_system
 
     comm = world()
     rank, n = comm.Get_rank(), comm.Get_size()
@@ -82,6 +97,8 @@ def _render_part(comm, system, cam, cfg):
 
 
 def run(args) -> int:
+    if args.worker is not None:  # one MPI job of the benchmark (started by run below)
+        return worker(args)
     from rich.console import Console
     from rich.table import Table
 

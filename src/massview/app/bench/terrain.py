@@ -1,7 +1,9 @@
-"""``massview bench terrain STORE``: decompositions × rank counts, and LOD vs a plain mesh.
+"""Decompositions x ranks (triangles, imbalance, LOD time) and LOD vs a plain mesh.
+
+``massview bench terrain STORE``: decompositions × rank counts, and LOD vs a plain mesh.
 
 Part 1 (parallel): for the ``turn`` and ``zoom`` paths, every decomposition at 1–4 ranks is
-rendered as a real ``massview render`` job; printed per case: triangles per rank, imbalance
+rendered as a real MPI job through :func:`massview.render` (``ranks=N``); printed per case: triangles per rank, imbalance
 (max/mean), LOD time and front size (patches) per frame.
 
 Part 2: LOD selection time against front size (τ = 1, 0.5, 0.25 on three paths).
@@ -14,20 +16,30 @@ memory: it is skipped above ``--max-plain`` triangles.
 
 from __future__ import annotations
 
-import json
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from ..core.config import RenderConfig, parse_size
-from ..core.paths import load_path
-from ..core.stats import FrameStats, read_stats
-from ..core.task import Task
-from ..parallel.runtime import relaunch, self_comm
+from ...core.config import RenderConfig, parse_size
+from ...core.paths import load_path
+from ...core.stats import FrameStats
+from ...core.task import Task
+from ...parallel.runtime import self_comm
 
-__all__ = ["run"]
+__all__ = ["add_arguments", "run"]
+
+
+def add_arguments(p) -> None:
+    p.add_argument("store")
+    p.add_argument("--ranks", default="1,2,3,4")
+    p.add_argument("--size", default="1280x1024")
+    p.add_argument("--frames", type=int, default=6)
+    p.add_argument("--tau", type=float, default=1.0)
+    p.add_argument("--max-plain", type=int, default=40_000_000, help="largest plain mesh to draw as the baseline (triangles)")
+    p.add_argument("--skip-parallel", action="store_true", help="only the one-rank LOD vs plain-mesh comparison")
+
 
 DECOMPS = ["sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd",
            "sort-last:kpatch", "sort-last:linear", "sort-last:quadtree"]
@@ -38,29 +50,31 @@ def _parallel(args, console, table_cls) -> None:
     t = table_cls(title=f"parallel terrain: {args.store}, {args.size}, {args.frames} frames, τ = {args.tau}")
     for c in ("path", "decomposition", "ranks", "triangles per rank (k)", "imbalance", "LOD ms", "front patches", "frame ms"):
         t.add_column(c, justify="right")
+    from ... import api
+    from ...core.errors import MassviewError
+
     with tempfile.TemporaryDirectory() as tmp:
         for path in ("turn", "zoom"):
             for n in counts:
                 for d in (DECOMPS if n > 1 else DECOMPS[:1]):
                     out = Path(tmp) / f"{path}_{d.replace(':', '_')}_{n}"
-                    argv = ["render", str(args.store), "--decomposition", d, "--path", path, "--frames", str(args.frames),
-                            "--size", args.size, "--tau", str(args.tau), "--loading", "complete", "--out", str(out), "-q"]
-                    rc = relaunch(argv, n)
-                    if rc != 0:
-                        console.print(f"[red]{path} {d} {n} ranks failed (exit {rc})[/]")
+                    try:
+                        res = api.render(args.store, path, ranks=n, out=out, images=False, frames=args.frames, size=args.size,
+                                         decomposition=d, tau=args.tau, loading="complete")
+                    except MassviewError as e:
+                        console.print(f"[red]{path} {d} {n} ranks failed: {e}[/]")
                         continue
-                    s = json.loads((out / "summary.json").read_text())
-                    recs = read_stats(out / "stats.jsonl")
-                    front = np.mean([r["counters"].get("front_patches", 0) for r in recs])
+                    s = res.summary
+                    front = np.mean([r["counters"].get("front_patches", 0) for r in res.stats])
                     t.add_row(path, d if n > 1 else "(1 rank)", str(n), ", ".join(f"{v / 1e3:.0f}" for v in s["triangles_per_rank"]),
                               f"{s['imbalance']:.3f}", f"{s['stage_ms_mean']['lod']:.1f}", f"{front:.0f}", f"{s['mean_frame_ms']:.0f}")
     console.print(t)
 
 
 def _vs_plain(args, console, table_cls) -> None:
-    from ..data.terrain import TerrainStore
-    from ..render.terrain import PlainMeshRenderer
-    from ..systems.terrain import TerrainSystem
+    from ...data.terrain import TerrainStore
+    from ...render.terrain import PlainMeshRenderer
+    from ...systems.terrain import TerrainSystem
 
     st = TerrainStore(args.store)
     lay = st.layout
@@ -72,7 +86,7 @@ def _vs_plain(args, console, table_cls) -> None:
     w, h = parse_size(args.size)
     sysm = TerrainSystem(args.store, loading="complete")
     comm = self_comm()
-    ctx, _, _, view = sysm._renderers()
+    ctx, _, _, view = sysm.renderers()
     M = lay.M
     full = np.empty((lay.S, lay.S), np.float32)
     color = np.empty((lay.S, lay.S, 3), np.uint8)
@@ -113,8 +127,8 @@ def _vs_plain(args, console, table_cls) -> None:
 
 def _lod_timing(args, console, table_cls) -> None:
     """LOD selection time against front size (all data resident), over τ and three paths."""
-    from ..data.terrain import TerrainStore
-    from ..lod.kpatch import PatchHierarchy, select_front
+    from ...data.terrain import TerrainStore
+    from ...lod.kpatch import PatchHierarchy, select_front
 
     st = TerrainStore(args.store)
     h = PatchHierarchy(st.layout, *st.lod_arrays(), spacing=st.spacing, vscale=st.vertical_scale)

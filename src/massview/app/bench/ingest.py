@@ -1,4 +1,6 @@
-"""``massview bench ingest``: prepare a synthetic DEM and report throughput, compression, peak RSS.
+"""Prepare a synthetic DEM: MB/s, compression ratio, peak RSS.
+
+``massview bench ingest``: prepare a synthetic DEM and report throughput, compression, peak RSS.
 
 The DEM (default 16385², 1 GiB of float32) is generated once into ``--workdir`` as ``.npy``.
 Then, in the same run:
@@ -22,7 +24,16 @@ import sys
 import time
 from pathlib import Path
 
-__all__ = ["run"]
+__all__ = ["add_arguments", "run"]
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--size", type=int, default=16385, help="samples per side (default 16385: 1 GiB float32)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--block", type=int, default=257)
+    p.add_argument("--workdir", default="out/bench", help="where the DEM is generated once and the store written")
+    p.add_argument("--no-color", action="store_true")
+    p.add_argument("--keep", action="store_true", help="keep the store afterwards")
 
 
 def _copy_baseline(src: Path, dst: Path) -> float:
@@ -44,7 +55,7 @@ def run(args) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from .terrain_cmds import progress_bar, store_info
+    from ..terrain_cmds import progress_bar, store_info
 
     console = Console()
     work = Path(args.workdir)

@@ -1,0 +1,438 @@
+"""The public Python API: what the CLI, the demo, the viewer and the benchmarks call.
+
+A notebook session::
+
+    import massview as mv
+
+    scene = mv.open_scene("dem.zarr")                         # or "builtin:objects?n=400"
+    cams = mv.path("flyover", scene, frames=4, size=(640, 480))
+    res = mv.render(scene, cams, ranks=2, decomposition="sort-first:kd")
+    res.images[0]                  # (480, 640, 3) uint8, top-left origin
+    res.summary["imbalance"]       # the figures `massview render` writes to summary.json
+    mv.show(res.images[0])         # displays inline in Jupyter (PNG)
+    img = mv.render_frame(scene, mv.camera(scene, position=(0, 0, 3000), look_at=(5e4, -5e4, 0)))
+
+**Options** of :func:`render` and :func:`render_frame` are the fields of
+:class:`massview.core.config.RenderConfig` (``decomposition``, ``compositor``, ``tau``,
+``loading``, ``color_by_rank``, ``reference``, ...), one keyword each; any field added to
+``RenderConfig`` is a keyword here with no change to this module. Offline renders use
+``RenderConfig``'s ``loading="complete"`` (every frame at the quality the budgets allow); the
+viewer asks for ``"async"``.
+
+**Ranks.** ``ranks=1`` renders in this process (the scene's GL context and caches stay open
+between calls, so a notebook pays for them once). ``ranks=N > 1`` runs a real MPI job: the
+scene name, the frozen config and the cameras are pickled into a temporary job folder, the job
+is started as ``mpiexec -n N python -m massview __job DIR`` (the ``mpiexec`` beside this
+Python), its ranks render collectively and write lossless PNG frames (+ ``depth/*.npy`` with
+``depth=True``), ``stats.jsonl`` and ``summary.json``, and this process loads them back — so the
+images are the job's pixels bit for bit. A rank's error is written to ``DIR/error.txt`` and
+raised here as :class:`RankJobError`. Inside an MPI job already (a script started by
+``mpiexec``), :func:`render` is collective: every rank must call it, it uses all the ranks it
+was given, and returns the result on rank 0 (``None`` elsewhere).
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import pickle
+import shutil
+import tempfile
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from .core.camera import Camera, look_at_quaternion
+from .core.config import RenderConfig, parse_size
+from .core.errors import ConfigError, MassviewError, ParallelError
+from .core.paths import load_path, scene_clip
+
+__all__ = ["Scene", "RenderResult", "Frame", "RankJobError", "open_scene", "camera", "path", "render", "render_frame",
+           "show", "render_config"]
+
+
+class RankJobError(ParallelError):
+    """An MPI job started by :func:`render` failed; the message is the failing rank's."""
+
+    def __init__(self, message: str, returncode: int):
+        super().__init__(message)
+        self.returncode = returncode
+
+
+class Scene:
+    """An open scene: a terrain store or ``builtin:objects[?n=..&seed=..]``.
+
+    ``bounds`` is the world-space box ``(lo, hi)`` (float64 (3,), metres, +z up) the built-in
+    paths and the clip planes are fitted to. The in-process system (GL context, block caches)
+    is opened on first use and kept for later ``ranks=1`` renders; :meth:`close` frees it.
+    """
+
+    def __init__(self, spec: str | Path):
+        from .systems import scene_kind
+
+        self.spec = str(spec)
+        self.kind = scene_kind(self.spec)  # raises SceneNotFoundError / StoreError naming the problem
+        self._system, self._key, self._bounds = None, None, None
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._bounds is None:
+            system = self._system if self._system is not None else self.system(RenderConfig())
+            self._bounds = tuple(np.asarray(b, np.float64) for b in system.bounds)
+        return self._bounds
+
+    def system(self, cfg: RenderConfig):
+        """The in-process rendering system for ``cfg`` (reopened when budgets or loading change)."""
+        from .systems import open_system
+
+        key = (cfg.cache_mb, cfg.gpu_mb, cfg.loading, cfg.egl_device)
+        if self._system is None or key != self._key:
+            self.close()
+            self._system, self._key = open_system(self.spec, cfg), key
+        return self._system
+
+    def close(self) -> None:
+        if self._system is not None and hasattr(self._system, "close"):
+            self._system.close()
+        self._system = None
+
+    def __enter__(self) -> "Scene":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        lo, hi = self.bounds
+        return f"Scene({self.spec!r}, {self.kind}, bounds {np.round(lo, 1).tolist()} .. {np.round(hi, 1).tolist()})"
+
+
+def open_scene(spec: str | Path | Scene) -> Scene:
+    """Open a terrain store folder or ``builtin:objects[?n=COUNT&seed=S]`` (a :class:`Scene` is returned as is)."""
+    return spec if isinstance(spec, Scene) else Scene(spec)
+
+
+def _size(size) -> tuple[int, int]:
+    if isinstance(size, str):
+        return parse_size(size)
+    try:
+        w, h = (int(v) for v in size)
+    except (TypeError, ValueError):
+        raise ConfigError(f"size {size!r}: expected (width, height) or 'WIDTHxHEIGHT'") from None
+    return parse_size(f"{w}x{h}")
+
+
+def camera(scene: Scene | str | None = None, *, position, look_at=None, orientation=None, fovy: float = 45.0,
+           size=(1280, 1024), near: float | None = None, far: float | None = None) -> Camera:
+    """A camera at ``position`` (world metres) looking at ``look_at`` (or with a unit quaternion
+    ``orientation`` (w, x, y, z)). ``near``/``far`` default to clip planes fitted to the scene."""
+    pos = np.asarray(position, np.float64)
+    if orientation is None:
+        if look_at is None:
+            raise ConfigError("camera(): give look_at=(x, y, z) or orientation=(w, x, y, z)")
+        orientation = look_at_quaternion(pos, np.asarray(look_at, np.float64))
+    if near is None or far is None:
+        if scene is None:
+            raise ConfigError("camera(): give the scene (to fit the clip planes) or near= and far=")
+        fn, ff = scene_clip(*open_scene(scene).bounds, positions=pos[None])
+        near, far = near if near is not None else fn, far if far is not None else ff
+    w, h = _size(size)
+    return Camera(tuple(pos), tuple(orientation), fovy=fovy, near=near, far=far, width=w, height=h)
+
+
+def path(name_or_file: str | Path, scene: Scene | str, frames: int = 10, size=(1280, 1024)) -> list[Camera]:
+    """``frames`` cameras along a built-in path (``turn``, ``zoom``, ``forward``, ``orbit``,
+    ``flyover``, fitted to the scene) or a keyframe ``.json`` file (clip planes fitted to the
+    scene unless the file gives ``near``/``far``)."""
+    w, h = _size(size)
+    return load_path(str(name_or_file), *open_scene(scene).bounds).cameras(int(frames), w, h)
+
+
+def render_config(config: RenderConfig | None = None, **options) -> RenderConfig:
+    """A :class:`RenderConfig` from ``config`` (default: environment + offline defaults) and
+    keyword overrides; an unknown keyword is a :class:`ConfigError` listing the known ones."""
+    known = {f.name for f in fields(RenderConfig)}
+    bad = sorted(set(options) - known)
+    if bad:
+        raise ConfigError(f"unknown render option(s) {', '.join(bad)}; options are the RenderConfig fields: {', '.join(sorted(known))}")
+    if config is None:
+        return RenderConfig.from_env(**options)
+    return RenderConfig(**{**config.to_json(), **{k: v for k, v in options.items() if v is not None}})
+
+
+@dataclass
+class RenderResult:
+    """What :func:`render` returns.
+
+    ``images``: one (H, W, 3) uint8 array per frame (top-left origin), None with ``images=False``;
+    ``depths``: (H, W) float32 window depth in [0, 1] per frame (1 = background) with ``depth=True``;
+    ``summary``: the figures of ``summary.json`` (fps, triangles_per_rank, imbalance, bytes_per_frame, ...);
+    ``stats``: the per-frame per-rank records of ``stats.jsonl``; ``out``: the output folder, if any.
+    """
+
+    images: list[np.ndarray] | None
+    depths: list[np.ndarray] | None
+    summary: dict
+    stats: list[dict]
+    out: Path | None = None
+
+    def frame_stats(self, frame: int) -> list[dict]:
+        """The records of one frame, one per rank."""
+        return [r for r in self.stats if r["frame"] == frame]
+
+    def __len__(self) -> int:
+        return int(self.summary.get("frames", len(self.images or [])))
+
+    def _repr_png_(self) -> bytes | None:
+        return show(self.images[0])._repr_png_() if self.images else None
+
+
+def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
+    if isinstance(what, Camera):
+        return [what], "camera"
+    if isinstance(what, (str, Path)):
+        return load_path(str(what), *scene.bounds).cameras(cfg.frames, cfg.width, cfg.height), str(what)
+    cams = list(what)
+    if not cams or not all(isinstance(c, Camera) for c in cams):
+        raise ConfigError("render(): give a path name, a keyframe .json file, a Camera or a list of Cameras")
+    if len({(c.width, c.height) for c in cams}) != 1:
+        raise ConfigError("render(): every camera of one render must have the same image size")
+    return cams, "cameras"
+
+
+def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camera] = "orbit", *, ranks: int | None = None,
+           out: str | Path | None = None, depth: bool = False, images: bool = True, progress: bool = False,
+           frames: int | None = None, size=None, config: RenderConfig | None = None, **options) -> RenderResult | None:
+    """Render a path or cameras on ``ranks`` local ranks (see the module docstring).
+
+    ``what``: a path name or keyframe file (with ``frames`` and ``size``), a :class:`Camera`, or a
+    list of cameras. ``out``: also write ``frames/``, ``stats.jsonl`` and ``summary.json`` there.
+    ``options``: :class:`RenderConfig` fields. Returns a :class:`RenderResult` (``None`` on ranks
+    other than 0 when called collectively inside an MPI job).
+    """
+    owned = not isinstance(scene, Scene)
+    scene = open_scene(scene)
+    try:
+        return _render(scene, what, ranks, out, depth, images, progress, frames, size, render_config(config, **options))
+    finally:
+        if owned:
+            scene.close()
+
+
+def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, size, cfg: RenderConfig) -> RenderResult | None:
+    from .app.outputs import check_output_dir
+    from .parallel.runtime import in_mpi_job, world
+
+    nranks = world().Get_size() if in_mpi_job() else int(ranks or 1)
+    if nranks < 1:
+        raise ConfigError(f"ranks must be at least 1, got {ranks}")
+    if isinstance(what, (str, Path)):  # size and frame count first: check everything before any work
+        w, h = _size(size) if size is not None else (cfg.width, cfg.height)
+        cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": int(frames or cfg.frames)})
+        load_path(str(what), [0, 0, 0], [1, 1, 1])  # a bad name or file is reported now
+    out = Path(out) if out is not None else None
+    validate(scene.spec, cfg, nranks)
+    if out is not None:
+        check_output_dir(out, "--out")
+    if nranks == 1 or in_mpi_job():
+        scene.system(cfg)  # opened with this config's budgets (the bounds come from it)
+    cams, label = _cameras(scene, what, cfg)
+    cfg = RenderConfig(**{**cfg.to_json(), "width": cams[0].width, "height": cams[0].height, "frames": len(cams)})
+    validate(scene.spec, cfg, nranks)
+    if in_mpi_job() or nranks == 1:
+        return _render_here(scene, cfg, cams, label, out, depth, images, progress)
+    return _render_job(scene, cfg, cams, label, out, depth, images, progress, nranks)
+
+
+def render_frame(scene: Scene | str | Path, what: Camera | str | Path = "orbit", *, depth: bool = False, **kw):
+    """One frame: (H, W, 3) uint8, or ``(rgb, depth)`` with ``depth=True``. ``what`` is a camera
+    or a path (its first camera); other keywords as :func:`render`."""
+    res = render(scene, what, depth=depth, frames=kw.pop("frames", 1), **kw)
+    if res is None:
+        return None
+    return (res.images[0], res.depths[0]) if depth else res.images[0]
+
+
+def validate(spec: str, cfg: RenderConfig, nranks: int) -> None:
+    """Cheap checks before any rank starts, so a bad option is reported once."""
+    from .parallel.decompose import parse_decomposition, parse_wall, sort_first_tiles
+    from .systems import scene_kind
+
+    modes = ("kpatch", "linear", "quadtree") if scene_kind(spec) == "terrain" else ()
+    parse_decomposition(cfg.decomposition, modes)
+    if cfg.decomposition == "sort-first:grid":
+        sort_first_tiles("grid", nranks, cfg.width, cfg.height, cfg.grid)
+    if cfg.wall:
+        parse_wall(cfg.wall, nranks, cfg.width, cfg.height)
+
+
+def _render_here(scene, cfg, cams, label, out, depth, images, progress) -> RenderResult | None:
+    from .app.render_cmd import run_render
+    from .parallel.runtime import guarded, in_mpi_job, self_comm, world
+
+    if in_mpi_job():  # collective: every rank opens its own system; errors end every rank
+        comm = world()
+        job = guarded(comm, run_render, comm, scene.spec, cfg, out, not progress, cams if comm.Get_rank() == 0 else None,
+                      images, depth, label)
+    else:
+        job = run_render(self_comm(), scene.system(cfg), cfg, out, not progress, cams, images, depth, label)
+    if job is None:
+        return None
+    imgs = deps = None
+    if images:
+        frames = [_assemble(job.tiles.get(f, []), cfg) for f in range(len(cams))]
+        imgs = [f[0] for f in frames]
+        deps = [f[1] for f in frames] if depth else None
+    return RenderResult(imgs, deps, job.summary, job.records, out)
+
+
+def _assemble(tiles, cfg: RenderConfig) -> tuple[np.ndarray, np.ndarray | None]:
+    """The full frame from display tiles (one tile without a wall)."""
+    if len(tiles) == 1 and tiles[0][0].w == cfg.width and tiles[0][0].h == cfg.height:
+        return tiles[0][1], tiles[0][2]
+    rgb = np.zeros((cfg.height, cfg.width, 3), np.uint8)
+    dep = np.ones((cfg.height, cfg.width), np.float32) if tiles and tiles[0][2] is not None else None
+    for vp, c, d in tiles:
+        rgb[vp.slices()] = c
+        if dep is not None:
+            dep[vp.slices()] = d
+    return rgb, dep
+
+
+# -- ranks > 1: a real MPI job -------------------------------------------------------------
+def _render_job(scene, cfg, cams, label, out, depth, images, progress, nranks) -> RenderResult:
+    from .parallel.runtime import relaunch
+
+    tmp = Path(tempfile.mkdtemp(prefix="massview-job-"))
+    try:
+        target = out if out is not None else tmp / "out"
+        job = {"spec": scene.spec, "cfg": cfg, "cameras": cams, "label": label, "out": str(target), "depth": depth,
+               "quiet": not progress}
+        (tmp / "job.pkl").write_bytes(pickle.dumps(job))
+        rc = relaunch(["__job", str(tmp)], nranks)
+        if rc != 0:
+            err = tmp / "error.txt"
+            msg = err.read_text().strip() if err.exists() else f"the {nranks}-rank job exited with status {rc}"
+            raise RankJobError(msg, rc)
+        res = _load_run(target, cfg, len(cams), depth, images)
+        res.out = out
+        return res
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _load_run(out: Path, cfg: RenderConfig, nframes: int, depth: bool, images: bool) -> RenderResult:
+    from PIL import Image as PILImage
+
+    from .app.render_cmd import tile_dir
+    from .core.stats import read_stats
+    from .parallel.decompose import parse_wall
+
+    summary = json.loads((out / "summary.json").read_text())
+    records = read_stats(out / "stats.jsonl")
+    if not images:
+        return RenderResult(None, None, summary, records, out)
+    tiles = list(enumerate(parse_wall(cfg.wall, summary["ranks"], cfg.width, cfg.height))) if cfg.wall else None
+    imgs, deps = [], [] if depth else None
+
+    def png(p: Path) -> np.ndarray:
+        with PILImage.open(p) as im:
+            return np.asarray(im.convert("RGB"))
+
+    for f in range(nframes):
+        parts = [(vp, png(tile_dir(out, cfg, r) / f"{f:05d}.png"),
+                  np.load(tile_dir(out, cfg, r, "depth") / f"{f:05d}.npy") if depth else None)
+                 for r, vp in (tiles or [(0, None)])]
+        if tiles is None:
+            imgs.append(parts[0][1])
+            if depth:
+                deps.append(parts[0][2])
+        else:
+            rgb, dep = _assemble(parts, cfg)
+            imgs.append(rgb)
+            if depth:
+                deps.append(dep)
+    return RenderResult(imgs, deps, summary, records, out)
+
+
+def run_job(job_dir: str) -> int:
+    """Entry point of a job started by :func:`render` (``python -m massview __job DIR``): every
+    rank renders collectively; a failure is written to ``DIR/error.txt`` before the job aborts."""
+    from .app.render_cmd import run_render
+    from .parallel.runtime import guarded, world
+
+    d = Path(job_dir)
+    job = pickle.loads((d / "job.pkl").read_bytes())
+    comm = world()
+    rank = comm.Get_rank()
+
+    def body():
+        try:
+            run_render(comm, job["spec"], job["cfg"], Path(job["out"]), job["quiet"], job["cameras"] if rank == 0 else None,
+                       False, job["depth"], job["label"])
+        except BaseException as e:
+            prefix = f"rank {rank} of {comm.Get_size()}: " if comm.Get_size() > 1 else ""
+            text = str(e) if isinstance(e, MassviewError) else f"{type(e).__name__}: {e}"
+            try:
+                with open(d / "error.txt", "x") as f:  # the first failing rank's message
+                    f.write(prefix + text + "\n")
+            except OSError:
+                pass
+            raise
+
+    guarded(comm, body)
+    return 0
+
+
+# -- display in notebooks --------------------------------------------------------------------
+class Frame:
+    """An image that Jupyter displays inline (``_repr_png_``); ``array`` is (H, W, 3) uint8."""
+
+    def __init__(self, array: np.ndarray):
+        a = np.asarray(array)
+        if a.ndim != 3 or a.shape[2] not in (3, 4) or a.dtype != np.uint8:
+            raise ConfigError(f"show(): expected an (H, W, 3|4) uint8 image, got {a.shape} {a.dtype}")
+        self.array = np.ascontiguousarray(a[..., :3])
+
+    def png(self) -> bytes:
+        from PIL import Image as PILImage
+
+        buf = io.BytesIO()
+        PILImage.fromarray(self.array).save(buf, format="PNG")
+        return buf.getvalue()
+
+    def _repr_png_(self) -> bytes:
+        return self.png()
+
+    def _repr_html_(self) -> str:
+        h, w = self.array.shape[:2]
+        return f'<img width="{w}" height="{h}" src="data:image/png;base64,{base64.b64encode(self.png()).decode()}"/>'
+
+    def save(self, path: str | Path) -> Path:
+        Path(path).write_bytes(self.png())
+        return Path(path)
+
+    def __repr__(self) -> str:
+        return f"Frame({self.array.shape[1]}x{self.array.shape[0]})"
+
+
+def show(img, frame: int = 0) -> Frame:
+    """A displayable :class:`Frame` of an (H, W, 3|4) uint8 array, a :class:`RenderResult`
+    (its frame ``frame``) or a PNG file. In Jupyter, ``mv.show(img)`` as a cell's last line
+    displays it; elsewhere ``.save(path)`` writes the PNG. No IPython import is needed."""
+    if isinstance(img, RenderResult):
+        if not img.images:
+            raise ConfigError("show(): this result holds no images (rendered with images=False)")
+        img = img.images[frame]
+    elif isinstance(img, (str, Path)):
+        from PIL import Image as PILImage
+
+        with PILImage.open(img) as im:
+            img = np.asarray(im.convert("RGB"))
+    elif hasattr(img, "color") and hasattr(img, "viewport"):  # a massview.core.image.Image
+        img = img.color
+    return Frame(img)
+

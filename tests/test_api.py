@@ -1,0 +1,68 @@
+"""The Python API (massview.api): what the CLI calls, equal to the CLI bit for bit."""
+
+import io
+from dataclasses import fields
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import massview as mv
+from conftest import SMALL_SCENE, load_png, run_cli
+
+
+@pytest.fixture(scope="module")
+def scene():
+    with mv.open_scene(SMALL_SCENE) as s:
+        yield s
+
+
+def test_api_frame_equals_cli_frame(tmp_path, scene):
+    run_cli("render", SMALL_SCENE, "--path", "orbit", "--frames", 2, "--size", "320x240", "--out", tmp_path, "-q")
+    res = mv.render(scene, mv.path("orbit", scene, frames=2, size=(320, 240)))
+    assert len(res.images) == 2 and res.images[1].shape == (240, 320, 3) and res.images[1].dtype == np.uint8
+    for f in range(2):
+        assert np.array_equal(res.images[f], load_png(tmp_path / "frames" / f"{f:05d}.png"))
+    assert res.summary["frames"] == 2 and len(res.stats) == 2 and res.frame_stats(1)[0]["frame"] == 1
+    one = mv.render_frame(scene, "orbit", size=(320, 240))
+    assert np.array_equal(one, res.images[0])
+
+
+@pytest.mark.mpi
+def test_api_ranks_run_a_real_mpi_job_equal_to_serial(tmp_path, scene):
+    cams = mv.path("orbit", scene, frames=2, size=(320, 240))
+    serial = mv.render(scene, cams, depth=True)
+    par = mv.render(scene, cams, ranks=2, decomposition="sort-first:kd", depth=True, out=tmp_path / "run")
+    assert par.summary["ranks"] == 2 and {r["rank"] for r in par.stats} == {0, 1}
+    for a, b, da, db in zip(serial.images, par.images, serial.depths, par.depths):
+        assert np.array_equal(a, b) and np.array_equal(da, db)
+    assert (tmp_path / "run" / "frames" / "00001.png").exists() and par.out == tmp_path / "run"
+    wall = mv.render(scene, cams, ranks=4, wall="2x2")  # four display tiles assembled to the frame
+    assert all(np.array_equal(a, b) for a, b in zip(serial.images, wall.images))
+
+
+@pytest.mark.mpi
+def test_a_failing_rank_is_raised_with_its_message(scene):
+    with pytest.raises(mv.RankJobError, match="injected fault at frame 0"):
+        mv.render(scene, "orbit", ranks=2, frames=1, size=(160, 120), fault="1:0")
+
+
+def test_every_render_config_field_is_a_keyword_and_nothing_else():
+    for f in fields(mv.RenderConfig):
+        assert f.name in mv.render_config(**{f.name: getattr(mv.RenderConfig(), f.name)}).to_json()
+    with pytest.raises(mv.MassviewError, match="unknown render option.*no_such_option"):
+        mv.render_config(no_such_option=1)
+    assert mv.render_config().loading == "complete"  # offline renders are final quality
+
+
+def test_camera_and_show(scene):
+    lo, hi = scene.bounds
+    cam = mv.camera(scene, position=(lo[0], lo[1], hi[2] * 4), look_at=(lo + hi) / 2, size=(160, 120))
+    assert cam.far > np.linalg.norm(hi - lo) and cam.near < 0.01 * np.linalg.norm(hi - lo)
+    img = mv.render_frame(scene, cam)
+    shown = mv.show(img)
+    back = np.asarray(Image.open(io.BytesIO(shown._repr_png_())).convert("RGB"))
+    assert np.array_equal(back, img) and "data:image/png;base64," in shown._repr_html_()
+    assert (img != img[0, 0]).any(axis=2).sum() > 100  # objects drawn, not only background
+    with pytest.raises(mv.MassviewError, match="look_at"):
+        mv.camera(scene, position=(0, 0, 0))

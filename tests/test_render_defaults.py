@@ -1,0 +1,65 @@
+"""Offline renders are final quality, and keyframe files fit their clip planes to the scene."""
+
+import json
+
+import numpy as np
+import pytest
+
+import massview as mv
+from conftest import load_png, run_cli, summary
+from massview.core.image import BACKGROUND_RGBA
+from massview.core.paths import load_path
+
+
+def drawn_fraction(img: np.ndarray) -> float:
+    return float(np.mean(np.any(img != np.array(BACKGROUND_RGBA[:3], np.uint8), axis=2)))
+
+
+def test_default_render_has_no_frame_with_missing_terrain(tmp_path, terrain_store):
+    run_cli("render", terrain_store, "--path", "zoom", "--frames", 4, "--size", "320x240", "--out", tmp_path, "-q")
+    recs = [json.loads(x) for x in (tmp_path / "stats.jsonl").read_text().splitlines()]
+    assert len(recs) == 4
+    assert all(r["counters"]["deferred_splits"] == 0 for r in recs)  # every split the view wants was drawn
+    # each frame equals its camera rendered after a warm-up render of the same view (all its data resident)
+    scene = mv.open_scene(terrain_store)
+    cams = mv.path("zoom", scene, frames=4, size=(320, 240))
+    for f in range(4):
+        warm = mv.render(scene, [cams[f], cams[f]]).images[1]
+        got = load_png(tmp_path / "frames" / f"{f:05d}.png")
+        assert drawn_fraction(got) > 0.2 and np.array_equal(got, warm), f"frame {f} is not final quality"
+    scene.close()
+    assert summary(tmp_path)["frames"] == 4
+
+
+@pytest.fixture(scope="module")
+def large_scene(tmp_path_factory):
+    """A 100+ km terrain: 257² samples 500 m apart."""
+    d = tmp_path_factory.mktemp("large")
+    a = np.random.default_rng(2).normal(0, 1, (257, 257)).cumsum(0).cumsum(1).astype(np.float32)
+    a = (a - a.min()) / (a.max() - a.min()) * 3000
+    np.save(d / "big.npy", a)
+    run_cli("prepare", "terrain", d / "big.npy", "-o", d / "big.zarr", "--spacing", 500, "-q")
+    return d / "big.zarr"
+
+
+def _keyframes(path, extra=None):
+    data = {"keyframes": [{"time": 0, "position": [-20000, 20000, 15000], "look_at": [64000, -64000, 0]},
+                          {"time": 1, "position": [-15000, 15000, 14000], "look_at": [64000, -64000, 0]}], **(extra or {})}
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_keyframes_without_clip_planes_do_not_clip_a_large_scene(tmp_path, large_scene):
+    scene = mv.open_scene(large_scene)
+    lo, hi = scene.bounds
+    assert np.linalg.norm(hi - lo) > 100_000
+    fitted = load_path(str(_keyframes(tmp_path / "k.json")), lo, hi)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    reach = max(np.linalg.norm(corners - p, axis=1).max() for p in fitted.positions)
+    assert fitted.far > reach and fitted.near < 0.01 * reach
+    img = mv.render_frame(scene, str(tmp_path / "k.json"), size=(240, 180))
+    old = mv.render_frame(scene, str(_keyframes(tmp_path / "old.json", {"near": 0.1, "far": 10000})), size=(240, 180))
+    assert drawn_fraction(img) > 0.3 and drawn_fraction(img) > 3 * drawn_fraction(old)
+    explicit = load_path(str(_keyframes(tmp_path / "e.json", {"near": 2.0, "far": 5e5})), lo, hi)
+    assert explicit.clip() == (2.0, 5e5)  # given clip planes are kept
+    scene.close()
