@@ -7,9 +7,14 @@ Wire format (little-endian)::
 
 Runs alternate background/active starting with background, over the row-major pixels of the
 viewport; a pixel is background when its depth is exactly 1.0. Only active pixels' color and
-depth are stored. Byte codecs: ``lz4`` (lz4.frame, default: the faster of the two at equal
-ratio on rendered frames here — see ``massview bench composite``), ``blosc2`` (zstd + shuffle)
-and ``none``.
+depth are stored. Byte codecs: ``blosc2`` (LZ4 + byte shuffle, level 1; the default: it packs
+a 1.3 MB band in 0.2 ms here against 1.8 ms for lz4.frame, at a better ratio), ``lz4``
+(lz4.frame) and ``none``. Each runs on one thread per rank (ranks share the cores).
+
+Encoding writes runs, colors and depths straight into the wire buffer from views of the image
+(no crop, no concatenation); receivers combine (:func:`merge_into`) or paste
+(:func:`paste_into`) a message's active pixels directly into their own buffers, without
+decoding it to a full image first (kernels in :mod:`.kernels`).
 """
 
 from __future__ import annotations

@@ -15,6 +15,12 @@ and combines one band from all members, in rank order.
   (the odd one sends its whole image), then log2(P) rounds of k = 2.
 * ``radix-k``: N factored into digits ≤ k (a prime factor larger than k is one digit).
 
+Kernels work in place (issue 20): bands are encoded from views of the image, received
+messages are combined into this rank's own band by their active-pixel runs without being
+decoded to images (lower ranks' parts in front, nearest first, then higher ranks' — the same
+pixels as combining in rank order), and the band lives in a per-thread scratch buffer reused
+frame after frame. ``combine`` itself stays the reference the tests compare with.
+
 Each rank ends with the final pixels of one region (maybe empty). ``deliver`` then moves
 regions to display tiles: the destination rank (one tile covering the frame) or the ranks of
 a display wall, each receiving only the pixels of its own tile.
