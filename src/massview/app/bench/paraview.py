@@ -42,6 +42,7 @@ def add_arguments(p) -> None:
     p.add_argument("--frames", type=int, default=8, help="cameras along the flyover path (default 8)")
     p.add_argument("--ranks", default="1,2", help="rank counts (default 1,2)")
     p.add_argument("--workdir", default="out/bench", help="where the exported grid and the demo terrain go")
+    p.add_argument("--steps", default="1,2", help="ParaView surfaces: every STEP-th sample, comma-separated (default 1,2: full and ~equal triangles)")
     p.add_argument("--skip-massview", action="store_true", help="only run pvbatch")
 
 
@@ -128,23 +129,25 @@ def run(args) -> int:
     export_cameras(store, args.frames, args.size, cams)
     ranks = [int(v) for v in args.ranks.split(",") if v.strip()]
     pv = {}
-    for step in (1, 2):
+    steps = [int(v) for v in args.steps.split(",") if v.strip()]
+    for step in steps:
         for n in ranks:
             console.print(f"[dim]pvbatch, {n} rank(s), every {step} sample(s) ...[/]")
             pv[(step, n)] = run_pvbatch(grid, cams, step, n, workdir)
     mv = {} if args.skip_massview else _massview(args, store, ranks)
-    _print(console, pv, mv, ranks, args, store)
+    _print(console, pv, mv, ranks, steps, args, store)
     return 0
 
 
-def _print(console, pv: dict, mv: dict, ranks: list[int], args, store: Path) -> None:
+def _print(console, pv: dict, mv: dict, ranks: list[int], steps: list[int], args, store: Path) -> None:
     from rich.table import Table
 
     t = Table(title=f"massview vs ParaView pvbatch + IceT: {store.name}, {args.size}, {args.frames} flyover cameras (mean ms/frame)")
     for c in ("system", "surface / mode", *(f"{n} rank ms" for n in ranks), "M triangles", f"speed-up {ranks[0]}→{ranks[-1]}"):
         t.add_column(c, justify="right")
     rows = []
-    for step, label in ((1, "full"), (2, "every 2nd sample")):
+    for step in steps:
+        label = "full" if step == 1 else f"every {step}th sample"
         ms = [1e3 * float(np.mean(pv[(step, n)]["seconds"])) for n in ranks]
         rows.append(("ParaView", label, ms, pv[(step, ranks[0])]["triangles"] / 1e6))
     for mode in ("sort-last", "sort-first"):
