@@ -196,9 +196,12 @@ def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: 
 def deliver(comm, piece: Image, tiles: list[tuple[int, Viewport]], stats: FrameStats | None = None, codec: str = "blosc2") -> Image | None:
     """Move final pixels to display tiles. ``piece`` is the region this rank holds (regions of
     all ranks partition the frame); ``tiles`` lists (display rank, tile viewport). Returns the
-    assembled tile on display ranks, None elsewhere."""
+    assembled tile on display ranks, None elsewhere (on one rank whose one tile is the piece's
+    viewport: the piece itself)."""
     stats = stats if stats is not None else FrameStats(frame=-1, rank=comm.Get_rank())
     me = comm.Get_rank()
+    if comm.Get_size() == 1 and tiles == [(0, piece.viewport)]:
+        return piece  # one rank, one tile: the image is the tile (no copy)
     regions = [Viewport.from_json(v) for v in comm.allgather(piece.viewport.to_json())]
     with stats.stage("encode"):
         sends = {}
