@@ -44,6 +44,7 @@ def add_arguments(p) -> None:
     p.add_argument("--workdir", default="out/bench", help="where the exported grid and the demo terrain go")
     p.add_argument("--steps", default="1,2", help="ParaView surfaces: every STEP-th sample, comma-separated (default 1,2: full and ~equal triangles)")
     p.add_argument("--skip-massview", action="store_true", help="only run pvbatch")
+    p.add_argument("--reuse", action="store_true", help="reuse pvbatch results already in --workdir (pv_RANKS_STEP.json)")
 
 
 def export_grid(store_path: Path, workdir: Path) -> dict:
@@ -92,8 +93,12 @@ def run_pvbatch(grid: dict, cams: Path, step: int, ranks: int, workdir: Path) ->
         cmd = [mpi, "--allow-run-as-root", "--oversubscribe", "-n", str(ranks), *cmd]
     if not os.environ.get("DISPLAY"):
         cmd = ["xvfb-run", "-a", "-s", "-screen 0 1920x1200x24", *cmd]
-    subprocess.run(cmd, check=True, capture_output=True, text=True, env=dict(os.environ, OMPI_MCA_btl_vader_single_copy_mechanism="none"))
-    return json.loads(out.read_text())
+    env = dict(os.environ, OMPI_MCA_btl_vader_single_copy_mechanism="none")
+    for attempt in range(2):  # xvfb-run -a can lose a race for a display number on a busy machine
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        if proc.returncode == 0 and out.exists():
+            return json.loads(out.read_text())
+    raise RuntimeError(f"pvbatch failed (exit {proc.returncode}): {' '.join(map(str, cmd))}\n{(proc.stdout + proc.stderr)[-3000:]}")
 
 
 def _massview(args, store: Path, ranks: list[int]) -> dict:
@@ -132,6 +137,10 @@ def run(args) -> int:
     steps = [int(v) for v in args.steps.split(",") if v.strip()]
     for step in steps:
         for n in ranks:
+            done = workdir / f"pv_{n}_{step}.json"
+            if args.reuse and done.exists():
+                pv[(step, n)] = json.loads(done.read_text())
+                continue
             console.print(f"[dim]pvbatch, {n} rank(s), every {step} sample(s) ...[/]")
             pv[(step, n)] = run_pvbatch(grid, cams, step, n, workdir)
     mv = {} if args.skip_massview else _massview(args, store, ranks)
