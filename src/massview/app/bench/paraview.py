@@ -156,7 +156,7 @@ def _print(console, pv: dict, mv: dict, ranks: list[int], steps: list[int], args
         t.add_column(c, justify="right")
     rows = []
     for step in steps:
-        label = "full" if step == 1 else f"every {step}th sample"
+        label = "full" if step == 1 else f"every {step} samples"
         ms = [1e3 * float(np.mean(pv[(step, n)]["seconds"])) for n in ranks]
         rows.append(("ParaView", label, ms, pv[(step, ranks[0])]["triangles"] / 1e6))
     for mode in ("sort-last", "sort-first"):
