@@ -66,3 +66,56 @@ def test_camera_and_show(scene):
     assert (img != img[0, 0]).any(axis=2).sum() > 100  # objects drawn, not only background
     with pytest.raises(mv.MassviewError, match="look_at"):
         mv.camera(scene, position=(0, 0, 0))
+
+
+@pytest.mark.mpi
+def test_readme_example_runs_and_equals_the_cli(tmp_path, capsys):
+    """The README's Python API example, run as written; its frames equal `massview render`'s."""
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("## Python API", 1)[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    ns: dict = {}
+    exec(compile(code, "README.md", "exec"), ns)  # noqa: S102 - the documented example itself
+    assert "(240, 320, 3)" in capsys.readouterr().out
+    assert isinstance(ns["res"], mv.RenderResult) and ns["res"].summary["ranks"] == 2
+    run_cli("render", "builtin:objects?n=400", "--path", "orbit", "--frames", 2, "--size", "320x240", "--out", tmp_path, "-q")
+    for f in range(2):
+        assert np.array_equal(ns["res"].images[f], load_png(tmp_path / "frames" / f"{f:05d}.png"))
+    assert np.array_equal(ns["img"], load_png(tmp_path / "frames" / "00001.png"))
+    assert ns["res"].images[0].dtype == np.uint8 and hasattr(mv.show(ns["img"]), "_repr_png_")
+    ns["scene"].close()
+
+
+@pytest.mark.mpi
+def test_render_is_collective_inside_an_external_mpi_job(tmp_path, scene):
+    """A script started by mpiexec: every rank calls render, rank 0 gets the frame."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = tmp_path / "job.py"
+    script.write_text(
+        "import sys, numpy as np, massview as mv\n"
+        f"r = mv.render({SMALL_SCENE!r}, 'orbit', frames=1, size=(160, 120), decomposition='sort-first:horizontal')\n"
+        "if r is not None:\n"
+        "    np.save(sys.argv[1], r.images[0]); print('ranks', r.summary['ranks'])\n"
+        "else:\n"
+        "    print('rank without result')\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
+    mpiexec = str(Path(sys.executable).parent / "mpiexec")
+    proc = subprocess.run([mpiexec, "-n", "2", sys.executable, str(script), str(tmp_path / "f.npy")], capture_output=True,
+                          text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "ranks 2" in proc.stdout and "rank without result" in proc.stdout
+    assert np.array_equal(np.load(tmp_path / "f.npy"), mv.render_frame(scene, "orbit", size=(160, 120)))
+
+
+def test_cli_defaults_render_complete_view_async():
+    from massview.app.cli import build_parser
+
+    assert build_parser().parse_args(["render", "x"]).loading == "complete"
+    assert build_parser().parse_args(["view", "x"]).loading == "async"

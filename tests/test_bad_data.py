@@ -134,3 +134,15 @@ def test_unwritable_output_is_one_line_before_any_work(tmp_path, where, command)
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("massview: error: ") and "rank" not in lines[0], proc.stderr
     assert target in lines[0]
+
+
+def test_a_leading_nodata_region_repeats_the_first_valid_row_not_zero(tmp_path):
+    """The first strip wholly nodata (a clipped raster): filled from the data below, so no 0 m cliff."""
+    from massview.data.terrain import ArraySource, prepare_terrain
+
+    a = np.tile(np.linspace(500, 900, 300, dtype=np.float32), (700, 1))
+    a[:400] = np.nan
+    res = prepare_terrain(ArraySource(a, "top"), tmp_path / "s.zarr", block=129, color=None)
+    st = TerrainStore(tmp_path / "s.zarr")
+    assert res.filled == 400 * 300 and st.attrs["height_range"] == [500.0, 900.0]
+    assert np.array_equal(st.get_block(0, 0, 0)[0, :129], a[400, :129])  # row 0 is the first valid row

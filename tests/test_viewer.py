@@ -25,21 +25,22 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.fixture()
-def viewer(terrain_store):
+def start_viewer(store, ranks=2, host=None, size="480x270"):
     port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
-    proc = subprocess.Popen([sys.executable, "-m", "massview", "view", str(terrain_store), "--ranks", "2", "--port", str(port),
-                             "--size", "480x270"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
-                            start_new_session=True)
+    proc = subprocess.Popen([sys.executable, "-m", "massview", "view", str(store), "--ranks", str(ranks), "--port", str(port),
+                             "--size", size] + (["--host", host] if host else []), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env=env, start_new_session=True)
     line = ""
     t0 = time.monotonic()
     while "serving http" not in line:
         line = proc.stdout.readline()
         assert line or proc.poll() is None, "viewer exited early"
         assert time.monotonic() - t0 < 120
-    url = re.search(r"http://\S+", line).group(0)
-    yield url, proc
+    return re.search(r"http://\S+", line).group(0), port, proc
+
+
+def stop_viewer(proc):
     if proc.poll() is None:
         os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C on the whole job, as a terminal would
         out, _ = proc.communicate(timeout=60)
@@ -47,14 +48,25 @@ def viewer(terrain_store):
         assert "viewer stopped" in out
 
 
+@pytest.fixture()
+def viewer(terrain_store):
+    url, _, proc = start_viewer(terrain_store)
+    yield url, proc
+    stop_viewer(proc)
+
+
+def launch(p):
+    return p.chromium.launch(executable_path=CHROMIUM, headless=True,
+                             args=["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                                   "--disable-background-networking", "--disable-component-update", "--disable-sync"])
+
+
 def test_viewer_streams_reacts_and_survives_bad_input(viewer):
     from playwright.sync_api import sync_playwright
 
     url, proc = viewer
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, headless=True,
-                                    args=["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                                          "--disable-background-networking", "--disable-component-update", "--disable-sync"])
+        browser = launch(p)
         page = browser.new_page()
         page.goto(url)
         page.wait_for_function("window.mv && window.mv.frames >= 2 && window.mv.stats", timeout=60000)
@@ -91,3 +103,89 @@ def test_viewer_streams_reacts_and_survives_bad_input(viewer):
         assert "rejected" in page.inner_text("#message")
         browser.close()
     assert proc.poll() is None  # closing the page did not stop the job
+
+
+def _status(url, headers=None) -> int:
+    import urllib.error
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, headers=headers or {}), timeout=30) as r:
+            return r.status
+    except urllib.error.HTTPError as e:
+        return e.code
+
+
+def _ws_status(url, origin=None) -> int:
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    try:
+        with connect(url, origin=origin, open_timeout=30) as ws:
+            assert '"hello"' in ws.recv(timeout=30)
+            return 101
+    except InvalidStatus as e:
+        return e.response.status_code
+
+
+def test_off_loopback_needs_the_token_and_the_pages_origin(terrain_store):
+    from playwright.sync_api import sync_playwright
+
+    url, port, proc = start_viewer(terrain_store, ranks=1, host="0.0.0.0", size="320x180")
+    try:
+        token = re.search(r"token=([\w-]+)", url).group(1)
+        base, ws = f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}/ws"
+        assert len(token) >= 24
+        assert _status(f"{base}/") == 403 and _status(f"{base}/?token=wrong") == 403 and _status(f"{base}/viewer.js") == 403
+        assert _status(f"{base}/?token={token}") == 200
+        assert _status(f"{base}/viewer.js", {"Cookie": f"massview_token={token}"}) == 200
+        assert _ws_status(ws) == 403 and _ws_status(f"{ws}?token=wrong", origin=base) == 403
+        assert _ws_status(f"{ws}?token={token}", origin="http://evil.example") == 403
+        assert _ws_status(f"{ws}?token={token}", origin=base) == 101
+        with sync_playwright() as p:  # the printed URL works in a browser (token -> cookie -> assets and WebSocket)
+            browser = launch(p)
+            page = browser.new_page()
+            page.goto(f"{base}/?token={token}")
+            page.wait_for_function("window.mv && window.mv.frames >= 2", timeout=60000)
+            browser.close()
+    finally:
+        stop_viewer(proc)
+
+
+MOVED = "(p) => window.mv.stats.position.some((v, i) => Math.abs(v - p[i]) > 1e-6)"
+
+
+def test_loopback_refuses_foreign_origins_and_hosts_and_one_browser_steers(terrain_store):
+    """Loopback: no token, but a foreign Origin (another site in the browser) or a foreign Host
+    (DNS rebinding) gets 403. Two browsers: both watch, the first steers, the second takes over."""
+    from playwright.sync_api import sync_playwright
+
+    url, port, proc = start_viewer(terrain_store, ranks=1, size="320x180")
+    try:
+        base = f"http://127.0.0.1:{port}"
+        assert _ws_status(f"ws://127.0.0.1:{port}/ws", origin="http://evil.example") == 403
+        assert _ws_status(f"ws://127.0.0.1:{port}/ws", origin=base) == 101
+        assert _status(f"{base}/", {"Host": f"evil.example:{port}"}) == 403
+        with sync_playwright() as p:
+            browser = launch(p)
+            pilot, watcher = browser.new_page(), browser.new_page()
+            pilot.goto(url)
+            pilot.wait_for_function("window.mv && window.mv.role === 'pilot' && window.mv.frames >= 1", timeout=60000)
+            watcher.goto(url)
+            watcher.wait_for_function("window.mv && window.mv.role === 'watcher' && window.mv.frames >= 2", timeout=60000)
+            start = watcher.evaluate("window.mv.stats")
+            assert start["clients"] == 2
+            watcher.evaluate("window.mv.ws.send(JSON.stringify({type: 'input', move: [1, 0, 0], look: [0, 0], dt: 1}))")
+            watcher.wait_for_function("document.getElementById('message').textContent.includes('watching')", timeout=60000)
+            watcher.wait_for_function(f"window.mv.stats.frame > {start['frame'] + 2}", timeout=60000)
+            assert watcher.evaluate("window.mv.stats.position") == start["position"]  # a watcher does not steer
+            pilot.evaluate("window.mv.ws.send(JSON.stringify({type: 'input', move: [1, 0, 0], look: [0, 0], dt: 1}))")
+            watcher.wait_for_function(MOVED, arg=start["position"], timeout=60000)  # the pilot's input moves what everyone sees
+            moved = watcher.evaluate("window.mv.stats.position")
+            pilot.close()
+            watcher.wait_for_function("window.mv.role === 'pilot'", timeout=60000)  # the watcher takes over
+            watcher.evaluate("window.mv.ws.send(JSON.stringify({type: 'input', move: [1, 0, 0], look: [0, 0], dt: 1}))")
+            watcher.wait_for_function(MOVED, arg=moved, timeout=60000)
+            browser.close()
+    finally:
+        stop_viewer(proc)

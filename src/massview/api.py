@@ -26,7 +26,7 @@ is started as ``mpiexec -n N python -m massview __job DIR`` (the ``mpiexec`` bes
 Python), its ranks render collectively and write lossless PNG frames (+ ``depth/*.npy`` with
 ``depth=True``), ``stats.jsonl`` and ``summary.json``, and this process loads them back — so the
 images are the job's pixels bit for bit. A rank's error is written to ``DIR/error.txt`` and
-raised here as :class:`RankJobError`. Inside an MPI job already (a script started by
+raised here as :class:`RankJobError` (:mod:`massview.app.render_job`). Inside an MPI job already (a script started by
 ``mpiexec``), :func:`render` is collective: every rank must call it, it uses all the ranks it
 was given, and returns the result on rank 0 (``None`` elsewhere).
 """
@@ -36,9 +36,6 @@ from __future__ import annotations
 import base64
 import io
 import json
-import pickle
-import shutil
-import tempfile
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Iterable
@@ -47,19 +44,11 @@ import numpy as np
 
 from .core.camera import Camera, look_at_quaternion
 from .core.config import RenderConfig, parse_size
-from .core.errors import ConfigError, MassviewError, ParallelError
+from .core.errors import ConfigError, RankJobError
 from .core.paths import load_path, scene_clip
 
 __all__ = ["Scene", "RenderResult", "Frame", "RankJobError", "open_scene", "camera", "path", "render", "render_frame",
            "show", "render_config"]
-
-
-class RankJobError(ParallelError):
-    """An MPI job started by :func:`render` failed; the message is the failing rank's."""
-
-    def __init__(self, message: str, returncode: int):
-        super().__init__(message)
-        self.returncode = returncode
 
 
 class Scene:
@@ -115,6 +104,14 @@ def open_scene(spec: str | Path | Scene) -> Scene:
     return spec if isinstance(spec, Scene) else Scene(spec)
 
 
+def _bounds(scene) -> tuple[np.ndarray, np.ndarray]:
+    """The world box of a Scene, or of a spec (opened and closed again)."""
+    if isinstance(scene, Scene):
+        return scene.bounds
+    with Scene(scene) as s:
+        return s.bounds
+
+
 def _size(size) -> tuple[int, int]:
     if isinstance(size, str):
         return parse_size(size)
@@ -137,7 +134,7 @@ def camera(scene: Scene | str | None = None, *, position, look_at=None, orientat
     if near is None or far is None:
         if scene is None:
             raise ConfigError("camera(): give the scene (to fit the clip planes) or near= and far=")
-        fn, ff = scene_clip(*open_scene(scene).bounds, positions=pos[None])
+        fn, ff = scene_clip(*_bounds(scene), positions=pos[None])
         near, far = near if near is not None else fn, far if far is not None else ff
     w, h = _size(size)
     return Camera(tuple(pos), tuple(orientation), fovy=fovy, near=near, far=far, width=w, height=h)
@@ -148,7 +145,7 @@ def path(name_or_file: str | Path, scene: Scene | str, frames: int = 10, size=(1
     ``flyover``, fitted to the scene) or a keyframe ``.json`` file (clip planes fitted to the
     scene unless the file gives ``near``/``far``)."""
     w, h = _size(size)
-    return load_path(str(name_or_file), *open_scene(scene).bounds).cameras(int(frames), w, h)
+    return load_path(str(name_or_file), *_bounds(scene)).cameras(int(frames), w, h)
 
 
 def render_config(config: RenderConfig | None = None, **options) -> RenderConfig:
@@ -187,7 +184,7 @@ class RenderResult:
         return int(self.summary.get("frames", len(self.images or [])))
 
     def _repr_png_(self) -> bytes | None:
-        return show(self.images[0])._repr_png_() if self.images else None
+        return show(self.images[0]).png() if self.images else None
 
 
 def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
@@ -203,13 +200,13 @@ def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
     return cams, "cameras"
 
 
-def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camera] = "orbit", *, ranks: int | None = None,
+def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camera] | None = None, *, ranks: int | None = None,
            out: str | Path | None = None, depth: bool = False, images: bool = True, progress: bool = False,
            frames: int | None = None, size=None, config: RenderConfig | None = None, **options) -> RenderResult | None:
     """Render a path or cameras on ``ranks`` local ranks (see the module docstring).
 
-    ``what``: a path name or keyframe file (with ``frames`` and ``size``), a :class:`Camera`, or a
-    list of cameras. ``out``: also write ``frames/``, ``stats.jsonl`` and ``summary.json`` there.
+    ``what``: a path name or keyframe file (with ``frames`` and ``size``; default: the ``path``
+    option, ``"orbit"``), a :class:`Camera`, or a list of cameras. ``out``: also write ``frames/``, ``stats.jsonl`` and ``summary.json`` there.
     ``options``: :class:`RenderConfig` fields. Returns a :class:`RenderResult` (``None`` on ranks
     other than 0 when called collectively inside an MPI job).
     """
@@ -229,9 +226,10 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
     nranks = world().Get_size() if in_mpi_job() else int(ranks or 1)
     if nranks < 1:
         raise ConfigError(f"ranks must be at least 1, got {ranks}")
+    what = cfg.path if what is None else what
     if isinstance(what, (str, Path)):  # size and frame count first: check everything before any work
         w, h = _size(size) if size is not None else (cfg.width, cfg.height)
-        cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": int(frames or cfg.frames)})
+        cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": int(frames or cfg.frames), "path": str(what)})
         load_path(str(what), [0, 0, 0], [1, 1, 1])  # a bad name or file is reported now
     out = Path(out) if out is not None else None
     validate(scene.spec, cfg, nranks)
@@ -247,7 +245,7 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
     return _render_job(scene, cfg, cams, label, out, depth, images, progress, nranks)
 
 
-def render_frame(scene: Scene | str | Path, what: Camera | str | Path = "orbit", *, depth: bool = False, **kw):
+def render_frame(scene: Scene | str | Path, what: Camera | str | Path | None = None, *, depth: bool = False, **kw):
     """One frame: (H, W, 3) uint8, or ``(rgb, depth)`` with ``depth=True``. ``what`` is a camera
     or a path (its first camera); other keywords as :func:`render`."""
     res = render(scene, what, depth=depth, frames=kw.pop("frames", 1), **kw)
@@ -261,7 +259,11 @@ def validate(spec: str, cfg: RenderConfig, nranks: int) -> None:
     from .parallel.decompose import parse_decomposition, parse_wall, sort_first_tiles
     from .systems import scene_kind
 
-    modes = ("kpatch", "linear", "quadtree") if scene_kind(spec) == "terrain" else ()
+    modes = {"terrain": ("kpatch", "linear", "quadtree"), "scene": ("visible", "static")}.get(scene_kind(spec), ())
+    if cfg.system == "roettger":  # T2: roles, wall per visualization rank, the stores' tables
+        from .systems.roettger import validate as validate_roettger
+
+        return validate_roettger(spec, cfg, nranks)
     parse_decomposition(cfg.decomposition, modes)
     if cfg.decomposition == "sort-first:grid":
         sort_first_tiles("grid", nranks, cfg.width, cfg.height, cfg.grid)
@@ -283,108 +285,24 @@ def _render_here(scene, cfg, cams, label, out, depth, images, progress) -> Rende
         return None
     imgs = deps = None
     if images:
-        frames = [_assemble(job.tiles.get(f, []), cfg) for f in range(len(cams))]
+        from .app.render_job import assemble_tiles
+
+        frames = [assemble_tiles(job.tiles.get(f, []), cfg.width, cfg.height) for f in range(len(cams))]
         imgs = [f[0] for f in frames]
         deps = [f[1] for f in frames] if depth else None
     return RenderResult(imgs, deps, job.summary, job.records, out)
 
 
-def _assemble(tiles, cfg: RenderConfig) -> tuple[np.ndarray, np.ndarray | None]:
-    """The full frame from display tiles (one tile without a wall)."""
-    if len(tiles) == 1 and tiles[0][0].w == cfg.width and tiles[0][0].h == cfg.height:
-        return tiles[0][1], tiles[0][2]
-    rgb = np.zeros((cfg.height, cfg.width, 3), np.uint8)
-    dep = np.ones((cfg.height, cfg.width), np.float32) if tiles and tiles[0][2] is not None else None
-    for vp, c, d in tiles:
-        rgb[vp.slices()] = c
-        if dep is not None:
-            dep[vp.slices()] = d
-    return rgb, dep
-
-
-# -- ranks > 1: a real MPI job -------------------------------------------------------------
+# -- ranks > 1: a real MPI job (app/render_job.py) -------------------------------------------
 def _render_job(scene, cfg, cams, label, out, depth, images, progress, nranks) -> RenderResult:
-    from .parallel.runtime import relaunch
-
-    tmp = Path(tempfile.mkdtemp(prefix="massview-job-"))
-    try:
-        target = out if out is not None else tmp / "out"
-        job = {"spec": scene.spec, "cfg": cfg, "cameras": cams, "label": label, "out": str(target), "depth": depth,
-               "quiet": not progress}
-        (tmp / "job.pkl").write_bytes(pickle.dumps(job))
-        rc = relaunch(["__job", str(tmp)], nranks)
-        if rc != 0:
-            err = tmp / "error.txt"
-            msg = err.read_text().strip() if err.exists() else f"the {nranks}-rank job exited with status {rc}"
-            raise RankJobError(msg, rc)
-        res = _load_run(target, cfg, len(cams), depth, images)
-        res.out = out
-        return res
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-
-
-def _load_run(out: Path, cfg: RenderConfig, nframes: int, depth: bool, images: bool) -> RenderResult:
-    from PIL import Image as PILImage
-
-    from .app.render_cmd import tile_dir
+    from .app.render_job import load_frames, mpi_job
     from .core.stats import read_stats
-    from .parallel.decompose import parse_wall
 
-    summary = json.loads((out / "summary.json").read_text())
-    records = read_stats(out / "stats.jsonl")
-    if not images:
-        return RenderResult(None, None, summary, records, out)
-    tiles = list(enumerate(parse_wall(cfg.wall, summary["ranks"], cfg.width, cfg.height))) if cfg.wall else None
-    imgs, deps = [], [] if depth else None
-
-    def png(p: Path) -> np.ndarray:
-        with PILImage.open(p) as im:
-            return np.asarray(im.convert("RGB"))
-
-    for f in range(nframes):
-        parts = [(vp, png(tile_dir(out, cfg, r) / f"{f:05d}.png"),
-                  np.load(tile_dir(out, cfg, r, "depth") / f"{f:05d}.npy") if depth else None)
-                 for r, vp in (tiles or [(0, None)])]
-        if tiles is None:
-            imgs.append(parts[0][1])
-            if depth:
-                deps.append(parts[0][2])
-        else:
-            rgb, dep = _assemble(parts, cfg)
-            imgs.append(rgb)
-            if depth:
-                deps.append(dep)
+    with mpi_job(scene.spec, cfg, cams, label, out, depth, not progress, nranks) as folder:
+        summary = json.loads((folder / "summary.json").read_text())
+        records = read_stats(folder / "stats.jsonl")
+        imgs, deps = load_frames(folder, cfg, len(cams), depth, summary["ranks"]) if images else (None, None)
     return RenderResult(imgs, deps, summary, records, out)
-
-
-def run_job(job_dir: str) -> int:
-    """Entry point of a job started by :func:`render` (``python -m massview __job DIR``): every
-    rank renders collectively; a failure is written to ``DIR/error.txt`` before the job aborts."""
-    from .app.render_cmd import run_render
-    from .parallel.runtime import guarded, world
-
-    d = Path(job_dir)
-    job = pickle.loads((d / "job.pkl").read_bytes())
-    comm = world()
-    rank = comm.Get_rank()
-
-    def body():
-        try:
-            run_render(comm, job["spec"], job["cfg"], Path(job["out"]), job["quiet"], job["cameras"] if rank == 0 else None,
-                       False, job["depth"], job["label"])
-        except BaseException as e:
-            prefix = f"rank {rank} of {comm.Get_size()}: " if comm.Get_size() > 1 else ""
-            text = str(e) if isinstance(e, MassviewError) else f"{type(e).__name__}: {e}"
-            try:
-                with open(d / "error.txt", "x") as f:  # the first failing rank's message
-                    f.write(prefix + text + "\n")
-            except OSError:
-                pass
-            raise
-
-    guarded(comm, body)
-    return 0
 
 
 # -- display in notebooks --------------------------------------------------------------------

@@ -28,7 +28,7 @@ from ..parallel.runtime import reuse_freed_memory
 __all__ = ["main", "build_parser"]
 
 DECOMPOSITIONS = ("sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd", "sort-last",
-                  "sort-last:kpatch", "sort-last:linear", "sort-last:quadtree")
+                  "sort-last:kpatch", "sort-last:linear", "sort-last:quadtree", "sort-last:visible", "sort-last:static")
 
 
 def _grid(spec: str) -> tuple[int, int]:
@@ -52,10 +52,10 @@ def _positive(v: str) -> int:
 
 
 def _add_render_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene", help="a terrain store, or builtin:objects[?n=COUNT&seed=S]")
+    p.add_argument("scene", help="a terrain store, a scene store, or builtin:objects[?n=COUNT&seed=S]")
     p.add_argument("--ranks", type=_positive, default=None, help="local ranks to launch (default 1; ignored under an external mpiexec)")
     p.add_argument("--decomposition", default="sort-last", metavar="MODE",
-                   help=f"one of {', '.join(DECOMPOSITIONS)} (default sort-last; terrain: sort-last = sort-last:kpatch); "
+                   help=f"one of {', '.join(DECOMPOSITIONS)} (default sort-last; terrain: sort-last = sort-last:kpatch; scene: sort-last = sort-last:visible); "
                         "'horizontal' = side-by-side columns, 'vertical' = stacked rows")
     p.add_argument("--compositor", default="binary-swap", choices=COMPOSITORS, help="sort-last depth compositing (default binary-swap)")
     p.add_argument("--radix-k", type=int, default=None, help="k for radix-k (default 4)")
@@ -67,11 +67,11 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--wall", default=None, metavar="CxR", help="display wall: C×R display ranks each write their own tile")
     p.add_argument("--tile-targets", action="store_true", help="sort-first into tile-sized targets (off-axis frusta; equal to ~1e-4 of pixels)")
     p.add_argument("--color-by-rank", action="store_true", help="tint each rank's contribution")
-    p.add_argument("--tau", type=float, default=1.0, help="terrain: pixel tolerance of the LOD (default 1)")
-    p.add_argument("--cache-mb", type=int, default=256, help="terrain: RAM block cache per rank, MiB (default 256)")
-    p.add_argument("--gpu-mb", type=int, default=256, help="terrain: GL block pool per rank, MiB (default 256)")
+    p.add_argument("--tau", type=float, default=1.0, help="terrain and scenes: pixel tolerance of the LOD (default 1)")
+    p.add_argument("--cache-mb", type=int, default=256, help="terrain and scenes: RAM block cache per rank, MiB (default 256)")
+    p.add_argument("--gpu-mb", type=int, default=256, help="terrain and scenes: GL block pool per rank, MiB (default 256)")
     p.add_argument("--loading", choices=("async", "complete"), default="complete",
-                   help="terrain: complete = wait until every block the view needs is loaded (default for render: final-quality frames); "
+                   help="terrain and scenes: complete = wait until every block the view needs is loaded (default for render: final-quality frames); "
                         "async = never wait for data, draw coarser meanwhile (default for view)")
     p.add_argument("--pipeline", choices=("on", "off"), default=None,
                    help="render: on = composite and deliver frame i on a thread while frame i+1 is drawn (same images); off = one frame after the other (default)")
@@ -79,6 +79,19 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", "-o", type=Path, default=Path("out/render"), help="output folder (default out/render)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary table")
     p.add_argument("--fault", default=None, help=argparse.SUPPRESS)
+    _add_roettger_args(p)
+
+
+def _add_roettger_args(p: argparse.ArgumentParser) -> None:
+    """T2 flags (``--system roettger``: computation + visualization ranks)."""
+    p.add_argument("layers", nargs="*", default=[], help="T2: further terrain stores drawn as stacked layers")
+    p.add_argument("--system", choices=("auto", "roettger"), default="auto", help="auto (by scene: T1 for terrain) or roettger (T2)")
+    p.add_argument("--compute-ranks", type=_positive, default=1, help="T2: computation ranks; the other ranks visualize (default 1)")
+    p.add_argument("--paper-partition", action="store_true", help="T2: the paper's overlapping (2^m+1)² portions instead of the exact partition")
+    p.add_argument("--triangle-budget", type=_positive, default=None, help="T2: at most N triangles per frame (≥ 0.9 N when the view has more)")
+    p.add_argument("--roettger-C", type=float, default=None, help="T2: minimum global resolution C in [2, 64] (default: the store table's, 4)")
+    p.add_argument("--roettger-c", type=float, default=None, help="T2: desired global resolution c (default √3/(tau · pixel angle))")
+    p.add_argument("--no-fan-delta", dest="fan_delta", action="store_false", help="T2: resend every visible fan each frame (no change-only messages)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -109,6 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
     gt.add_argument("--block", type=int, default=257, help="M-block size for --format store (129, 257, 513)")
     gt.add_argument("--overwrite", action="store_true")
     gt.add_argument("--quiet", "-q", action="store_true")
+    from .scene_cmds import add_generate_parser, add_prepare_parser
+
+    add_generate_parser(gsub)
     prep = sub.add_parser("prepare", help="build a store from real data")
     psub = prep.add_subparsers(dest="what", required=True, metavar="WHAT")
     pt = psub.add_parser("terrain", help="elevation (GeoTIFF/COG, .npy, .npz, SRTM .hgt, raw) -> terrain store")
@@ -128,6 +144,10 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--no-color", action="store_true", help="no colour pyramid")
     pt.add_argument("--overwrite", action="store_true", help="rebuild a complete store")
     pt.add_argument("--quiet", "-q", action="store_true")
+    add_prepare_parser(psub)
+    from .roettger_cmds import add_parsers as _roettger_parsers
+
+    _roettger_parsers(psub)
     inf = sub.add_parser("info", help="levels, blocks, size on disk, compression, georeference of a store")
     inf.add_argument("store")
     inf.add_argument("--json", action="store_true")
@@ -144,14 +164,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def render_config(args) -> RenderConfig:
+    """The RenderConfig of a render/view command line: every flag whose dest is a RenderConfig
+    field (``--cache-mb`` -> ``cache_mb``) is passed by name, so a new field needs only its flag."""
+    from dataclasses import fields
+
     w, h = parse_size(args.size)
-    return RenderConfig.from_env(
-        decomposition=args.decomposition, compositor=args.compositor, radix_k=args.radix_k, codec=args.codec,
-        width=w, height=h, frames=args.frames, path=args.path, grid=args.grid, wall=args.wall,
-        tile_targets=args.tile_targets, reference=args.reference, color_by_rank=args.color_by_rank, fault=args.fault,
-        tau=args.tau, cache_mb=args.cache_mb, gpu_mb=args.gpu_mb, loading=args.loading,
-        pipeline=getattr(args, "pipeline", None),
-    )
+    flags = {f.name: getattr(args, f.name) for f in fields(RenderConfig) if hasattr(args, f.name)}
+    return RenderConfig.from_env(**{**flags, "width": w, "height": h})
 
 
 def cmd_render(args) -> int:
@@ -237,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     _report_peak_rss()
     reuse_freed_memory()  # per-frame images reuse freed pages (issue 20)
     if argv[:1] == ["__job"] and len(argv) == 2:  # a rank of a job started by massview.api.render
-        from ..api import run_job
+        from .render_job import run_job
 
         return run_job(argv[1])
     args = build_parser().parse_args(argv)
@@ -254,10 +273,15 @@ def main(argv: list[str] | None = None) -> int:
             from .demo import run_demo
 
             return run_demo(args)
-        if args.command in ("generate", "prepare", "info", "verify"):
-            from . import terrain_cmds
+        if args.command == "prepare" and args.what == "roettger":
+            from .roettger_cmds import cmd_prepare_roettger
 
-            return getattr(terrain_cmds, f"cmd_{args.command}")(args)
+            return cmd_prepare_roettger(args)
+        if args.command in ("generate", "prepare", "info", "verify"):
+            from . import scene_cmds, terrain_cmds
+
+            scene = getattr(args, "what", None) == "scene" or (args.command in ("info", "verify") and scene_cmds.is_scene(args.store))
+            return getattr(scene_cmds if scene else terrain_cmds, f"cmd_{args.command}")(args)
     except MassviewError as e:
         print(f"massview: error: {e}", file=sys.stderr)
         return 2 if isinstance(e, ConfigError) else 1

@@ -1,6 +1,7 @@
 """``massview view STORE --ranks N``: live parallel rendering streamed to a browser.
 
-Rank 0 serves the page (127.0.0.1 unless ``--host`` says otherwise) and holds the camera and
+Rank 0 serves the page (127.0.0.1 unless ``--host`` says otherwise; off loopback a random
+token in the printed URL is required, see :mod:`.viewer.server`) and holds the camera and
 settings the browser controls; every frame it broadcasts them, all ranks render the frame
 with the chosen decomposition and compositor, and rank 0 streams the composited image as JPEG
 with per-frame figures (fps, triangles per rank, imbalance, bytes per frame). Closing the page
@@ -65,7 +66,8 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
         state = ViewerState(start, settings, {"decomposition": modes, "compositor": list(COMPOSITORS)}, base_speed)
         server = ViewerServer(state, args.host, args.port)
         server.start()
-        print(f"massview: serving http://{args.host}:{server.port}/ on {n} rank{'s' if n > 1 else ''} (Ctrl-C stops)", flush=True)
+        bound = "" if server.loopback else f"; bound to {args.host}, the token in the URL is required"
+        print(f"massview: serving {server.url} on {n} rank{'s' if n > 1 else ''} (Ctrl-C stops{bound})", flush=True)
     times: deque = deque(maxlen=20)
     frame = 0
     try:

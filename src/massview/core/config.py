@@ -48,6 +48,15 @@ class RenderConfig:
     egl_device: int | None = None
     fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
     pipeline: str = "off"  # "on": composite/deliver frame i on a thread while frame i+1 is drawn
+    # T2 (--system roettger): computation ranks, partition, budget, Röttger's C and c, layers
+    system: str = "auto"  # "auto" (by scene), or "roettger"
+    layers: tuple[str, ...] = ()  # further stores drawn as stacked layers (T2)
+    compute_ranks: int = 1
+    paper_partition: bool = False
+    triangle_budget: int | None = None
+    roettger_C: float | None = None  # None: the store table's C_min
+    roettger_c: float | None = None  # None: from --tau (massview.lod.roettger.default_c)
+    fan_delta: bool = True  # send only the fans that changed since the previous frame
 
     def __post_init__(self) -> None:
         if self.frames < 1:
@@ -62,6 +71,15 @@ class RenderConfig:
             raise ConfigError(f"--pipeline must be on or off, got {self.pipeline!r}")
         if not self.tau > 0:
             raise ConfigError(f"--tau (pixel tolerance) must be positive, got {self.tau}")
+        if self.system not in ("auto", "roettger"):
+            raise ConfigError(f"--system must be auto or roettger, got {self.system!r}")
+        if self.compute_ranks < 1:
+            raise ConfigError(f"--compute-ranks must be at least 1, got {self.compute_ranks}")
+        if self.triangle_budget is not None and self.triangle_budget < 1:
+            raise ConfigError(f"--triangle-budget must be at least 1, got {self.triangle_budget}")
+        if self.layers and self.system != "roettger":
+            raise ConfigError("several stores (layers) need --system roettger")
+        object.__setattr__(self, "layers", tuple(self.layers))
 
     @classmethod
     def from_env(cls, env=None, **explicit) -> "RenderConfig":

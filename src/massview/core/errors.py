@@ -18,6 +18,7 @@ __all__ = [
     "CorruptBlockError",
     "IngestError",
     "OutputError",
+    "RankJobError",
 ]
 
 
@@ -62,3 +63,12 @@ class IngestError(MassviewError, ValueError):
 
 class OutputError(ConfigError, PermissionError):
     """An output folder or file cannot be created or written (checked before any work starts)."""
+
+
+class RankJobError(ParallelError):
+    """An MPI job started by ``massview.render(ranks=N)`` failed; the message is the failing
+    rank's, ``returncode`` the job's exit status."""
+
+    def __init__(self, message: str, returncode: int):
+        super().__init__(message)
+        self.returncode = returncode

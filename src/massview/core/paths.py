@@ -14,7 +14,10 @@ clipped at a fixed 10 km.
 
 Positions and look-at points are interpolated with centripetal-free uniform Catmull-Rom
 splines in time; orientations given directly are slerped. Built-in paths (``turn``, ``zoom``,
-``forward``, ``orbit``, ``flyover``) are fitted to a scene's axis-aligned bounding box, +z up.
+``forward``, ``orbit``, ``flyover``, ``walkthrough``) are fitted to a scene's axis-aligned
+bounding box, +z up. ``walkthrough`` walks through a model at eye height (1.7 units above the
+bottom of the box, or 30 % of the box height if that is lower) along x with a gentle sway in y,
+looking ahead.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from .errors import ConfigError
 
 __all__ = ["BUILTIN_PATHS", "CameraPath", "KeyframePath", "ParametricPath", "load_path", "scene_clip"]
 
-BUILTIN_PATHS = ("turn", "zoom", "forward", "orbit", "flyover")
+BUILTIN_PATHS = ("turn", "zoom", "forward", "orbit", "flyover", "walkthrough")
 
 
 def scene_clip(lo, hi, positions=None) -> tuple[float, float]:
@@ -204,6 +207,8 @@ class ParametricPath(CameraPath):
             r = 0.75 * s
             eye = np.array([c[0] + r * math.cos(a), c[1] + r * math.sin(a), top + 0.35 * s])
             tgt = c
+        elif self.name == "walkthrough":
+            eye, tgt = self._walk(t)
         else:  # flyover: a curved low pass across the scene, looking ahead and down
             def at(u):
                 x = self.lo[0] + ext[0] * (0.1 + 0.8 * u)
@@ -217,6 +222,20 @@ class ParametricPath(CameraPath):
             d /= max(np.linalg.norm(d), 1e-12)
             tgt = eye + d * s * 0.2 + np.array([0, 0, -0.035 * s])
         return eye, look_at_quaternion(eye, tgt)
+
+    def _walk(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Eye height through the scene along x, swaying in y, looking ahead (slightly down)."""
+        ext = self.hi - self.lo
+        z = self.lo[2] + min(1.7, 0.3 * ext[2])
+
+        def at(u):
+            return np.array([self.lo[0] + ext[0] * (0.08 + 0.84 * u),
+                             (self.lo[1] + self.hi[1]) / 2 + 0.12 * ext[1] * math.sin(2 * math.pi * u), z])
+
+        eye = at(t)
+        d = at(min(t + 0.02, 1.0)) - at(max(t - 0.02, 0.0))
+        d /= max(np.linalg.norm(d), 1e-12)
+        return eye, eye + d * 10.0 + np.array([0.0, 0.0, -0.6])
 
 
 def load_path(spec: str, lo, hi) -> CameraPath:

@@ -9,12 +9,16 @@ __all__ = ["open_system", "scene_kind", "FrameResult", "display_tiles", "render_
 
 
 def scene_kind(spec: str) -> str:
-    """"objects" or "terrain" for a scene name, or SceneNotFoundError saying what to give."""
+    """"objects", "scene" or "terrain" for a scene name, or SceneNotFoundError saying what to give."""
     if spec.startswith("builtin:objects"):
         return "objects"
     from pathlib import Path
 
     p = Path(spec)
+    from ..data.scene import is_scene_store
+
+    if p.is_dir() and is_scene_store(p):
+        return "scene"
     if p.is_dir() and (p / "zarr.json").exists():
         from ..data.terrain import TerrainStore
 
@@ -22,18 +26,29 @@ def scene_kind(spec: str) -> str:
         return "terrain"
     raise SceneNotFoundError(
         f"scene {spec!r} not found: give builtin:objects[?n=COUNT&seed=S] or a terrain store "
-        "(make one with `massview prepare terrain INPUT -o STORE` or `massview generate terrain STORE --size N`)"
+        "or a scene store (make one with `massview prepare terrain INPUT -o STORE`, `massview generate terrain STORE --size N`, "
+        "`massview prepare scene MESH... -o SCENE` or `massview generate scene plant -o SCENE`)"
     )
 
 
 def open_system(spec: str, cfg=None):
-    """The rendering system for a scene: ``builtin:objects[?n=..&seed=..]`` or a terrain store."""
+    """The rendering system for a scene: ``builtin:objects[?n=..&seed=..]``, a terrain store
+    or a scene store."""
     egl = getattr(cfg, "egl_device", None)
-    if scene_kind(spec) == "objects":
+    if getattr(cfg, "system", "auto") == "roettger":
+        from .roettger import RoettgerSystem
+
+        return RoettgerSystem((spec, *cfg.layers), cfg)
+    kind = scene_kind(spec)
+    if kind == "objects":
         from .objects import ObjectsSystem
 
         return ObjectsSystem(spec, egl)
+    kw = {} if cfg is None else {"cache_bytes": cfg.cache_mb << 20, "gpu_bytes": cfg.gpu_mb << 20, "loading": cfg.loading}
+    if kind == "scene":
+        from .scene import SceneSystem
+
+        return SceneSystem(spec, egl_device=egl, **kw)
     from .terrain import TerrainSystem
 
-    kw = {} if cfg is None else {"cache_bytes": cfg.cache_mb << 20, "gpu_bytes": cfg.gpu_mb << 20, "loading": cfg.loading}
     return TerrainSystem(spec, egl_device=egl, **kw)

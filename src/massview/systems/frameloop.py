@@ -82,6 +82,8 @@ def _finish(comm, system, cfg: RenderConfig, image: Image, stats: FrameStats) ->
 def render_frame(comm, system, cfg: RenderConfig, camera: Camera | None, frame: int,
                  sink: Callable[[int, Image], None] | None = None) -> FrameResult:
     """Render one frame on every rank of ``comm``; ``camera`` matters on rank 0 only."""
+    if hasattr(system, "render_frame"):  # systems with roles (T2, M1, M2) run their own per-role frame
+        return system.render_frame(comm, cfg, camera, frame, sink)
     stats = FrameStats(frame=frame, rank=comm.Get_rank())
     with stats.stage("total"):
         camera, image = _begin(comm, system, cfg, camera, frame, stats)
@@ -101,10 +103,11 @@ def render_frames(comm, system, cfg: RenderConfig, cameras, sink: Callable[[int,
     """Render ``frames`` frames (default ``cfg.frames``; ``cameras[f]`` on rank 0, ignored elsewhere) and yield
     their results in frame order, on every rank in the same order (callers may run
     collectives on ``comm`` between results). ``cfg.pipeline == "off"``: one
-    :func:`render_frame` after the other; ``"on"``: :class:`~.pipeline.FramePipeline`."""
+    :func:`render_frame` after the other; ``"on"``: :class:`~.pipeline.FramePipeline` (systems
+    with roles, which bring their own ``render_frame``, always run one frame after the other)."""
     camera_of = (lambda f: cameras[f]) if comm.Get_rank() == 0 else (lambda f: None)
     frames = cfg.frames if frames is None else frames
-    if cfg.pipeline == "off":
+    if cfg.pipeline == "off" or hasattr(system, "render_frame"):  # systems with roles run their own loop
         for f in range(frames):
             yield render_frame(comm, system, cfg, camera_of(f), f, sink)
         return

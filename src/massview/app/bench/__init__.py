@@ -8,7 +8,7 @@ this registry (the first docstring line of a module is its help text).
 
 from __future__ import annotations
 
-from . import composite, frame, ingest, paraview, terrain
+from . import composite, frame, ingest, paraview, roettger, scene, scene_ingest, terrain
 
 __all__ = ["BENCHES"]
 
@@ -18,4 +18,7 @@ BENCHES = {
     "ingest": ingest,
     "frame": frame,
     "paraview": paraview,
+    "scene-ingest": scene_ingest,
+    "scene": scene,
+    "roettger": roettger,
 }

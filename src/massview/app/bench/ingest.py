@@ -55,11 +55,11 @@ def run(args) -> int:
     from rich.console import Console
     from rich.table import Table
 
+    from ..outputs import check_output_dir
     from ..terrain_cmds import progress_bar, store_info
 
     console = Console()
-    work = Path(args.workdir)
-    work.mkdir(parents=True, exist_ok=True)
+    work = check_output_dir(Path(args.workdir), "--workdir")
     dem = work / f"synthetic_{args.size}_seed{args.seed}.npy"
     if not dem.exists():  # in a child process: this one must stay small (see _peak_rss)
         console.print(f"generating {dem} (once; kept for later runs) ...")

@@ -9,19 +9,39 @@ package, no build step), ``/ws`` upgrades to a WebSocket that carries:
 * browser → server: ``input`` and ``settings`` messages (:mod:`state`); anything malformed is
   rejected, logged and answered with an ``error`` message, and the stream goes on. Messages
   over 64 KiB close that client's connection (the page reconnects); the job keeps running.
+
+**Access.** Bound to loopback (the default), the server answers only requests whose ``Host``
+is a loopback name (no DNS rebinding). Bound to anything else it requires a secret: a random
+token, printed in the URL (``/?token=...``, as Jupyter does); the page sets it as a
+``SameSite=Strict`` cookie, and every request — page, assets, WebSocket upgrade — without the
+token (query or cookie) gets 403. The WebSocket upgrade also needs an ``Origin`` equal to the
+page's own (``http://`` + the request's ``Host``), so a page of another site open in the same
+browser cannot drive the camera; browsers always send ``Origin`` on WebSockets.
+
+**Several browsers: all watch, one steers.** Every connected browser gets the stream. The
+first one to connect is the *pilot*: only its ``input`` and ``settings`` messages are applied;
+the others are *watchers*, whose control messages are answered with an ``error`` (not counted
+as malformed). When the pilot closes, the longest-connected watcher becomes the pilot (it is
+told by a ``role`` message; ``hello`` carries each browser's initial role).
 """
 
 from __future__ import annotations
 
 import asyncio
+import hmac
 import importlib.resources
+import ipaddress
 import json
 import logging
+import secrets
+import socket
 import threading
+from http.cookies import SimpleCookie
+from urllib.parse import parse_qs, urlsplit
 
 from .state import MAX_MESSAGE, MessageError, ViewerState
 
-__all__ = ["ViewerServer"]
+__all__ = ["ViewerServer", "is_loopback"]
 
 log = logging.getLogger("massview.viewer")
 
@@ -29,18 +49,45 @@ _ASSETS = {"/": ("index.html", "text/html; charset=utf-8"), "/viewer.js": ("view
            "/viewer.css": ("viewer.css", "text/css; charset=utf-8")}
 
 
+COOKIE = "massview_token"
+
+
+def is_loopback(host: str) -> bool:
+    """True for localhost and loopback addresses (127.0.0.0/8, ::1)."""
+    h = host.strip("[]").lower()
+    if h == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(h).is_loopback
+    except ValueError:
+        return False
+
+
+def _host_name(host_header: str) -> str:
+    """The host part of a ``Host`` header (``[::1]:8080`` -> ``::1``)."""
+    h = host_header.strip()
+    if h.startswith("["):
+        return h[1:h.find("]")] if "]" in h else h
+    return h.rsplit(":", 1)[0] if h.count(":") == 1 else h
+
+
 class _Client:
-    def __init__(self, ws):
+    def __init__(self, ws, role: str):
         self.ws = ws
+        self.role = role
         self.frame: bytes | None = None
         self.stats: str | None = None
         self.ready = asyncio.Event()
 
 
 class ViewerServer:
-    def __init__(self, state: ViewerState, host: str = "127.0.0.1", port: int = 8080):
+    """``token``: required off loopback (a random one is made when None); ``url`` says where to go."""
+
+    def __init__(self, state: ViewerState, host: str = "127.0.0.1", port: int = 8080, token: str | None = None):
         self.state, self.host, self.port = state, host, port
-        self._clients: set[_Client] = set()
+        self.loopback = is_loopback(host)
+        self.token = None if self.loopback and token is None else (token or secrets.token_urlsafe(24))
+        self._clients: list[_Client] = []  # in connection order: the first is the pilot
         self._loop: asyncio.AbstractEventLoop | None = None
         self._started = threading.Event()
         self._error: BaseException | None = None
@@ -76,9 +123,41 @@ class ViewerServer:
             self._loop.call_soon_threadsafe(self._stop.set)
         self._thread.join(timeout=5)
 
+    @property
+    def url(self) -> str:
+        """The address to open (with the token when one is required)."""
+        host = socket.gethostname() if self.host in ("0.0.0.0", "::", "") else self.host
+        host = f"[{host}]" if ":" in host else host
+        return f"http://{host}:{self.port}/" + (f"?token={self.token}" if self.token else "")
+
     # -- HTTP ---------------------------------------------------------------------------
+    def _refusal(self, request) -> str | None:
+        """Why this request is refused (403), or None to serve it (see the module docstring)."""
+        host = request.headers.get("Host", "")
+        if self.loopback and not is_loopback(_host_name(host)):
+            return f"Host {host!r} is not this machine's loopback name"
+        if self.token is not None:
+            given = parse_qs(urlsplit(request.path).query).get("token", [""])[0]
+            cookie = SimpleCookie()
+            try:
+                cookie.load(request.headers.get("Cookie", ""))
+            except Exception:  # noqa: BLE001 - a malformed cookie is no token
+                pass
+            given = given or (cookie[COOKIE].value if COOKIE in cookie else "")
+            if not hmac.compare_digest(given.encode(), self.token.encode()):
+                return "missing or wrong token: open the URL the viewer printed (it ends with ?token=...)"
+        if urlsplit(request.path).path == "/ws":
+            origin = request.headers.get("Origin")
+            if origin is not None and origin not in (f"http://{host}", f"https://{host}"):
+                return f"WebSocket from origin {origin!r}, not this page's"
+        return None
+
     def _http(self, connection, request):
-        path = request.path.split("?")[0]
+        why = self._refusal(request)
+        if why is not None:
+            log.warning("refused %s from %s: %s", urlsplit(request.path).path, getattr(connection, "remote_address", "?"), why)
+            return connection.respond(403, f"forbidden: {why}\n")
+        path = urlsplit(request.path).path
         if path == "/ws":
             return None
         from websockets.datastructures import Headers
@@ -89,16 +168,23 @@ class ViewerServer:
             return connection.respond(404, "not found\n")
         body = importlib.resources.files("massview.app.viewer").joinpath("static").joinpath(asset[0]).read_bytes()
         headers = Headers([("Content-Type", asset[1]), ("Content-Length", str(len(body))), ("Cache-Control", "no-store")])
+        if self.token is not None and path == "/":  # the assets and the WebSocket then authenticate by cookie
+            headers["Set-Cookie"] = f"{COOKIE}={self.token}; Path=/; HttpOnly; SameSite=Strict"
         return Response(200, "OK", headers, body)
 
     # -- WebSocket ----------------------------------------------------------------------
     async def _handler(self, ws) -> None:
-        client = _Client(ws)
-        self._clients.add(client)
+        client = _Client(ws, "watcher" if self._clients else "pilot")
+        self._clients.append(client)
         sender = asyncio.create_task(self._send_loop(client))
         try:
-            await ws.send(json.dumps({"type": "hello", "choices": self.state.choices, "settings": self.state.settings}))
+            await ws.send(json.dumps({"type": "hello", "choices": self.state.choices, "settings": self.state.settings,
+                                      "role": client.role}))
             async for raw in ws:
+                if client.role != "pilot":
+                    await ws.send(json.dumps({"type": "error", "message": "watching: another browser steers this viewer "
+                                                                          "(the first one connected; it hands over when it closes)"}))
+                    continue
                 try:
                     self.state.apply(raw)
                 except MessageError as e:
@@ -109,7 +195,16 @@ class ViewerServer:
             log.warning("client %s closed: %s", getattr(ws, "remote_address", "?"), e)
         finally:
             sender.cancel()
-            self._clients.discard(client)
+            self._clients.remove(client)
+            if client.role == "pilot" and self._clients:
+                await self._promote(self._clients[0])
+
+    async def _promote(self, client: _Client) -> None:
+        client.role = "pilot"
+        try:
+            await client.ws.send(json.dumps({"type": "role", "role": "pilot"}))
+        except Exception:  # noqa: BLE001 - that one is closing too; its handler promotes the next
+            pass
 
     async def _send_loop(self, client: _Client) -> None:
         while True:
@@ -131,7 +226,7 @@ class ViewerServer:
         text = json.dumps({"type": "stats", **stats})
 
         def post():
-            for c in self._clients:
+            for c in list(self._clients):
                 c.frame, c.stats = jpeg, text
                 c.ready.set()
 

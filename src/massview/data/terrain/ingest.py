@@ -6,7 +6,8 @@ continues where it stopped and a half-written store never opens as a good one):
 
 1. **level 0** in strips of M rows (one block row): windowed read, nodata/NaN filled from
    valid neighbours (iterative 4-neighbour averaging inside the strip plus a margin; what is
-   still empty takes the mean of the strip's valid samples), padded by edge replication at
+   still empty takes the mean of the strip's valid samples; a first strip with no valid sample
+   repeats the first valid row below it, never a made-up 0), padded by edge replication at
    the outer border only, cut into blocks. The shared row between strips is taken from the
    strip above, so borders are bit-identical in both blocks.
 2. **levels 1..L** by vertex decimation of 2 × 2 child blocks.
@@ -15,8 +16,8 @@ continues where it stopped and a half-written store never opens as a good one):
    full-resolution (level 0) min/max, i.e. the data's own range.
 
 Bad data does not pass silently: an input with no valid sample at all (all nodata, NaN or
-±inf) raises :class:`IngestError` naming the file after level 0, and the store this run
-created is removed (a resumed one stays incomplete, so it never opens). More than half the
+±inf) raises :class:`IngestError` naming the file (while reading the first strip, which looks
+ahead for a valid row), and the store this run created is removed (a resumed one stays incomplete, so it never opens). More than half the
 samples filled, or no georeference (1 m spacing assumed), is reported in
 ``PrepareResult.warnings`` (the CLI prints them).
 
@@ -107,6 +108,8 @@ def _read_strip(src: RasterSource, lay: TerrainLayout, bi: int, prev_row: np.nda
             first_new = 1
         nv = min(M, src.rows - r0)
         filled = int(np.count_nonzero(np.isnan(data[first_new:nv])))
+        if prev_row is None and filled == nv * cols:  # a first strip with no valid sample: extend the first valid row up
+            data[:] = _first_valid_row(src, r0 + data.shape[0])
         fill_nodata(data)
         strip[:nv, :cols] = data[:nv]
         strip[nv:, :cols] = data[nv - 1]
@@ -114,6 +117,22 @@ def _read_strip(src: RasterSource, lay: TerrainLayout, bi: int, prev_row: np.nda
         strip[:, :cols] = prev_row[:cols]
     strip[:, cols:] = strip[:, cols - 1: cols]
     return strip, filled
+
+
+def _first_valid_row(src: RasterSource, r: int, step: int = 256) -> np.ndarray:
+    """The first input row at or below ``r`` holding a valid sample, its gaps filled; raises
+    IngestError naming the file when there is none (the whole input is nodata/NaN/±inf)."""
+    while r < src.rows:
+        win = src.read(r, min(r + step, src.rows), 0, src.cols)
+        ok = ~np.isnan(win).all(axis=1)
+        if ok.any():
+            row = win[int(np.argmax(ok))][None].copy()
+            fill_nodata(row)
+            return row[0]
+        r += step
+    what = "NaN or ±inf" if src.nodata is None else f"nodata ({src.nodata:g}), NaN or ±inf"
+    raise IngestError(f"{src.name}: every one of its {src.rows}x{src.cols} samples is {what}; there is no elevation to "
+                      "build a store from (check the file, or give the right --nodata)")
 
 
 def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17, vertical_scale: float = 1.0,
@@ -142,6 +161,9 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     store = TerrainStore(out, require_complete=False)
     meta = compute_metadata(store, prog, write_color=color is not None, ortho=ortho, vertical_scale=vertical_scale)
     write_metadata(g, lay, meta)
+    from .roettger import DEFAULT_C_MIN, compute_table, write_table  # T2's per-node table (Röttger d2)
+
+    write_table(g, compute_table(store, DEFAULT_C_MIN, prog), DEFAULT_C_MIN)
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
@@ -179,10 +201,8 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
         g.attrs["nodata"] = nod
         prev_row = strip[-1].copy()
         prog("level 0", nb0, nb0 * nb0)
-    if filled >= src.rows * src.cols:
-        what = "NaN or ±inf" if src.nodata is None else f"nodata ({src.nodata:g}), NaN or ±inf"
-        raise IngestError(f"{src.name}: every one of its {src.rows}x{src.cols} samples is {what}; there is no elevation to "
-                          "build a store from (check the file, or give the right --nodata)")
+    if filled >= src.rows * src.cols:  # (a fresh run fails in the first strip already; this catches resumed ones)
+        _first_valid_row(src, src.rows)
     return filled
 
 

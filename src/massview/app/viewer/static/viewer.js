@@ -1,20 +1,25 @@
 // massview viewer: shows streamed JPEG frames, sends fly-camera input and settings.
 "use strict";
-const mv = { ws: null, frames: 0, stats: null, hello: null, lastFrameSize: 0, keys: new Set(), look: [0, 0], wheel: 0 };
+const mv = { ws: null, frames: 0, stats: null, hello: null, role: null, lastFrameSize: 0, keys: new Set(), look: [0, 0], wheel: 0 };
 window.mv = mv;
 const $ = (id) => document.getElementById(id);
 let objectUrl = null;
 
 function connect() {
-  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
+  // the token of a viewer bound off loopback (also sent as a cookie; the query works without cookies)
+  const token = new URLSearchParams(location.search).get("token");
+  const query = token ? `?token=${encodeURIComponent(token)}` : "";
+  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws${query}`);
   ws.binaryType = "blob";
   mv.ws = ws;
   ws.onopen = () => { $("status").textContent = "live"; };
+  const role = (r) => { mv.role = r; $("status").textContent = r === "pilot" ? "live · steering" : "live · watching (another browser steers)"; };
   ws.onclose = () => { $("status").textContent = "reconnecting…"; setTimeout(connect, 1000); };
   ws.onmessage = (ev) => {
     if (typeof ev.data === "string") {
       const msg = JSON.parse(ev.data);
-      if (msg.type === "hello") hello(msg);
+      if (msg.type === "hello") { hello(msg); role(msg.role); }
+      else if (msg.type === "role") role(msg.role);
       else if (msg.type === "stats") showStats(msg);
       else if (msg.type === "error") { $("message").textContent = "rejected: " + msg.message; }
       return;

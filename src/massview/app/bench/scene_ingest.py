@@ -1,0 +1,160 @@
+"""Scene ingest: PLY MB/s, triangles/s, peak RSS; fast-simplification against pyfqmr.
+
+``massview bench scene-ingest``:
+
+1. **simplifiers** — each candidate simplifies the same meshes (pyvista's real ant, a
+   generated tree crown, a plant vessel, a 327 k-triangle lumpy sphere) to half their
+   triangles: seconds and the measured geometric error (:func:`surface_distance` both ways,
+   relative to the mesh size). The store uses the one with the better figures.
+2. **ingest** — a binary PLY of at least ``--triangles`` triangles (the level-0 geometry of
+   generated plant copies, an unstructured soup, written once into ``--workdir``) is copied
+   (the disk floor for touching the bytes once) and then prepared by ``massview prepare
+   scene --stream-mb 0`` (the streamed path, whatever the file size) in a child process, which reports its own peak RSS (``VmHWM``) at exit. Printed:
+   MB/s and triangles/s, the ratio to the copy, peak RSS against the 1 GiB target.
+
+Nothing is asserted; figures are noisy on a shared machine.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["add_arguments", "run"]
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--triangles", type=float, default=50e6, help="least triangles in the PLY (default 50e6)")
+    p.add_argument("--size", type=float, default=1.0, help="size of each plant copy (default 1: ~8.4 M triangles)")
+    p.add_argument("--workdir", default="out/bench", help="where the PLY is written once and the store built")
+    p.add_argument("--simplifier", choices=("fast-simplification", "pyfqmr"), default="fast-simplification")
+    p.add_argument("--skip-simplifiers", action="store_true", help="only the ingest")
+    p.add_argument("--skip-ingest", action="store_true", help="only the simplifier comparison")
+    p.add_argument("--keep", action="store_true", help="keep the store afterwards")
+
+
+def _test_meshes():
+    from ...data.generators import shapes
+    from ...data.generators.scenes import real_mesh, shape_levels
+
+    v, f = real_mesh("ant")
+    out = [("ant (pyvista, real)", v.astype(np.float32), f)]
+    for name, key in (("tree crown", ("broadleaf", 0)), ("plant vessel", ("tank", 4.0, 1.1))):
+        m = shape_levels(key)[0][0]
+        out.append((name, m.positions, m.indices.astype(np.int64)))
+    p, t, _ = shapes.blob(1.0, 1.0, 1.0, 256, 640, seed=3)
+    out.append(("bumpy sphere", p.astype(np.float32), t))
+    return out
+
+
+def _compare_simplifiers(console) -> None:
+    from rich.table import Table
+
+    from ...data.scene.simplify import BACKENDS, simplify_once, surface_distance
+
+    t = Table(title="quadric simplification to 50 % of the triangles (error relative to the mesh diagonal)")
+    for c in ("mesh", "triangles", *[f"{b} {k}" for b in BACKENDS for k in ("s", "error")]):
+        t.add_column(c, justify="right")
+    for name, p, f in _test_meshes():
+        row = [name, f"{len(f):,}"]
+        diag = float(np.linalg.norm(p.max(0) - p.min(0)))
+        for b in BACKENDS:
+            simplify_once(p, f[: min(len(f), 64)], 16, b)  # warm up (imports)
+            t0 = time.perf_counter()
+            q, g = simplify_once(p, f, len(f) // 2, b)
+            dt = time.perf_counter() - t0
+            err = max(surface_distance(p[:: max(1, len(p) // 4096)], q, g), surface_distance(q[:: max(1, len(q) // 4096)], p, f))
+            row += [f"{dt:.3f}", f"{err / diag:.2e}"]
+        t.add_row(*row)
+    console.print(t)
+
+
+def _copy_baseline(src: Path, dst: Path) -> float:
+    t0 = time.perf_counter()
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        while buf := f.read(64 << 20):
+            g.write(buf)
+        g.flush()
+        os.fsync(g.fileno())
+    dt = time.perf_counter() - t0
+    dst.unlink()
+    return dt
+
+
+def _ply(work: Path, triangles: float, size: float, console) -> Path:
+    from ...data.generators.scenes import scene_nodes
+
+    per_copy = 8.4e6 * size  # plant triangles per copy (approximately; the count printed is exact)
+    copies = max(1, math.ceil(triangles / per_copy))
+    ply = work / f"plant_s{size:g}_x{copies}.ply"
+    if not ply.exists():
+        console.print(f"writing {ply} ({copies} plant copies, {len(scene_nodes('plant', size)[0]) * copies:,} nodes; once, kept) ...")
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-c", "import sys; from massview.data.generators.plyfile import write_scene_ply; "
+                        f"print(write_scene_ply(sys.argv[1], 'plant', {copies}, {size}))", str(ply)], check=True)
+        console.print(f"written in {time.perf_counter() - t0:.0f} s")
+    return ply
+
+
+def _ingest(args, console) -> int:
+    from rich.table import Table
+
+    from ...data.scene.plystream import read_ply_layout
+
+    work = Path(args.workdir)
+    work.mkdir(parents=True, exist_ok=True)
+    ply = _ply(work, args.triangles, args.size, console)
+    lay = read_ply_layout(ply)
+    nbytes = ply.stat().st_size
+    copy_s = _copy_baseline(ply, work / "copy.tmp")
+    store = work / f"{ply.stem}.scene"
+    shutil.rmtree(store, ignore_errors=True)
+    cmd = [sys.executable, "-m", "massview", "prepare", "scene", str(ply), "-o", str(store), "--simplifier", args.simplifier, "--stream-mb", "0", "-q"]
+    console.print("running: " + " ".join(cmd[2:]))
+    rss_file = work / "prepare_scene.peak_rss"
+    import resource
+
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, env=dict(os.environ, MASSVIEW_PEAK_RSS_FILE=str(rss_file)))
+    dt = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+    if proc.returncode != 0:
+        console.print(f"[red]prepare scene failed (exit {proc.returncode})[/]")
+        return proc.returncode
+    rss = int(rss_file.read_text())
+    from ...data.scene.verify import scene_info
+
+    info = scene_info(store)
+    t = Table(title=f"prepare scene of a binary PLY: {lay.n_faces:,} triangles, {lay.n_vertices:,} vertices, {nbytes / 2**30:.2f} GiB")
+    t.add_column("figure")
+    t.add_column("value", justify="right")
+    t.add_row("prepare time", f"{dt:.0f} s")
+    t.add_row("throughput", f"{nbytes / 1e6 / dt:.2f} MB/s, {lay.n_faces / dt:,.0f} triangles/s")
+    t.add_row("CPU time of prepare (user + sys)", f"{cpu:.0f} s: {lay.n_faces / cpu:,.0f} triangles per CPU-second "
+              f"({cpu / dt:.2f} cores busy on average)")
+    t.add_row("copy baseline (same bytes)", f"{copy_s:.1f} s ({nbytes / 1e6 / copy_s:.0f} MB/s); prepare ÷ copy {dt / copy_s:.0f}×")
+    t.add_row("objects found / LOD triangles (all levels)", f"{info['objects']:,} / {sum(info['triangles_per_level']):,}")
+    t.add_row("store on disk / compression of records", f"{info['disk_bytes'] / 2**20:.0f} MiB / {info['compression_ratio']}")
+    t.add_row("peak RSS of prepare", f"{rss / 2**20:.0f} MiB ({'under' if rss < 2**30 else 'OVER'} the 1 GiB target)")
+    console.print(t)
+    if not args.keep:
+        shutil.rmtree(store, ignore_errors=True)
+    return 0
+
+
+def run(args) -> int:
+    from rich.console import Console
+
+    console = Console()
+    if not args.skip_simplifiers:
+        _compare_simplifiers(console)
+    return 0 if args.skip_ingest else _ingest(args, console)

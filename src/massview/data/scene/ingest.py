@@ -1,0 +1,189 @@
+"""``prepare scene``: mesh files -> scene store, out of core and resumable.
+
+Each input becomes objects (:mod:`.sources`): structured inputs keep their objects, soups
+are cut into cells and split into objects (:mod:`.soup`, Reliefboards §4). A large binary PLY
+is streamed: its faces are read a chunk at a time, their corners gathered block by block and
+appended to one spill file per cell under ``SCENE/_spill/`` (removed at the end); then the
+cells are processed one at a time. A small soup goes through the very same cells in RAM, so
+the streamed and the in-memory ingest write the same store.
+
+Every object is a *unit* for the :class:`SceneWriter`: its level-0 mesh (redundant vertices
+and faces removed, normals from the file or area-weighted), its LOD levels (:mod:`.simplify`),
+then its placement. With ``instance``, structured objects that share a geometry (glTF nodes
+of one mesh) store it once, with their transforms. Re-running an interrupted prepare with the
+same arguments skips the units already written; ``complete`` is set last.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ...core.errors import IngestError
+from .mesh import Mesh, vertex_normals
+from .plystream import PlyLayout
+from .simplify import build_levels
+from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_soup, split_dense
+from .sources import MemorySoup, StructuredObject, open_input, stream_bounds, stream_corners
+from .writer import SceneWriter
+
+__all__ = ["IngestParams", "prepare_scene"]
+
+
+@dataclass(frozen=True)
+class IngestParams:
+    object_triangles: int = 16384  # soup objects grow to at most this many triangles
+    object_size: float = float("inf")  # ... and at most this longest box side (world units)
+    cell_triangles: int = 1 << 18  # soup cell size (bounds the memory of one cell)
+    instance: bool = False  # store shared geometry once with transforms
+    simplifier: str = "fast-simplification"
+    max_levels: int = 8
+    stream_bytes: int = 256 << 20  # binary PLY at least this large is streamed
+    face_chunk: int = 1 << 18  # faces per streamed read
+    vertex_block: int = 1 << 20  # vertices per streamed vertex read (15-40 MB)
+
+    def split(self) -> SplitParams:
+        return SplitParams(self.object_triangles, self.object_size, self.cell_triangles)
+
+
+def _mesh(p: np.ndarray, col: np.ndarray, nrm: np.ndarray | None, f: np.ndarray) -> Mesh:
+    n = vertex_normals(p, f) if nrm is None else nrm.astype(np.float32)
+    return Mesh(p.astype(np.float32), n, col.astype(np.uint8), f.astype(np.uint32))
+
+
+class _Run:
+    """Writes units in order, skipping those a previous run wrote."""
+
+    def __init__(self, w: SceneWriter, prm: IngestParams, progress, fault_after: int | None):
+        self.w, self.prm, self.prog, self.fault_after = w, prm, progress, fault_after
+        self.unit = 0
+        self.triangles = 0
+
+    def pending(self) -> bool:
+        return self.unit >= self.w.geometries_done
+
+    def write(self, mesh: Mesh, placements: list[np.ndarray | None]) -> None:
+        if self.pending():
+            levels, errors = build_levels(mesh, self.prm.max_levels, backend=self.prm.simplifier)
+            gid = self.w.add_geometry(levels, errors)
+            for xf in placements:
+                self.w.add_object(gid, (), xf)
+            self.w.step()
+        self.unit += 1
+        self.triangles += mesh.triangle_count
+        self.prog("objects", 1, None)
+        if self.fault_after is not None and self.unit >= self.fault_after:
+            raise KeyboardInterrupt(f"fault injected after {self.unit} units")
+
+
+def _structured(run: _Run, objs: list[StructuredObject]) -> None:
+    if run.prm.instance:
+        keys: dict[str, list[StructuredObject]] = {}
+        for o in objs:
+            keys.setdefault(o.geometry_key, []).append(o)
+        for group in keys.values():
+            p, col, nrm, f = clean_soup(group[0].corners)
+            run.write(_mesh(p, col, nrm, f), [o.transform for o in group])
+        return
+    for o in objs:
+        c = o.corners
+        p = np.einsum("ij,tkj->tki", o.transform[:3, :3], c.positions.astype(np.float64)) + o.transform[:3, 3]
+        p, col, nrm, f = clean_soup(Corners(p.astype(np.float32), c.colors, None))
+        run.write(_mesh(p, col, nrm, f), [None])
+
+
+def _cells_of_memory(soup: MemorySoup, prm: IngestParams):
+    lo, hi = soup.positions.min(axis=0).astype(float), soup.positions.max(axis=0).astype(float)
+    dims = cell_grid(lo, hi, len(soup.faces), prm.cell_triangles)
+    cent = soup.positions[soup.faces].astype(np.float64).mean(axis=1)
+    cell = cell_of(cent, lo, hi, dims)
+    order = np.argsort(cell, kind="stable")
+    cuts = np.nonzero(np.diff(cell[order]))[0] + 1
+    for sel in np.split(order, cuts):
+        yield soup.corners(sel)
+
+
+def _spill(lay: PlyLayout, spill: Path, prm: IngestParams, progress) -> int:
+    """Stream the PLY's triangles into per-cell spill files; returns the cell count."""
+    done = spill / "done.json"
+    if done.exists():
+        return int(json.loads(done.read_text())["cells"])
+    shutil.rmtree(spill, ignore_errors=True)
+    spill.mkdir(parents=True)
+    lo, hi = stream_bounds(lay, prm.vertex_block)
+    dims = cell_grid(lo, hi, lay.n_faces, prm.cell_triangles)
+    for _, c in stream_corners(lay, prm.face_chunk, prm.vertex_block):
+        cell = cell_of(c.positions.astype(np.float64).mean(axis=1), lo, hi, dims)
+        order = np.argsort(cell, kind="stable")
+        cuts = np.nonzero(np.diff(cell[order]))[0] + 1
+        for sel in np.split(order, cuts):
+            with open(spill / f"{int(cell[sel[0]])}.bin", "ab") as fh:
+                fh.write(_pack(c, sel).tobytes())
+        progress("read", c.count, lay.n_faces)
+    n = int(np.prod(dims))
+    done.write_text(json.dumps({"cells": n}))
+    return n
+
+
+def _record_dtype(normals: bool) -> np.dtype:
+    fields = [("p", "<f4", (3, 3)), ("c", "u1", (3, 4))]
+    return np.dtype(fields + ([("n", "<f4", (3, 3))] if normals else []))
+
+
+def _pack(c: Corners, sel: np.ndarray) -> np.ndarray:
+    rec = np.empty(len(sel), _record_dtype(c.normals is not None))
+    rec["p"], rec["c"] = c.positions[sel], c.colors[sel]
+    if c.normals is not None:
+        rec["n"] = c.normals[sel]
+    return rec
+
+
+def _cells_of_stream(lay: PlyLayout, spill: Path, prm: IngestParams, progress):
+    cells = _spill(lay, spill, prm, progress)
+    dt = _record_dtype(lay.has_normals)
+    for k in range(cells):
+        f = spill / f"{k}.bin"
+        if f.exists():
+            rec = np.fromfile(f, dt)
+            yield Corners(rec["p"], rec["c"], rec["n"] if lay.has_normals else None)
+
+
+def _params_of(paths: list[Path], prm: IngestParams) -> dict:
+    d = {k: (None if v == float("inf") else v) for k, v in asdict(prm).items() if k not in ("face_chunk", "vertex_block")}
+    d["inputs"] = [{"name": str(p.resolve()), "bytes": p.stat().st_size, "mtime": int(p.stat().st_mtime)} for p in paths]
+    return d
+
+
+def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bool = False, progress=None,
+                  checkpoint_bytes: int = 64 << 20, fault_after: int | None = None) -> dict:
+    """Build the scene store ``out`` from mesh files ``inputs``. Returns the store attributes
+    plus ``seconds``, ``input_bytes`` and ``resumed``. ``fault_after`` (tests) interrupts the
+    run after that many units as a KeyboardInterrupt would."""
+    t0 = time.perf_counter()
+    prog = progress or (lambda *a: None)
+    paths = [Path(p) for p in inputs]
+    if not paths:
+        raise IngestError("no input files given")
+    sources = [open_input(p, prm.stream_bytes) for p in paths]  # validates before anything is written
+    out = Path(out)
+    w = SceneWriter(out, _params_of(paths, prm), {"source": ", ".join(p.name for p in paths), "units": "1"},
+                    levels_max=prm.max_levels, overwrite=overwrite, checkpoint_bytes=checkpoint_bytes)
+    resumed = w.resumed
+    run = _Run(w, prm, prog, fault_after)
+    for i, src in enumerate(sources):
+        if isinstance(src, list):
+            _structured(run, src)
+            continue
+        cells = _cells_of_memory(src, prm) if isinstance(src, MemorySoup) else _cells_of_stream(src, out / "_spill" / str(i), prm, prog)
+        for cell in cells:
+            for corners in split_dense(cell, prm.cell_triangles):
+                for p, col, nrm, f in cell_objects(corners, prm.split()):
+                    run.write(_mesh(p, col, nrm, f), [None])
+    attrs = w.finish({"ingest_seconds": round(time.perf_counter() - t0, 3)})
+    shutil.rmtree(out / "_spill", ignore_errors=True)
+    return {**attrs, "seconds": time.perf_counter() - t0, "input_bytes": sum(p.stat().st_size for p in paths), "resumed": resumed}

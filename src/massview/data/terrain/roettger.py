@@ -1,0 +1,202 @@
+"""The Röttger per-node table of a terrain store (T2), computed once over the whole DEM.
+
+Layout (inside the terrain store's zarr group; ``n`` = log2(padded − 1))::
+
+    attrs["roettger"] = {"version": 1, "C_min": C, "K": C/(2(C-1)), "depths": n-1}
+    roettger/d2/<t>   float32 (2^t, 2^t), chunks ≤ 256², for node depths t = 0 .. n-2
+                      (edge d = 2^(n-t) ≥ 4 samples): the propagated roughness d2 in height
+                      units per sample (the finest nodes, d = 2, never subdivide: not stored)
+
+The attribute is written last, so a store whose table was interrupted reads as "no table".
+The table is computed out of core, finest depth first: the local d2 of each depth is read
+from the store's decimated pyramid in block-row strips (level l of the pyramid samples every
+2^l-th sample, exactly the stride the nodes of edge 2^(l+1) need) and pushed upward with
+:func:`massview.lod.roettger.propagate_into`; memory peaks at one depth's array (64 MiB at
+depth n-2 of a 16385² DEM) plus one strip.
+
+:class:`RoettgerTable` reads windows of it and counts the bytes read (what a computation rank
+of T2 reads: its portion plus a one-node halo).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from ...core.errors import StoreError
+from .store import TerrainStore
+
+__all__ = ["C_RANGE", "k_factor", "local_d2", "propagate_into", "DEFAULT_C_MIN", "compute_table", "write_table",
+           "prepare_roettger", "RoettgerTable", "has_table", "table_from_grid"]
+
+DEFAULT_C_MIN = 4.0
+C_RANGE = (2.0, 64.0)  # the C for which the level-difference proof holds (lod/roettger.py)
+
+
+def k_factor(C: float) -> float:
+    """Röttger's propagation factor K = C / (2 (C - 1)) for the minimum resolution C."""
+    return C / (2.0 * (C - 1.0))
+
+
+# -- roughness (pure numpy) ----------------------------------------------------------------------
+def local_d2(grid: np.ndarray, d: int) -> np.ndarray:
+    """Local d2 of the nodes of edge ``d`` over ``grid`` = heights sampled every ``d/2``
+    samples, shape (2a+1, 2b+1) → (a, b) float32 (height units per sample)."""
+    g = np.asarray(grid, np.float32)
+    c00, c01, c10, c11 = g[:-2:2, :-2:2], g[:-2:2, 2::2], g[2::2, :-2:2], g[2::2, 2::2]
+    ctr = g[1:-1:2, 1:-1:2]
+    dev = np.abs(g[:-2:2, 1:-1:2] - (c00 + c01) * 0.5)
+    np.maximum(dev, np.abs(g[2::2, 1:-1:2] - (c10 + c11) * 0.5), out=dev)
+    np.maximum(dev, np.abs(g[1:-1:2, :-2:2] - (c00 + c10) * 0.5), out=dev)
+    np.maximum(dev, np.abs(g[1:-1:2, 2::2] - (c01 + c11) * 0.5), out=dev)
+    np.maximum(dev, np.abs(ctr - (c00 + c11) * 0.5), out=dev)
+    np.maximum(dev, np.abs(ctr - (c01 + c10) * 0.5), out=dev)
+    return dev / np.float32(d)
+
+
+def propagate_into(coarse: np.ndarray, fine: np.ndarray, row0: int, K: float) -> None:
+    """Max-merge ``K × fine`` into ``coarse`` (in place) for every coarse node that a fine node
+    lies in or touches along an edge from outside. ``fine`` holds fine node rows
+    ``row0 .. row0+h`` (row0 and h even) and all 2N columns; ``coarse`` is (N, N)."""
+    f = np.asarray(fine, np.float32) * np.float32(K)
+    q0 = row0 // 2
+    tl, tr, bl, br = f[0::2, 0::2], f[0::2, 1::2], f[1::2, 0::2], f[1::2, 1::2]
+    inside = np.maximum(np.maximum(tl, tr), np.maximum(bl, br))
+    _merge(coarse, q0, 0, inside)
+    _merge(coarse, q0 - 1, 0, np.maximum(tl, tr))  # top children touch the node above
+    _merge(coarse, q0 + 1, 0, np.maximum(bl, br))  # bottom children touch the node below
+    left, right = np.maximum(tl, bl), np.maximum(tr, br)
+    _merge(coarse, q0, -1, left)  # left children touch the node to the left
+    _merge(coarse, q0, 1, right)
+
+
+def _merge(coarse: np.ndarray, r0: int, dc: int, vals: np.ndarray) -> None:
+    """coarse[r0 + i, j + dc] = max(., vals[i, j]) where inside."""
+    H, W = coarse.shape
+    h, w = vals.shape
+    a, b = max(r0, 0), min(r0 + h, H)
+    c0, c1 = max(dc, 0), min(w + dc, W)
+    if a >= b or c0 >= c1:
+        return
+    dst = coarse[a:b, c0:c1]
+    np.maximum(dst, vals[a - r0: b - r0, c0 - dc: c1 - dc], out=dst)
+
+
+VERSION = 1
+
+
+def table_from_grid(h: np.ndarray, C_min: float) -> list[np.ndarray]:
+    """The propagated d2 of depths 0 .. m-2 of an in-memory (2^m+1)² grid (the paper's
+    overlapping portions build their own quadtree this way)."""
+    m = int(np.log2(h.shape[0] - 1))
+    K = k_factor(C_min)
+    out: list = [None] * max(m - 1, 0)
+    pushed = None
+    for t in range(m - 1, -1, -1):
+        s = 2 ** (m - t - 1)
+        cur = local_d2(h[::s, ::s], 2 * s)
+        if pushed is not None:
+            cur = np.maximum(cur, pushed)
+        if t < m - 1:
+            out[t] = cur
+        pushed = np.zeros((2 ** (t - 1),) * 2, np.float32) if t >= 1 else None
+        if pushed is not None:
+            propagate_into(pushed, cur, 0, K)
+    return out
+
+
+def _grid_strips(store: TerrainStore, level: int) -> Iterator[tuple[int, np.ndarray]]:
+    """(first grid row, strip) over the whole grid sampled every 2^level samples."""
+    lay = store.layout
+    M = lay.M
+    if level > lay.L:
+        step = 2 ** (level - lay.L)
+        yield 0, store.get_block(lay.L, 0, 0)[::step, ::step]
+        return
+    for i in range(lay.blocks(level)):
+        row = store.get_block_row(level, i)
+        strip = np.concatenate([row[0]] + [b[:, 1:] for b in row[1:]], axis=1)
+        yield i * (M - 1), strip
+
+
+def compute_table(store: TerrainStore, C_min: float = DEFAULT_C_MIN,
+                  progress: Callable[[str, int, int], None] | None = None) -> list[np.ndarray]:
+    """The propagated d2 of depths 0 .. n-2 (list index = depth)."""
+    lay = store.layout
+    n = lay.n
+    if not (C_RANGE[0] <= C_min <= C_RANGE[1]):
+        raise StoreError(f"--min-C must be in [{C_RANGE[0]:g}, {C_RANGE[1]:g}], got {C_min}")
+    K = k_factor(C_min)
+    pushed = np.zeros((2 ** (n - 2), 2 ** (n - 2)), np.float32) if n >= 2 else None
+    out: list[np.ndarray] = [None] * max(n - 1, 0)  # type: ignore[list-item]
+    for t in range(n - 1, -1, -1):
+        d, level = 2 ** (n - t), n - t - 1
+        local = None if t == n - 1 else np.zeros((2**t, 2**t), np.float32)
+        for g0, strip in _grid_strips(store, level):
+            a = local_d2(strip, d)
+            if t == n - 1:
+                if pushed is not None:
+                    propagate_into(pushed, a, g0 // 2, K)
+            else:
+                local[g0 // 2: g0 // 2 + a.shape[0]] = a
+        if t < n - 1:
+            cur = np.maximum(local, pushed)
+            out[t] = cur
+            pushed = np.zeros((2 ** (t - 1), 2 ** (t - 1)), np.float32) if t >= 1 else None
+            if pushed is not None:
+                propagate_into(pushed, cur, 0, K)
+        if progress:
+            progress("roettger", 1, n)
+    return out
+
+
+def write_table(target, d2: list[np.ndarray], C_min: float) -> None:
+    """Write the table into the store ``target`` (a path, or the open zarr group of a prepare
+    in progress), arrays first, the attribute last."""
+    import zarr
+    from zarr.codecs import BloscCodec
+
+    g = zarr.open_group(str(target), mode="r+") if isinstance(target, (str, Path)) else target
+    g.attrs["roettger"] = None  # "no table" until every array is written
+    for t, a in enumerate(d2):
+        ch = (min(a.shape[0], 256), min(a.shape[1], 256))
+        arr = g.create_array(f"roettger/d2/{t}", shape=a.shape, chunks=ch, dtype="float32", overwrite=True,
+                             compressors=BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=4))
+        arr[...] = a
+    g.attrs["roettger"] = {"version": VERSION, "C_min": float(C_min), "K": k_factor(C_min), "depths": len(d2)}
+
+
+def prepare_roettger(path, C_min: float = DEFAULT_C_MIN, progress=None) -> dict:
+    """Compute and write the table of an existing complete store; returns its attribute."""
+    store = TerrainStore(path)
+    write_table(path, compute_table(store, C_min, progress), C_min)
+    return dict(TerrainStore(path).attrs["roettger"])
+
+
+def has_table(store: TerrainStore) -> bool:
+    meta = store.attrs.get("roettger")
+    return bool(meta) and meta.get("version") == VERSION and meta.get("depths") == max(store.layout.n - 1, 0)
+
+
+class RoettgerTable:
+    """Windowed reads of a store's table; ``bytes_read`` counts the float32 bytes delivered."""
+
+    def __init__(self, store: TerrainStore):
+        if not has_table(store):
+            raise StoreError(f"{store.path}: no Röttger table (T2's per-node roughness); compute it with "
+                             f"`massview prepare roettger {store.path}` (stores prepared by this massview have it)")
+        meta = store.attrs["roettger"]
+        self.C_min, self.K = float(meta["C_min"]), float(meta["K"])
+        self.depths = int(meta["depths"])
+        self._arrays = [store.group[f"roettger/d2/{t}"] for t in range(self.depths)]
+        self.bytes_read = 0
+
+    def window(self, t: int, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """d2 of depth ``t`` rows r0..r1-1, cols c0..c1-1 (clipped to the grid)."""
+        N = 2**t
+        r0, r1, c0, c1 = max(r0, 0), min(r1, N), max(c0, 0), min(c1, N)
+        a = np.asarray(self._arrays[t][r0:r1, c0:c1])
+        self.bytes_read += a.nbytes
+        return a

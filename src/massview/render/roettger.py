@@ -1,0 +1,95 @@
+"""Drawing T2 triangle fans on a visualization rank (Gouranton et al. §3.2.1).
+
+A layer arrives as fans: ``lengths`` (uint32 vertices per fan: centre, then the closed ring),
+``index`` (uint32 global sample index ``row · dim + col``) and ``height`` (float32), plus the
+computation rank of each fan (for colour-by-rank). :class:`FanRenderer` uploads them as one
+vertex stream (8 bytes + 4 for the rank) and one uint32 triangle list (the fans expanded to
+triangles ``(v0, v_i, v_i+1)``), and draws the layer with one call. Positions are computed in
+the vertex shader from the index, so every rank draws bit-identical vertices.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import moderngl
+import numpy as np
+
+from .context import load_shader
+from .meshes import _TINTS
+
+__all__ = ["LayerGeometry", "FanRenderer", "fan_triangles"]
+
+_LIGHT = np.array([-0.45, 0.35, 0.82])
+_LIGHT = (_LIGHT / np.linalg.norm(_LIGHT)).astype("f4")
+
+
+@dataclass(frozen=True)
+class LayerGeometry:
+    """What a layer needs to place its vertices: samples per grid row (``dim``), spacing
+    (dx, dy) metres, vertical scale, valid extent (rows, cols), height range, z offset."""
+
+    dim: int
+    spacing: tuple[float, float]
+    vscale: float
+    extent: tuple[int, int]
+    zrange: tuple[float, float]
+    zoffset: float = 0.0
+
+
+def fan_triangles(lengths: np.ndarray) -> np.ndarray:
+    """(T, 3) uint32 vertex numbers of the triangles of fans with ``lengths`` laid out one
+    after the other in a vertex stream."""
+    lens = np.asarray(lengths, np.int64)
+    ntri = np.maximum(lens - 2, 0)
+    if ntri.sum() == 0:
+        return np.zeros((0, 3), np.uint32)
+    starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    base = np.repeat(starts, ntri)
+    first = np.concatenate([[0], np.cumsum(ntri)[:-1]])
+    i = np.arange(ntri.sum()) - np.repeat(first, ntri) + 1
+    return np.stack([base, base + i, base + i + 1], 1).astype(np.uint32)
+
+
+class FanRenderer:
+    def __init__(self, ctx: moderngl.Context):
+        self.ctx = ctx
+        self.prog = ctx.program(vertex_shader=load_shader("roettger.vert.glsl"), fragment_shader=load_shader("roettger.frag.glsl"))
+        self.prog["u_light"].value = tuple(_LIGHT)
+        self.prog["u_tints"].write(np.ascontiguousarray(_TINTS, "f4").tobytes())
+        self._bufs: list = []
+
+    def draw(self, geom: LayerGeometry, lengths: np.ndarray, index: np.ndarray, height: np.ndarray, rank: np.ndarray,
+             mvp: np.ndarray, tint: bool = False) -> int:
+        """Draw one layer's fans (``rank`` per fan); returns the triangles drawn."""
+        tris = fan_triangles(lengths)
+        if len(tris) == 0:
+            return 0
+        verts = np.empty(len(index), np.dtype([("i", "<u4"), ("h", "<f4"), ("r", "<f4")]))
+        verts["i"], verts["h"] = index, height
+        verts["r"] = np.repeat(np.asarray(rank, np.float32), np.asarray(lengths, np.int64))
+        vbo, ibo = self.ctx.buffer(verts.tobytes()), self.ctx.buffer(tris.tobytes())
+        vao = self.ctx.vertex_array(self.prog, [(vbo, "u4 f4 f4", "in_idx", "in_h", "in_rank")], index_buffer=ibo, index_element_size=4)
+        p = self.prog
+        p["u_mvp"].write(np.ascontiguousarray(mvp.T, dtype="f4").tobytes())
+        p["u_dim"].value = int(geom.dim)
+        p["u_scale"].value = (float(geom.spacing[0]), float(geom.spacing[1]), float(geom.vscale))
+        p["u_zoffset"].value = float(geom.zoffset)
+        p["u_extent"].value = (float(geom.extent[1] - 1), float(geom.extent[0] - 1))
+        p["u_zrange"].value = (float(geom.zrange[0]), float(geom.zrange[1]))
+        p["u_tint_on"].value = 1 if tint else 0
+        vao.render(moderngl.TRIANGLES)
+        self._bufs.append((vao, vbo, ibo))
+        return len(tris)
+
+    def end_frame(self) -> None:
+        """Release this frame's buffers (call after the pixels are read back)."""
+        for vao, vbo, ibo in self._bufs:
+            vao.release()
+            vbo.release()
+            ibo.release()
+        self._bufs.clear()
+
+    def release(self) -> None:
+        self.end_frame()
+        self.prog.release()

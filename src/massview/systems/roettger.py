@@ -1,0 +1,316 @@
+"""T2: parallel Röttger simplification for height fields (Gouranton, Limet, Madougou, Melin).
+
+Two roles (:mod:`massview.parallel.roles`): visualization ranks (parent ranks 0 .. V-1, one
+per display tile) and C computation ranks (the last C ranks). The paper's pseudo-code (§3):
+
+    computation rank                          visualization rank
+    get local data (once: setup)              broadcast view point and frustum
+    loop: get view point and frusta           loop: get rendering data
+          perform LOD (Röttger, portion)            draw the subscene
+          for each visualization rank v             assemble tiles / write wall tile
+              cull fans against v's frustum
+              send v what changed
+
+* **Data** (setup): the computation leader reads each layer's metadata and sends it to every
+  rank; each computation rank then reads only its portion (:class:`LayerPortion`): the exact
+  Morton partition by default, so the union of the ranks' triangulations is the serial one.
+* **Frame**: the visualization leader broadcasts the camera; every rank derives the
+  visualization tiles and their sub-frusta. Computation ranks optionally agree on the desired
+  resolution c under ``--triangle-budget`` (bisection, one Allreduce of one integer per step
+  among computation ranks only), run the LOD, cull with bounding spheres per tile, encode
+  (index, height) fans with only the changes (:mod:`massview.lod.fanstream`) and send them;
+  one ``alltoall`` of message sizes lets a tile that sees nothing of a portion get 0 bytes.
+* **Draw**: visualization ranks keep what they hold from each computation rank, draw all
+  fans in the canonical (layer, Morton) order — the serial reference's order — and assemble
+  the sort-first tiles on visualization rank 0 (or write their own wall tile).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..core.camera import Camera, Viewport
+from ..core.config import RenderConfig
+from ..core.errors import ConfigError
+from ..core.stats import FrameStats
+from ..lod.cull import spheres_in_frustum
+from ..lod.fanstream import FanReceiver, FanSender
+from ..lod.roettger import RoettgerParams, default_c, partition_depth, portion_nodes, portion_owner
+from ..parallel.composite import deliver
+from ..parallel.decompose import parse_wall, sort_first_tiles
+from ..parallel.roles import Role, recv_bytes, send_bytes, split_roles, wait_all
+from .frameloop import FrameResult, image_diff
+from .roettger_draw import FanDrawer, gather_layers
+from .roettger_paper import PaperPortion, paper_layout
+from .roettger_portion import LayerInfo, LayerPortion
+
+__all__ = ["RoettgerSystem", "validate", "roles"]
+
+_TAG = 300
+_LAYER_GAP = 1.25  # further layers are drawn this many first-layer height spans below the previous
+
+
+def roles(cfg: RenderConfig) -> tuple[Role, Role]:
+    return (Role("visualization", None, minimum=1), Role("computation", cfg.compute_ranks))
+
+
+def validate(scene: str, cfg: RenderConfig, nranks: int) -> None:
+    """Cheap checks before any rank starts (the rank split, the wall, the stores' tables)."""
+    from ..parallel.roles import assign_roles
+
+    if nranks <= cfg.compute_ranks:
+        raise ConfigError(f"--compute-ranks {cfg.compute_ranks} leaves no visualization rank among {nranks} ranks; "
+                          f"run with --ranks {cfg.compute_ranks + 1} or more")
+    assign_roles(roles(cfg), nranks)
+    vis = nranks - cfg.compute_ranks
+    if cfg.wall:
+        c, r = (int(v) for v in cfg.wall.lower().split("x"))
+        if c * r != vis:
+            raise ConfigError(f"--wall {cfg.wall} needs {c * r} visualization ranks (one per tile); the run has {vis} "
+                              f"(--ranks {nranks} minus --compute-ranks {cfg.compute_ranks})")
+    depth0 = partition_depth(cfg.compute_ranks)
+    for spec in (scene, *cfg.layers):
+        info = LayerInfo.of(spec)  # a missing store or table fails here with its message
+        if cfg.roettger_C is not None:
+            RoettgerParams(C=cfg.roettger_C)  # the proven range
+            if cfg.roettger_C < info.C_min:
+                raise ConfigError(f"--roettger-C {cfg.roettger_C:g} is below the C_min {info.C_min:g} the table of {spec} was "
+                                  f"propagated for; use --roettger-C >= {info.C_min:g} or re-run "
+                                  f"`massview prepare roettger {spec} --min-C {cfg.roettger_C:g}`")
+        if depth0 > info.n - 1:
+            raise ConfigError(f"{spec} is too small for {cfg.compute_ranks} computation ranks (partition depth {depth0}, its "
+                              f"quadtree has {info.n} levels); use fewer --compute-ranks")
+
+
+def _vis_tiles(cfg: RenderConfig, nvis: int, width: int, height: int) -> list[Viewport]:
+    if cfg.wall:
+        return parse_wall(cfg.wall, nvis, width, height)
+    layout = cfg.decomposition.partition(":")[2] if cfg.decomposition.startswith("sort-first:") else "horizontal"
+    return sort_first_tiles(layout if layout in ("horizontal", "vertical", "grid") else "horizontal", nvis, width, height, cfg.grid)
+
+
+class RoettgerSystem:
+    """T2 over one or more terrain stores (layers): :meth:`render_frame` once per frame on
+    every rank of the run's communicator (the first call splits the roles and loads the data)."""
+
+    sort_last_modes: tuple[str, ...] = ()
+
+    def __init__(self, specs, cfg: RenderConfig):
+        self.specs = [str(s) for s in specs]
+        self.cfg = cfg
+        self.rc = None
+        self.infos: list[LayerInfo] = []
+        self.portions: list[LayerPortion] = []
+        self._drawer: FanDrawer | None = None
+        self._reference = None
+
+    # -- setup ----------------------------------------------------------------------------
+    def layer_infos(self) -> list[LayerInfo]:
+        """Each layer's metadata (store attributes only) with its z offset and index grid."""
+        cfg = self.cfg
+        infos = [LayerInfo.of(s) for s in self.specs]
+        span = (infos[0].zrange[1] - infos[0].zrange[0]) * infos[0].vscale
+        infos = [LayerInfo(**{**i.__dict__, "zoffset": -k * _LAYER_GAP * span}) for k, i in enumerate(infos)]
+        if cfg.paper_partition:  # the overlapping portions index vertices in a wider grid
+            infos = [LayerInfo(**{**i.__dict__, "dim": paper_layout(i.rows, i.cols, cfg.compute_ranks, i.S)[2]}) for i in infos]
+        return infos
+
+    def setup(self, comm) -> None:
+        """Split ``comm`` into the two roles and load the data (collective; done by the first
+        :meth:`render_frame` when not called before)."""
+        cfg = self.cfg
+        self.comm = comm
+        self.rc = rc = split_roles(comm, roles(cfg))
+        self.vis_ranks, self.comp_ranks = rc.ranks["visualization"], rc.ranks["computation"]
+        lead = rc.leader("computation")
+        self.infos = comm.bcast(self.layer_infos() if comm.Get_rank() == lead else None, root=lead)
+        C = cfg.roettger_C if cfg.roettger_C is not None else max(i.C_min for i in self.infos)
+        for i in self.infos:
+            if C < i.C_min:
+                raise ConfigError(f"--roettger-C {C:g} is below the C_min {i.C_min:g} the table of {i.path} was propagated for; "
+                                  f"use --roettger-C >= {i.C_min:g} or re-run `massview prepare roettger {i.path} --min-C {C:g}`")
+        self.C = C
+        self.depth0 = partition_depth(len(self.comp_ranks))
+        self.bytes_read = 0
+        if rc.role == "computation":
+            if cfg.paper_partition:
+                self.portions = [PaperPortion(i, rc.role_rank, len(self.comp_ranks)) for i in self.infos]
+            else:
+                nodes = portion_nodes(self.depth0, len(self.comp_ranks))[rc.role_rank]
+                self.portions = [LayerPortion(i, nodes, self.depth0) for i in self.infos]
+            self.bytes_read = sum(p.bytes_read for p in self.portions)
+            self.senders = {v: FanSender(len(self.infos)) for v in self.vis_ranks}
+        else:
+            self._drawer = FanDrawer(self.infos, cfg.egl_device)
+            self.receivers = {c: FanReceiver(len(self.infos)) for c in self.comp_ranks}
+        self._first = True
+
+    @property
+    def bounds(self):
+        """World box of all layers (from the stores' attributes when not set up yet)."""
+        infos = self.infos or self.layer_infos()
+        los, his = zip(*(i.bounds() for i in infos))
+        return np.min(los, axis=0), np.max(his, axis=0)
+
+    @property
+    def renderer(self) -> str:
+        return self._drawer.renderer if self._drawer is not None else "computation rank (no GL)"
+
+    def params(self, camera: Camera, c: float | None = None) -> RoettgerParams:
+        cfg = self.cfg
+        if c is None:
+            c = cfg.roettger_c if cfg.roettger_c is not None else default_c(cfg.tau, camera.fovy, camera.height)
+        return RoettgerParams(C=self.C, c=c, depth0=self.depth0)
+
+    # -- frame ----------------------------------------------------------------------------
+    def render_frame(self, comm, cfg: RenderConfig, camera: Camera | None, frame: int, sink=None) -> FrameResult:
+        """One frame on every rank of ``comm`` (``camera`` matters on rank 0, the
+        visualization leader); returns this rank's stats and, on display ranks, its tile."""
+        if self.rc is None:
+            self.setup(comm)
+        self.cfg = cfg
+        comm, rc = self.comm, self.rc
+        stats = FrameStats(frame=frame, rank=comm.Get_rank())
+        stats.count("store_bytes_read", self.bytes_read if self._first else 0)
+        self._first = False
+        with stats.stage("total"):
+            camera = comm.bcast(camera, root=0)
+            tiles = _vis_tiles(cfg, len(self.vis_ranks), camera.width, camera.height)
+            msgs, c_used = ({}, None)
+            if rc.role == "computation":
+                msgs, c_used = self._compute(camera, tiles, stats)
+            sizes = comm.alltoall([(len(msgs.get(r, b"")), c_used) for r in range(comm.Get_size())])
+            reqs = send_bytes(comm, {v: np.frombuffer(m, np.uint8) for v, m in msgs.items() if m}, _TAG)
+            tile = None
+            if rc.role == "visualization":
+                tile, c_used = self._visualize(cfg, camera, tiles, sizes, stats)
+            with stats.stage("transfer"):
+                wait_all(reqs)
+        result = FrameResult(stats, tile)
+        if tile is not None:
+            if sink is not None:
+                sink(frame, tile)
+            if cfg.reference:
+                ref = self._reference_image(camera, c_used, stats).crop(tile.viewport)
+                result.diff = image_diff(tile, ref)
+        return result
+
+    def _compute(self, camera: Camera, tiles: list[Viewport], stats: FrameStats) -> tuple[dict, float]:
+        cfg = self.cfg
+        planes = [camera.frustum_planes(vp) for vp in tiles]
+        params = self.params(camera)
+        if cfg.triangle_budget is not None:
+            with stats.stage("budget"):
+                params = self._budget(camera, params, planes, cfg.triangle_budget, stats)
+        with stats.stage("lod"):
+            layers = []
+            for p in self.portions:
+                leaves = p.select(camera.position, params)
+                fans, heights = p.fans(leaves)
+                layers.append((fans, heights))
+        stats.count("fans", sum(len(f) for f, _ in layers))
+        msgs, seen_any = {}, 0
+        with stats.stage("cull"):
+            vis = [[spheres_in_frustum(f.sphere[:, :3], f.sphere[:, 3], pl) for f, _ in layers] for pl in planes]
+        with stats.stage("encode"):
+            for v, rank in enumerate(self.vis_ranks):
+                sec = []
+                for (f, h), sel in zip(layers, vis[v]):
+                    part = f.take(sel)
+                    hv = h[np.repeat(sel, f.lengths.astype(np.int64))]
+                    sec.append((part.centre * 16 + part.mask, part.lengths, part.index, hv))
+                msg, st = self.senders[rank].encode(sec, delta=cfg.fan_delta)
+                if st.fans == 0 and all(len(s) == 0 for s in self.senders[rank].held) and _empty(msg):
+                    msg = b""
+                msgs[rank] = msg
+                stats.bytes_sent += len(msg)
+                stats.count(f"bytes_to_vis_{v}", len(msg))
+                stats.count("bytes_full", st.full)
+                stats.count("bytes_xyz", st.xyz)
+                stats.count("new_fans", st.new_fans)
+            for (f, _), sels in zip(layers, zip(*vis)):
+                seen_any += f.take(np.logical_or.reduce(sels)).triangles()
+        stats.count("fan_triangles", seen_any)
+        stats.count("roettger_c", params.c)
+        return msgs, params.c
+
+    def _budget(self, camera: Camera, params: RoettgerParams, planes, budget: int, stats: FrameStats) -> RoettgerParams:
+        """The largest c (≤ the configured one) whose visible triangle total is ≤ budget, found
+        by bisection; each step sums the ranks' counts with one Allreduce (computation ranks)."""
+        def total(c: float) -> int:
+            p = RoettgerParams(params.C, c, params.depth0)
+            n = 0
+            for portion in self.portions:
+                fans, _ = portion.fans(portion.select(camera.position, p))
+                seen = np.logical_or.reduce([spheres_in_frustum(fans.sphere[:, :3], fans.sphere[:, 3], pl) for pl in planes])
+                n += fans.take(seen).triangles()
+            stats.count("budget_steps", 1)
+            return int(self.rc.comm.allreduce(n))
+
+        hi, n_hi = params.c, total(params.c)
+        if n_hi <= budget:
+            return params
+        lo, best = 0.0, 0.0
+        if total(0.0) > budget:
+            stats.count("budget_unreachable", 1)
+            return RoettgerParams(params.C, 0.0, params.depth0)
+        for _ in range(48):
+            mid = (lo + hi) / 2 if lo == 0.0 and hi < 1e-9 else (np.sqrt(lo * hi) if lo > 0 else hi / 16)
+            n = total(mid)
+            if n <= budget:
+                lo, best = mid, mid
+                if n >= 0.9 * budget:
+                    break
+            else:
+                hi = mid
+        return RoettgerParams(params.C, best, params.depth0)
+
+    def _visualize(self, cfg: RenderConfig, camera: Camera, tiles: list[Viewport], sizes, stats: FrameStats):
+        rc = self.rc
+        v = rc.role_rank
+        with stats.stage("transfer"):
+            got = recv_bytes(self.comm, [c for c in self.comp_ranks if sizes[c][0] > 0], _TAG)
+        c_used = sizes[self.comp_ranks[0]][1]
+        for c in self.comp_ranks:
+            msg = got.get(c)
+            stats.bytes_recv += 0 if msg is None else len(msg)
+            self.receivers[c].apply(msg if msg is not None else None)
+        vp = tiles[v]
+        layers = gather_layers([self.receivers[c].held for c in self.comp_ranks], self.infos)
+        image = self._drawer.draw(camera, vp, layers, cfg.color_by_rank, stats)
+        if cfg.wall:
+            return image, c_used
+        return deliver(rc.comm, image, [(0, camera.viewport)], stats, cfg.codec), c_used
+
+    # -- reference ------------------------------------------------------------------------
+    def _reference_image(self, camera: Camera, c: float, stats: FrameStats):
+        """The serial image: one rank runs the whole-DEM LOD (all portions) alone; its LOD
+        time is recorded as ``reference_lod_ms`` (the sequential baseline of §4.1)."""
+        if self._reference is None:
+            N = 2**self.depth0
+            every = np.stack(np.meshgrid(np.arange(N), np.arange(N), indexing="ij"), -1).reshape(-1, 2)
+            self._reference = [LayerPortion(i, every, self.depth0) for i in self.infos]
+            self._owner = portion_owner(self.depth0, len(self.comp_ranks))
+        params = self.params(camera, c)
+        layers = []
+        t0 = time.perf_counter()
+        for p in self._reference:
+            fans, h = p.fans(p.select(camera.position, params))  # Morton order of the whole DEM
+            shift = p.n - self.depth0
+            row, col = fans.centre // p.info.index_dim, fans.centre % p.info.index_dim
+            layers.append((fans.lengths, fans.index, h, self._owner[row >> shift, col >> shift]))
+        stats.count("reference_lod_ms", (time.perf_counter() - t0) * 1e3)
+        return self._drawer.draw(camera, camera.viewport, layers, self.cfg.color_by_rank, FrameStats(-1, 0))
+
+    def close(self) -> None:
+        if self._drawer is not None:
+            self._drawer.release()
+
+
+def _empty(msg: bytes) -> bool:
+    """A message that keeps nothing and adds nothing (n_prev = n_new = 0 in every layer)."""
+    a = np.frombuffer(msg, "<u4")
+    return bool(np.all(a[1:] == 0))
+
