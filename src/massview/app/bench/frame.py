@@ -103,7 +103,7 @@ def _plain_rate(system, camera, max_side: int = 1025) -> float:
         for j in range(nb):
             heights[i * m: i * m + m + 1, j * m: j * m + m + 1] = st.get_block(lv, i, j)
     dx, dy = st.spacing
-    ctx, _, _, view = system._renderers()
+    ctx, _, _, view = system.renderers()
     plain = PlainMeshRenderer(ctx, heights, None, (dx * 2**lv, dy * 2**lv), st.vertical_scale)
     best = 0.0
     for _ in range(3):
