@@ -19,11 +19,12 @@ import sys
 from pathlib import Path
 
 from ..core.config import RenderConfig, parse_size, parse_sun
-from . import upgrade_cmds
 from ..core.errors import ConfigError, MassviewError
 from ..core.paths import BUILTIN_PATHS
-from ..parallel.composite import COMPOSITORS
 from ..parallel.codec import CODECS
+from ..parallel.composite import COMPOSITORS
+from ..parallel.runtime import reuse_freed_memory
+from . import upgrade_cmds
 from .dmmr_cmds import add_dmmr_args
 
 __all__ = ["main", "build_parser"]
@@ -78,6 +79,8 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sun", default="315,45", help="terrain: sun AZIMUTH,ALTITUDE in degrees, as gdaldem (default 315,45)")
     p.add_argument("--colormap", default="auto", help="terrain: a matplotlib colormap, hypsometric, ortho, none (grey) or auto (default)")
     p.add_argument("--haze", type=float, default=1.0, help="terrain: aerial perspective strength, 0 = off (default 1)")
+    p.add_argument("--pipeline", choices=("on", "off"), default=None,
+                   help="render: on = composite and deliver frame i on a thread while frame i+1 is drawn (same images); off = one frame after the other (default)")
     p.add_argument("--reference", action="store_true", help="also render each frame on one rank and report max_abs_diff and diff_fraction")
     p.add_argument("--out", "-o", type=Path, default=Path("out/render"), help="output folder (default out/render)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary table")
@@ -277,6 +280,7 @@ def _report_peak_rss() -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     _report_peak_rss()
+    reuse_freed_memory()  # per-frame images reuse freed pages (issue 20)
     if argv[:1] == ["__job"] and len(argv) == 2:  # a rank of a job started by massview.api.render
         from .render_job import run_job
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,7 +29,8 @@ from ..core.image import Image
 from ..core.paths import load_path
 from ..core.stats import summarize
 from ..parallel.decompose import parse_decomposition
-from ..systems import display_tiles, open_system, render_frame
+from ..systems import display_tiles, open_system
+from ..systems.frameloop import render_frames
 
 __all__ = ["run_render", "write_png", "tile_dir", "JobOutput"]
 
@@ -98,6 +100,7 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
                          + (f" · {cfg.compositor}" if kind == "sort-last" else ""), nframes) if rank == 0 and not quiet else None
     records, diffs = [], []
     stats_file = open(out / "stats.jsonl", "w") if rank == 0 and out is not None else None
+    t_start = time.perf_counter()
     try:
         if hasattr(system, "run_path"):  # a system with its own pipelined frame loop (M1)
             got = system.run_path(comm, cameras, cfg, sink)
@@ -106,8 +109,8 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
                 if stats_file:
                     stats_file.write(json.dumps(rec) + "\n")
             diffs = got[1] if got else []
-        for f in range(0 if hasattr(system, "run_path") else nframes):
-            res = render_frame(comm, system, cfg, cameras[f] if rank == 0 else None, f, sink)
+        for res in render_frames(comm, system, cfg, cameras, sink, 0 if hasattr(system, "run_path") else nframes):
+            f = res.stats.frame
             gathered = comm.gather((res.stats.to_json(), res.diff), root=0)
             if rank == 0:
                 for rec, diff in gathered:
@@ -125,6 +128,7 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
             progress[0].stop()
         if stats_file:
             stats_file.close()
+    wall_s = time.perf_counter() - t_start
     if isinstance(scene, str) and hasattr(system, "close"):
         system.close()
     rss = comm.gather(_peak_rss(), root=0)
@@ -136,8 +140,10 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
         compositor=cfg.compositor if kind == "sort-last" else "tile-assembly", size=[cfg.width, cfg.height],
         path=path_label or cfg.path, wall=cfg.wall,
         tile_targets=cfg.tile_targets, codec=cfg.codec, renderer=system.renderer,
-        peak_rss_mib_per_rank=[round(v / 2**20, 1) for v in rss],
+        peak_rss_mib_per_rank=[round(v / 2**20, 1) for v in rss], pipeline=cfg.pipeline, wall_s=round(wall_s, 3),
+        throughput_fps=round(nframes / wall_s, 3) if wall_s > 0 else None,  # frames delivered per second
     )
+    summary["latency_ms"] = summary.get("mean_frame_ms")  # a frame's draw start to delivery (max over ranks)
     if cfg.reference:
         summary.update(_reference_figures(diffs))
     if out is not None:

@@ -52,6 +52,7 @@ class RenderConfig:
     haze: float = 1.0  # terrain: aerial perspective strength (0 = off; 1 = 30 % towards the sky across the terrain)
     egl_device: int | None = None
     fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
+    pipeline: str = "off"  # "on": composite/deliver frame i on a thread while frame i+1 is drawn
     # T2 (--system roettger): computation ranks, partition, budget, Röttger's C and c, layers
     system: str = "auto"  # "auto" (by scene), "roettger" (T2), "dmmr" (M1) or "reliefboards" (M2)
     layers: tuple[str, ...] = ()  # further stores drawn as stacked layers (T2)
@@ -79,6 +80,8 @@ class RenderConfig:
             raise ConfigError(f"--loading must be async or complete, got {self.loading!r}")
         if self.cache_mb < 1 or self.gpu_mb < 1:
             raise ConfigError("--cache-mb and --gpu-mb must be at least 1")
+        if self.pipeline not in ("on", "off"):
+            raise ConfigError(f"--pipeline must be on or off, got {self.pipeline!r}")
         if not self.tau > 0:
             raise ConfigError(f"--tau (pixel tolerance) must be positive, got {self.tau}")
         if self.system not in ("auto", "roettger", "dmmr", "reliefboards"):

@@ -7,9 +7,14 @@ Wire format (little-endian)::
 
 Runs alternate background/active starting with background, over the row-major pixels of the
 viewport; a pixel is background when its depth is exactly 1.0. Only active pixels' color and
-depth are stored. Byte codecs: ``lz4`` (lz4.frame, default: the faster of the two at equal
-ratio on rendered frames here — see ``massview bench composite``), ``blosc2`` (zstd + shuffle)
-and ``none``.
+depth are stored. Byte codecs: ``blosc2`` (LZ4 + byte shuffle, level 1; the default: it packs
+a 1.3 MB band in 0.2 ms here against 1.8 ms for lz4.frame, at a better ratio), ``lz4``
+(lz4.frame) and ``none``. Each runs on one thread per rank (ranks share the cores).
+
+Encoding writes runs, colors and depths straight into the wire buffer from views of the image
+(no crop, no concatenation); receivers combine (:func:`merge_into`) or paste
+(:func:`paste_into`) a message's active pixels directly into their own buffers, without
+decoding it to a full image first (kernels in :mod:`.kernels`).
 """
 
 from __future__ import annotations
@@ -20,14 +25,16 @@ import numpy as np
 
 from ..core.camera import Viewport
 from ..core.errors import ConfigError, ParallelError
-from ..core.image import Image, blank_image
+from ..core.image import BACKGROUND_RGBA, Image, blank_image
+from . import kernels
 
-__all__ = ["CODECS", "encode_image", "decode_image"]
+__all__ = ["CODECS", "encode_image", "encode_region", "decode_image", "decode_runs", "merge_into", "paste_into"]
 
 _HEADER = struct.Struct("<4s4i3I")
 _MAGIC = b"MVI1"
 CODECS = {"none": 0, "lz4": 1, "blosc2": 2}
 _NAMES = {v: k for k, v in CODECS.items()}
+_BG32 = np.array(BACKGROUND_RGBA, np.uint8).view(np.uint32)[0]
 
 
 def _blosc2():
@@ -59,46 +66,76 @@ def _decompress(codec: str, body: bytes) -> bytes:
     return body
 
 
-def _active_runs(active: np.ndarray) -> np.ndarray:
-    """Run lengths alternating background/active, starting with a (maybe empty) background run."""
-    edges = np.flatnonzero(active[1:] != active[:-1]) + 1
-    if active.size and active[0]:
-        edges = np.concatenate([[0], edges])
-    bounds = np.concatenate([[0], edges, [active.size]])
-    return np.diff(bounds).astype(np.uint32)
+def _views(img: Image, vp: Viewport) -> tuple[np.ndarray, np.ndarray, Viewport]:
+    """2-D views (depth float32, color uint32) of the part of ``img`` inside ``vp``; no copy."""
+    v = img.viewport.intersect(vp)
+    rows = slice(v.y - img.viewport.y, v.y - img.viewport.y + v.h)
+    cols = slice(v.x - img.viewport.x, v.x - img.viewport.x + v.w)
+    return img.depth[rows, cols], img.color[rows, cols].view(np.uint32)[..., 0], v
+
+
+def encode_region(img: Image, vp: Viewport, codec: str = "blosc2") -> bytes:
+    """Encode the part of ``img`` inside ``vp`` (destination pixels) without cropping it first:
+    runs, colors and depths are written into the wire buffer in place."""
+    if codec not in CODECS:
+        raise ConfigError(f"unknown image codec {codec!r}; use one of {', '.join(CODECS)}")
+    depth, color, v = _views(img, vp)
+    raw, nruns, nact = kernels.pack_runs(depth, color)
+    head = _HEADER.pack(_MAGIC, v.x, v.y, v.w, v.h, CODECS[codec], nruns, nact)
+    return head + (raw.tobytes() if codec == "none" else _compress(codec, raw))
 
 
 def encode_image(img: Image, codec: str = "blosc2") -> bytes:
-    if codec not in CODECS:
-        raise ConfigError(f"unknown image codec {codec!r}; use one of {', '.join(CODECS)}")
-    vp = img.viewport
-    depth = img.depth.reshape(-1)
-    active = depth != np.float32(1.0)
-    runs = _active_runs(active)
-    color = np.ascontiguousarray(img.color).reshape(-1).view(np.uint32)[active]
-    raw = runs.tobytes() + color.tobytes() + depth[active].tobytes()
-    head = _HEADER.pack(_MAGIC, vp.x, vp.y, vp.w, vp.h, CODECS[codec], len(runs), int(active.sum()))
-    return head + _compress(codec, raw)
+    """The wire message of a whole :class:`Image` (format in the module docstring)."""
+    return encode_region(img, img.viewport, codec)
 
 
-def decode_image(data) -> Image:
+def decode_runs(data) -> tuple[Viewport, np.ndarray, np.ndarray, np.ndarray]:
+    """(viewport, runs uint32, active colors uint32, active depths float32) of a message; the
+    arrays are views of one decompressed buffer."""
     buf = memoryview(data).cast("B")
     if len(buf) < _HEADER.size:
         raise ParallelError(f"image message too short ({len(buf)} bytes)")
     magic, x, y, w, h, cid, nruns, nact = _HEADER.unpack_from(buf)
     if magic != _MAGIC or cid not in _NAMES:
         raise ParallelError("image message has a bad header (not a massview sub-image)")
-    vp = Viewport(x, y, w, h)
-    raw = _decompress(_NAMES[cid], bytes(buf[_HEADER.size:]))
+    raw = _decompress(_NAMES[cid], buf[_HEADER.size:])
     if len(raw) != nruns * 4 + nact * 8:
         raise ParallelError(f"image message body is {len(raw)} bytes, header says {nruns * 4 + nact * 8}")
     runs = np.frombuffer(raw, np.uint32, nruns)
+    if int(runs.sum(dtype=np.int64)) != w * h or int(runs[1::2].sum(dtype=np.int64)) != nact:
+        raise ParallelError("image message runs do not cover its viewport (corrupt message)")
+    off = nruns * 4
+    return Viewport(x, y, w, h), runs, np.frombuffer(raw, np.uint32, nact, off), np.frombuffer(raw, np.float32, nact, off + nact * 4)
+
+
+def decode_image(data) -> Image:
+    vp, runs, color, depth = decode_runs(data)
     img = blank_image(vp)
-    if nact:
-        flags = np.zeros(nruns, bool)
-        flags[1::2] = True
-        active = np.repeat(flags, runs)
-        off = nruns * 4
-        img.color.reshape(-1).view(np.uint32)[active] = np.frombuffer(raw, np.uint32, nact, off)
-        img.depth.reshape(-1)[active] = np.frombuffer(raw, np.float32, nact, off + nact * 4)
+    kernels.paste_runs(runs, color, depth, img.color.view(np.uint32)[..., 0], img.depth)
     return img
+
+
+def merge_into(acc: Image, data, front: bool) -> None:
+    """Depth-combine the message ``data`` (same viewport as ``acc``) into ``acc`` in place:
+    ``combine(part, acc)`` when ``front`` (the part is from a lower rank), else
+    ``combine(acc, part)`` — bit for bit, without decoding to a full image."""
+    vp, runs, color, depth = decode_runs(data)
+    if vp != acc.viewport:
+        raise ParallelError(f"cannot combine a {vp} sub-image into {acc.viewport}")
+    kernels.merge_runs(runs, color, depth, acc.color.view(np.uint32)[..., 0], acc.depth, front)
+
+
+def paste_into(out: Image, data, fill: bool = False) -> None:
+    """Write the message's pixels into ``out`` (its viewport must lie inside ``out``'s): the
+    active ones, and with ``fill`` the background ones too (else those are left as they are)."""
+    vp, runs, color, depth = decode_runs(data)
+    if vp.empty:
+        return
+    if vp.intersect(out.viewport) != vp:
+        raise ParallelError(f"sub-image {vp} does not lie inside the tile {out.viewport}")
+    d, c, _ = _views(out, vp)
+    if fill:
+        d.fill(np.float32(1.0))
+        c.fill(_BG32)
+    kernels.paste_runs(runs, color, depth, c, d)

@@ -13,7 +13,7 @@ from mpi4py import MPI
 
 from ..core.stats import FrameStats
 
-__all__ = ["exchange", "measure_bandwidth", "max_over_ranks", "agree_all", "any_rank"]
+__all__ = ["exchange", "measure_bandwidth", "measure_memory_bandwidth", "max_over_ranks", "agree_all", "any_rank"]
 
 _TAG_SIZE = 0x4D56
 _TAG_DATA = 0x4D57
@@ -61,6 +61,22 @@ def measure_bandwidth(comm, nbytes: int = 8 << 20, repeat: int = 5) -> float:
             comm.Send(buf, dest=0, tag=78)
         best = min(best, (MPI.Wtime() - t0) / 2)
     return comm.bcast(nbytes / best if me == 0 else None, root=0)
+
+
+def measure_memory_bandwidth(comm, nbytes: int = 64 << 20, repeat: int = 5) -> float:
+    """Memory bandwidth in bytes/s (read + written) one rank gets while every rank of ``comm``
+    copies ``nbytes`` at the same time (``np.copyto``; per repetition the slowest rank's time,
+    best of ``repeat``): what each rank can count on when all of them composite together on
+    shared cores and memory."""
+    src = np.ones(nbytes, np.uint8)
+    dst = np.zeros(nbytes, np.uint8)
+    best = float("inf")
+    for _ in range(repeat + 1):  # the first copy also faults the pages in
+        comm.Barrier()
+        t0 = MPI.Wtime()
+        np.copyto(dst, src)
+        best = min(best, max_over_ranks(comm, MPI.Wtime() - t0))
+    return 2 * nbytes / best
 
 
 def max_over_ranks(comm, value: float) -> float:

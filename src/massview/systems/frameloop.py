@@ -12,7 +12,7 @@ display rank also renders the serial image alone and records how its tile differ
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -25,7 +25,7 @@ from ..parallel.composite import composite, deliver
 from ..parallel.decompose import parse_decomposition, parse_wall
 from ..render.meshes import rank_tint
 
-__all__ = ["FrameResult", "display_tiles", "render_frame"]
+__all__ = ["FrameResult", "display_tiles", "render_frame", "render_frames"]
 
 
 class InjectedFault(MassviewError, RuntimeError):
@@ -57,30 +57,41 @@ def image_diff(a: Image, b: Image) -> tuple[int, int, int]:
     return int(d.max(initial=0)), int(np.count_nonzero(d)), int(d.size)
 
 
+def _begin(comm, system, cfg: RenderConfig, camera: Camera | None, frame: int, stats: FrameStats):
+    """Camera, LOD, plan and draw of one frame (main thread: GL and collectives on ``comm``).
+    Returns (camera, this rank's image)."""
+    rank, n = comm.Get_rank(), comm.Get_size()
+    camera = comm.bcast(camera, root=0)
+    if hasattr(system, "prepare_frame"):  # per-frame LOD shared by all ranks (terrain)
+        system.prepare_frame(comm, camera, cfg, stats)
+    with stats.stage("lod"):
+        tasks = comm.bcast(system.plan(camera, cfg, n) if rank == 0 else None, root=0)
+    _check_fault(cfg, rank, frame)
+    tint = rank_tint(rank) if cfg.color_by_rank else (0, 0, 0, 0)
+    return camera, system.render(tasks[rank], camera, cfg, stats, tint)
+
+
+def _finish(comm, system, cfg: RenderConfig, camera: Camera, image: Image, stats: FrameStats) -> Image | None:
+    """Composite (sort-last) and deliver one frame, then the system's display-side touches on the
+    final pixels (``system.finish``, terrain: the sky; numpy only); only point-to-point calls and
+    one allgather on ``comm``, no GL: safe on the communication thread with its own ``comm``."""
+    kind, _ = parse_decomposition(cfg.decomposition, system.sort_last_modes)
+    piece = composite(comm, image, cfg.compositor, cfg.radix_k, stats, cfg.codec) if kind == "sort-last" else image
+    tile = deliver(comm, piece, display_tiles(cfg, comm.Get_size()), stats, cfg.codec)
+    if tile is not None and hasattr(system, "finish"):
+        tile = system.finish(camera, cfg, tile)
+    return tile
+
+
 def render_frame(comm, system, cfg: RenderConfig, camera: Camera | None, frame: int,
                  sink: Callable[[int, Image], None] | None = None) -> FrameResult:
     """Render one frame on every rank of ``comm``; ``camera`` matters on rank 0 only."""
     if hasattr(system, "render_frame"):  # systems with roles (T2, M1, M2) run their own per-role frame
         return system.render_frame(comm, cfg, camera, frame, sink)
-    rank, n = comm.Get_rank(), comm.Get_size()
-    stats = FrameStats(frame=frame, rank=rank)
+    stats = FrameStats(frame=frame, rank=comm.Get_rank())
     with stats.stage("total"):
-        camera = comm.bcast(camera, root=0)
-        if hasattr(system, "prepare_frame"):  # per-frame LOD shared by all ranks (terrain)
-            system.prepare_frame(comm, camera, cfg, stats)
-        with stats.stage("lod"):
-            tasks = comm.bcast(system.plan(camera, cfg, n) if rank == 0 else None, root=0)
-        _check_fault(cfg, rank, frame)
-        tint = rank_tint(rank) if cfg.color_by_rank else (0, 0, 0, 0)
-        image = system.render(tasks[rank], camera, cfg, stats, tint)
-        kind, _ = parse_decomposition(cfg.decomposition, system.sort_last_modes)
-        if kind == "sort-last":
-            piece = composite(comm, image, cfg.compositor, cfg.radix_k, stats, cfg.codec)
-        else:
-            piece = image
-        tile = deliver(comm, piece, display_tiles(cfg, n), stats, cfg.codec)
-        if tile is not None and hasattr(system, "finish"):  # display-side touches on final pixels (terrain: sky)
-            tile = system.finish(camera, cfg, tile)
+        camera, image = _begin(comm, system, cfg, camera, frame, stats)
+        tile = _finish(comm, system, cfg, camera, image, stats)
     result = FrameResult(stats, tile)
     if tile is not None:
         if sink is not None:
@@ -89,3 +100,24 @@ def render_frame(comm, system, cfg: RenderConfig, camera: Camera | None, frame: 
             ref = system.render_reference(camera, cfg).crop(tile.viewport)
             result.diff = image_diff(tile, ref)
     return result
+
+
+def render_frames(comm, system, cfg: RenderConfig, cameras, sink: Callable[[int, Image], None] | None = None,
+                  frames: int | None = None) -> Iterator[FrameResult]:
+    """Render ``frames`` frames (default ``cfg.frames``; ``cameras[f]`` on rank 0, ignored elsewhere) and yield
+    their results in frame order, on every rank in the same order (callers may run
+    collectives on ``comm`` between results). ``cfg.pipeline == "off"``: one
+    :func:`render_frame` after the other; ``"on"``: :class:`~.pipeline.FramePipeline` (systems
+    with roles, which bring their own ``render_frame``, always run one frame after the other)."""
+    camera_of = (lambda f: cameras[f]) if comm.Get_rank() == 0 else (lambda f: None)
+    frames = cfg.frames if frames is None else frames
+    if cfg.pipeline == "off" or hasattr(system, "render_frame"):  # systems with roles run their own loop
+        for f in range(frames):
+            yield render_frame(comm, system, cfg, camera_of(f), f, sink)
+        return
+    from .pipeline import FramePipeline
+
+    with FramePipeline(comm, system, cfg, sink) as pipe:
+        for f in range(frames):
+            yield from pipe.submit(camera_of(f), f)
+        yield from pipe.drain()

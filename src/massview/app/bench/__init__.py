@@ -8,7 +8,7 @@ this registry (the first docstring line of a module is its help text).
 
 from __future__ import annotations
 
-from . import composite, dmmr, ingest, reliefboards, roettger, scene, scene_ingest, terrain
+from . import composite, dmmr, frame, ingest, paraview, reliefboards, roettger, scene, scene_ingest, terrain
 
 __all__ = ["BENCHES"]
 
@@ -16,6 +16,8 @@ BENCHES = {
     "composite": composite,
     "terrain": terrain,
     "ingest": ingest,
+    "frame": frame,
+    "paraview": paraview,
     "scene-ingest": scene_ingest,
     "scene": scene,
     "roettger": roettger,

@@ -1,0 +1,170 @@
+"""massview beside ParaView's pvbatch + IceT on the same DEM, cameras, image size and ranks.
+
+``massview bench paraview [STORE]`` (default: the demo's 4097² terrain, as ``bench frame``):
+
+1. exports the store's finest level as one float32 grid and the ``--frames`` cameras of the
+   flyover path (position, focal point, up, field of view) — the cameras massview renders;
+2. runs ``pvbatch`` (under ``xvfb-run`` when there is no display, llvmpipe through GLX) on 1
+   and 2 ranks (``mpiexec`` of the MPI ParaView was built with, found on PATH as
+   ``mpiexec.openmpi``/``mpiexec``), drawing the full surface (2·(n−1)² triangles) and a
+   surface of every other sample (about a quarter: "equal triangles" with massview's LOD);
+3. runs massview on the same cameras (``bench frame``'s job: warm caches, synchronous loop) for
+   sort-last and sort-first on 1 and 2 ranks;
+4. prints frame times, triangles, the 1→2-rank speed-ups and the ratios.
+
+When ``pvbatch`` is not installed it says so and exits 0 (Debian/Ubuntu: ``apt-get install
+paraview xvfb``). ParaView is never a dependency of massview or of its tests. Nothing here
+asserts a time.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ...core.paths import load_path
+from ...core.config import parse_size
+
+__all__ = ["add_arguments", "run"]
+
+_SCRIPT = Path(__file__).with_name("pvbatch_script.py")
+
+
+def add_arguments(p) -> None:
+    p.add_argument("store", nargs="?", default=None, help="terrain store (default: the demo's 4097² terrain)")
+    p.add_argument("--size", default="1280x1024")
+    p.add_argument("--frames", type=int, default=8, help="cameras along the flyover path (default 8)")
+    p.add_argument("--ranks", default="1,2", help="rank counts (default 1,2)")
+    p.add_argument("--workdir", default="out/bench", help="where the exported grid and the demo terrain go")
+    p.add_argument("--steps", default="1,2", help="ParaView surfaces: every STEP-th sample, comma-separated (default 1,2: full and ~equal triangles)")
+    p.add_argument("--skip-massview", action="store_true", help="only run pvbatch")
+    p.add_argument("--reuse", action="store_true", help="reuse pvbatch results already in --workdir (pv_RANKS_STEP.json)")
+
+
+def export_grid(store_path: Path, workdir: Path) -> dict:
+    """The finest level as ``*.heights.raw`` (float32, rows × cols, rows flipped: the last row
+    first, so that ParaView's +y grid is massview's y = −row·dy); returns its shape, spacing
+    and vertical scale."""
+    from ...data.terrain import TerrainStore
+
+    st = TerrainStore(store_path)
+    lay = st.layout
+    raw = Path(workdir) / f"{Path(store_path).name}.heights.raw"
+    if not raw.exists():
+        m, nb = lay.M - 1, lay.blocks(0)
+        full = np.empty((nb * m + 1, nb * m + 1), np.float32)
+        for i in range(nb):
+            for j in range(nb):
+                full[i * m: i * m + m + 1, j * m: j * m + m + 1] = st.get_block(0, i, j)
+        Path(workdir).mkdir(parents=True, exist_ok=True)
+        full[: lay.rows, : lay.cols][::-1].tofile(raw)
+    dx, dy = st.spacing
+    return {"raw": str(raw), "rows": lay.rows, "cols": lay.cols, "dx": dx, "dy": dy, "vscale": st.vertical_scale}
+
+
+def export_cameras(store_path: Path, frames: int, size: str, path: Path) -> None:
+    """The flyover cameras as ParaView wants them (camera looks along −z, up is +y)."""
+    from ...systems import open_system
+
+    w, h = parse_size(size)
+    system = open_system(str(store_path))
+    cams = []
+    for c in load_path("flyover", *system.bounds).cameras(frames, w, h):
+        pos = np.asarray(c.position)
+        cams.append({"position": pos.tolist(), "focal": (pos + c.forward * 100.0).tolist(), "up": c.up.tolist(), "fovy": c.fovy})
+    system.close()
+    path.write_text(json.dumps({"size": [w, h], "cameras": cams}))
+
+
+def run_pvbatch(grid: dict, cams: Path, step: int, ranks: int, workdir: Path) -> dict:
+    out = workdir / f"pv_{ranks}_{step}.json"
+    script = workdir / "pvbatch_script.py"  # run from a copy: beside this module, "import paraview" would find it
+    shutil.copyfile(_SCRIPT, script)
+    args = [script, grid["raw"], grid["rows"], grid["cols"], grid["dx"], grid["dy"], grid["vscale"], step, cams, out]
+    cmd = [shutil.which("pvbatch"), "--force-offscreen-rendering", *map(str, args)]
+    if ranks > 1:
+        mpi = shutil.which("mpiexec.openmpi") or shutil.which("mpiexec")
+        cmd = [mpi, "--allow-run-as-root", "--oversubscribe", "-n", str(ranks), *cmd]
+    if not os.environ.get("DISPLAY"):
+        cmd = ["xvfb-run", "-a", "-s", "-screen 0 1920x1200x24", *cmd]
+    env = dict(os.environ, OMPI_MCA_btl_vader_single_copy_mechanism="none")
+    for attempt in range(2):  # xvfb-run -a can lose a race for a display number on a busy machine
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        if proc.returncode == 0 and out.exists():
+            return json.loads(out.read_text())
+    raise RuntimeError(f"pvbatch failed (exit {proc.returncode}): {' '.join(map(str, cmd))}\n{(proc.stdout + proc.stderr)[-3000:]}")
+
+
+def _massview(args, store: Path, ranks: list[int]) -> dict:
+    """massview's frame on the same cameras (``bench frame``'s job): {(mode, ranks): result}."""
+    from types import SimpleNamespace
+
+    from .frame import _launch
+
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for mode, dec in (("sort-last", "sort-last:kpatch"), ("sort-first", "sort-first:kd")):
+            for n in ranks:
+                a = SimpleNamespace(size=args.size, frames=args.frames, decomposition=dec, compositor="binary-swap")
+                out[(mode, n)] = _launch(a, store, n, "auto", tmp)
+    return out
+
+
+def run(args) -> int:
+    from rich.console import Console
+
+    console = Console(width=None if Console().is_terminal else 150)
+    if shutil.which("pvbatch") is None:
+        console.print("pvbatch is not installed: the ParaView comparison is skipped (Debian/Ubuntu: "
+                      "`apt-get install paraview xvfb`; any ParaView ≥ 5.10 with MPI works)")
+        return 0
+    from .frame import demo_store
+
+    workdir = Path(args.workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    store = Path(args.store) if args.store else demo_store(args.workdir)
+    grid = export_grid(store, workdir)
+    cams = workdir / "pv_cameras.json"
+    export_cameras(store, args.frames, args.size, cams)
+    ranks = [int(v) for v in args.ranks.split(",") if v.strip()]
+    pv = {}
+    steps = [int(v) for v in args.steps.split(",") if v.strip()]
+    for step in steps:
+        for n in ranks:
+            done = workdir / f"pv_{n}_{step}.json"
+            if args.reuse and done.exists():
+                pv[(step, n)] = json.loads(done.read_text())
+                continue
+            console.print(f"[dim]pvbatch, {n} rank(s), every {step} sample(s) ...[/]")
+            pv[(step, n)] = run_pvbatch(grid, cams, step, n, workdir)
+    mv = {} if args.skip_massview else _massview(args, store, ranks)
+    _print(console, pv, mv, ranks, steps, args, store)
+    return 0
+
+
+def _print(console, pv: dict, mv: dict, ranks: list[int], steps: list[int], args, store: Path) -> None:
+    from rich.table import Table
+
+    t = Table(title=f"massview vs ParaView pvbatch + IceT: {store.name}, {args.size}, {args.frames} flyover cameras (mean ms/frame)")
+    for c in ("system", "surface / mode", *(f"{n} rank ms" for n in ranks), "M triangles", f"speed-up {ranks[0]}→{ranks[-1]}"):
+        t.add_column(c, justify="right")
+    rows = []
+    for step in steps:
+        label = "full" if step == 1 else f"every {step} samples"
+        ms = [1e3 * float(np.mean(pv[(step, n)]["seconds"])) for n in ranks]
+        rows.append(("ParaView", label, ms, pv[(step, ranks[0])]["triangles"] / 1e6))
+    for mode in ("sort-last", "sort-first"):
+        if all(mv.get((mode, n)) for n in ranks):
+            ms = [mv[(mode, n)]["sync"]["latency_ms"] for n in ranks]
+            rows.append(("massview", f"LOD, {mode}", ms, mv[(mode, ranks[0])]["sync"]["triangles"] / 1e6))
+    for system, label, ms, mtri in rows:
+        t.add_row(system, label, *(f"{v:.0f}" for v in ms), f"{mtri:.1f}", f"{ms[0] / ms[-1]:.2f}×")
+    console.print(t)
+    console.print("ParaView times: Render() + reading the composited image back on rank 0, after one untimed render; "
+                  "massview: the synchronous frame (LOD, draw, readback, compositing, delivery to rank 0) with warm caches.")
