@@ -91,7 +91,11 @@ class LayerPortion:
         store = TerrainStore(info.path)
         table = RoettgerTable(store)
         self.bytes_read = 0
-        self.heights = np.zeros((info.S, info.S), np.float32)  # lazily resident
+        P = 2 ** (n - depth0)  # heights of the portion's bounding box only (1/C of the DEM at C = 4^k)
+        self.r0, self.c0 = int(self.nodes[:, 0].min()) * P, int(self.nodes[:, 1].min()) * P
+        rows = (int(self.nodes[:, 0].max()) + 1) * P + 1 - self.r0
+        cols = (int(self.nodes[:, 1].max()) + 1) * P + 1 - self.c0
+        self.heights = np.zeros((rows, cols), np.float32)
         self._read_heights(store)
         self.d2: list = [None] * (n - 1)
         for t in range(depth0, n - 1):
@@ -118,7 +122,7 @@ class LayerPortion:
                     b = cache[(bi, bj)]
                     a0, a1 = max(r0, bi * span), min(r0 + P, bi * span + span) + 1
                     e0, e1 = max(c0, bj * span), min(c0 + P, bj * span + span) + 1
-                    self.heights[a0:a1, e0:e1] = b[a0 - bi * span: a1 - bi * span, e0 - bj * span: e1 - bj * span]
+                    self.heights[a0 - self.r0:a1 - self.r0, e0 - self.c0:e1 - self.c0] = b[a0 - bi * span: a1 - bi * span, e0 - bj * span: e1 - bj * span]
             if len(cache) > 64:
                 cache.clear()
 
@@ -131,7 +135,8 @@ class LayerPortion:
         self.zmax = {t: np.zeros((2**t, 2**t), np.float32) for t in range(t0, tb + 1)}
         P = 2 ** (n - t0)
         for r, c in self.nodes:
-            lo, hi = range_pyramid(self.heights[r * P: r * P + P + 1, c * P: c * P + P + 1], n - t0, 0, tb - t0)
+            a, b = r * P - self.r0, c * P - self.c0
+            lo, hi = range_pyramid(self.heights[a: a + P + 1, b: b + P + 1], n - t0, 0, tb - t0)
             for t in range(t0, tb + 1):
                 m = 2 ** (t - t0)
                 self.zmin[t][r * m: r * m + m, c * m: c * m + m] = lo[t - t0]
@@ -158,7 +163,8 @@ class LayerPortion:
         i = self.info
         f = emit_fans(leaves, self.n, i.S, i.spacing, i.vscale, self.zrange)
         f.sphere[:, 2] += i.zoffset
-        heights = self.heights.reshape(-1)[f.index.astype(np.int64)]
+        g = f.index.astype(np.int64)
+        heights = self.heights[g // i.S - self.r0, g % i.S - self.c0]
         if i.index_dim != i.S:
             f.index = ((f.index // i.S) * i.index_dim + f.index % i.S).astype(np.uint32)
             f.centre = (f.centre // i.S) * i.index_dim + f.centre % i.S
