@@ -11,38 +11,14 @@ potential occluders), so the system runs without a prepared store.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ..data.scene import Mesh, SceneStore, Skeleton
 from ..lod.scene import build_group_tree
 
 __all__ = ["BuiltinObjectStore", "open_scene"]
-
-
-@dataclass
-class _Mesh:
-    positions: np.ndarray
-    normals: np.ndarray
-    colors: np.ndarray
-    indices: np.ndarray
-
-
-@dataclass
-class _Skeleton:
-    center: np.ndarray
-    radius: np.ndarray
-    box_lo: np.ndarray
-    box_hi: np.ndarray
-    levels: np.ndarray
-    triangles: np.ndarray
-    level_error: np.ndarray
-    level_bytes: np.ndarray
-    occluder: np.ndarray
-    group: np.ndarray
-    geometry: np.ndarray
-    transform: np.ndarray
 
 
 class BuiltinObjectStore:
@@ -62,7 +38,7 @@ class BuiltinObjectStore:
         self._vrange = np.stack([v0, v1], 1)
         tri = s.triangles.reshape(n, 1).astype(np.int64)
         vbytes = (v1 - v0) * 24 + tri[:, 0] * 12
-        self.skeleton = _Skeleton(s.centers, s.radii, lo, hi, np.ones(n, np.int8), tri, np.zeros((n, 1), np.float32),
+        self.skeleton = Skeleton(s.centers, s.radii, lo, hi, np.ones(n, np.int8), tri, np.zeros((n, 1), np.float32),
                                   vbytes.reshape(n, 1), occ, leaf, np.arange(n, dtype=np.int32), np.tile(np.eye(4), (n, 1, 1)))
         self.path = spec
         self.attrs = {"format": "builtin"}
@@ -71,17 +47,15 @@ class BuiltinObjectStore:
     def bounds(self):
         return self.scene.bounds
 
-    def get_mesh(self, geometry: int, level: int = 0) -> _Mesh:
+    def get_mesh(self, geometry: int, level: int = 0) -> Mesh:
         s = self.scene
         a, b = s.index_offset[geometry], s.index_offset[geometry + 1]
         v0, v1 = self._vrange[geometry]
-        return _Mesh(s.positions[v0:v1], s.normals[v0:v1], s.colors[v0:v1], (s.indices[a:b].astype(np.int64) - v0).astype(np.uint32))
+        return Mesh(s.positions[v0:v1], s.normals[v0:v1], s.colors[v0:v1], (s.indices[a:b].astype(np.int64) - v0).astype(np.uint32))
 
 
 def open_scene(spec: str):
     """A scene store folder or ``builtin:objects[...]`` as a store-like object."""
     if spec.startswith("builtin:objects"):
         return BuiltinObjectStore(spec)
-    from ..data.scene import SceneStore  # the scene store (issue 16)
-
     return SceneStore(Path(spec))
