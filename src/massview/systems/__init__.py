@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..core.errors import SceneNotFoundError
+from ..core.errors import ConfigError, SceneNotFoundError
 from .frameloop import FrameResult, display_tiles, render_frame
 
 __all__ = ["open_system", "scene_kind", "FrameResult", "display_tiles", "render_frame"]
@@ -39,6 +39,9 @@ def open_system(spec: str, cfg=None):
         from .roettger import RoettgerSystem
 
         return RoettgerSystem((spec, *cfg.layers), cfg)
+    if getattr(cfg, "system", "auto") == "reliefboards":  # M2 runs its own role loop (app/reliefboards_cmds.py)
+        raise ConfigError("system 'reliefboards' (M2) runs through the CLI only so far: "
+                          f"`massview render {spec} --system reliefboards --ranks N` or `massview view ... --system reliefboards`")
     kind = scene_kind(spec)
     if getattr(cfg, "system", "auto") == "dmmr":  # M1: server + clients over a scene (or builtin:objects)
         from .dmmr import DmmrSystem
