@@ -24,6 +24,8 @@ import sys
 import time
 from pathlib import Path
 
+from .child import run_measured
+
 __all__ = ["add_arguments", "run"]
 
 
@@ -75,14 +77,11 @@ def run(args) -> int:
     if args.no_color:
         cmd.append("--no-color")
     console.print("running: " + " ".join(cmd[2:]))
-    rss_file = work / "prepare.peak_rss"
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, env=dict(os.environ, MASSVIEW_PEAK_RSS_FILE=str(rss_file)))
-    prep_s = time.perf_counter() - t0
-    if proc.returncode != 0:
-        console.print(f"[red]prepare failed (exit {proc.returncode})[/]")
-        return proc.returncode
-    rss = int(rss_file.read_text())
+    run = run_measured(cmd, work / "prepare.peak_rss")
+    if run.returncode != 0:
+        console.print(f"[red]prepare failed (exit {run.returncode})[/]")
+        return run.returncode
+    prep_s, rss = run.wall_s, run.peak_rss
     info = store_info(store)
     t = Table(title=f"ingest of a {args.size}² float32 DEM ({nbytes / 2**30:.2f} GiB), block {args.block}")
     t.add_column("figure")

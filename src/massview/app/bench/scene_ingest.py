@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .child import run_measured
+
 __all__ = ["add_arguments", "run"]
 
 
@@ -118,19 +120,11 @@ def _ingest(args, console) -> int:
     shutil.rmtree(store, ignore_errors=True)
     cmd = [sys.executable, "-m", "massview", "prepare", "scene", str(ply), "-o", str(store), "--simplifier", args.simplifier, "--stream-mb", "0", "-q"]
     console.print("running: " + " ".join(cmd[2:]))
-    rss_file = work / "prepare_scene.peak_rss"
-    import resource
-
-    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, env=dict(os.environ, MASSVIEW_PEAK_RSS_FILE=str(rss_file)))
-    dt = time.perf_counter() - t0
-    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
-    if proc.returncode != 0:
-        console.print(f"[red]prepare scene failed (exit {proc.returncode})[/]")
-        return proc.returncode
-    rss = int(rss_file.read_text())
+    run = run_measured(cmd, work / "prepare_scene.peak_rss")
+    if run.returncode != 0:
+        console.print(f"[red]prepare scene failed (exit {run.returncode})[/]")
+        return run.returncode
+    dt, cpu, rss = run.wall_s, run.cpu_s, run.peak_rss
     from ...data.scene.verify import scene_info
 
     info = scene_info(store)
