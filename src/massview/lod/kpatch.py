@@ -36,11 +36,16 @@ from typing import Callable
 
 import numpy as np
 
-from ..core.camera import Camera
+from ..core.camera import Camera, Viewport
 from ..data.terrain.layout import TerrainLayout
+from .kpatch_top import TopBatch
+from .kpatch_cut import (Residency, View, draw_level, edge_children, edge_exists, edge_halves, merge_halves, patch_vertices,
+                         square_children, square_halves)
 
-__all__ = ["PatchHierarchy", "Front", "select_front", "patch_boxes", "lookup_blocks", "refine_uniform", "watertight_problems"]
+__all__ = ["PatchHierarchy", "Front", "select_front", "visible_patches", "patch_boxes", "lookup_blocks", "refine_uniform",
+           "watertight_problems"]
 
+TOP_LEVELS = 6  # square/edge levels walked as one batch (kpatch_top)
 Resident = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (level, bi, bj) -> bool
 Request = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]  # (level, bi, bj, priority)
 
@@ -69,6 +74,24 @@ class PatchHierarchy:
             self.dg_zmin.append(lo)
             self.dg_zmax.append(hi)
         self._spheres()
+        self._tables()
+
+    def _tables(self) -> None:
+        """Flat per-level columns the walk gathers from (:mod:`.kpatch_cut`): sphere centre
+        height, radius, error and z-range of every square diamond (index v·2^j + u) and edge
+        diamond (index (o·(2^j+1) + v)·(2^j+1) + u); the (…, 3) centres are dropped (x and y
+        follow from the indices)."""
+        J = self.lay.J
+        self.sq_tab, self.dg_tab = [], []
+        for j in range(J):
+            self.sq_tab.append(tuple(np.ascontiguousarray(a).ravel() for a in
+                                     (self.sq_c[j][..., 2], self.sq_r[j], self.sq_err[j], self.zmin[j], self.zmax[j])))
+            self.dg_tab.append(tuple(np.ascontiguousarray(a).ravel() for a in
+                                     (self.dg_c[j][..., 2], self.dg_r[j], self.dg_err[j], self.dg_zmin[j], self.dg_zmax[j])))
+        self.sq_tab.append((None, None, None, self.zmin[J].ravel(), self.zmax[J].ravel()))
+        del self.sq_c, self.dg_c
+        self._mark = np.zeros(max(4**J, 2 * (2 ** max(J - 1, 0) + 1) ** 2), np.uint8)
+        self.top = TopBatch(self, min(J, TOP_LEVELS))
 
     @staticmethod
     def _edge_range(sq: np.ndarray, fill: float, op) -> np.ndarray:
@@ -140,7 +163,9 @@ class PatchHierarchy:
 class Front:
     """Selected patches (one row each): apex/left/right vertices in finest-sample units
     (x = col, y = row), bintree depth, the block (level, bi, bj) they draw from, the sample
-    stride inside that block, and the diamond z-range for culling."""
+    stride inside that block, and the diamond z-range for culling. ``code`` (int8, optional)
+    says where each patch's diamond sphere lies against the frustum the cut was taken for
+    (``code_vp``: None = the camera's whole frame): 0 outside, 1 crossing a plane, 2 inside."""
 
     ax: np.ndarray
     ay: np.ndarray
@@ -156,13 +181,25 @@ class Front:
     zmin: np.ndarray
     zmax: np.ndarray
     deferred: int = 0  # diamonds that wanted to split but waited for data
+    code: np.ndarray | None = None
+    code_vp: Viewport | None = None
+
+    FIELDS = ("ax", "ay", "lx", "ly", "rx", "ry", "depth", "level", "bi", "bj", "stride", "zmin", "zmax")
 
     def __len__(self) -> int:
         return len(self.ax)
 
     def take(self, idx) -> "Front":
-        f = {k: getattr(self, k)[idx] for k in ("ax", "ay", "lx", "ly", "rx", "ry", "depth", "level", "bi", "bj", "stride", "zmin", "zmax")}
-        return Front(**f, deferred=self.deferred)
+        f = {k: getattr(self, k)[idx] for k in self.FIELDS}
+        return Front(**f, deferred=self.deferred, code=None if self.code is None else self.code[idx], code_vp=self.code_vp)
+
+    @classmethod
+    def empty(cls) -> "Front":
+        return cls(*(np.zeros(0, np.int64) for _ in range(11)), np.zeros(0), np.zeros(0), code=np.zeros(0, np.int8))
+
+    def block_ids(self, offsets: np.ndarray, nb: list[int]) -> np.ndarray:
+        """Flat ids of the blocks the patches draw from (``offsets[level] + bi·nb[level] + bj``)."""
+        return np.asarray(offsets)[self.level] + self.bi * np.asarray(nb)[self.level] + self.bj
 
 
 def lookup_blocks(grids: list[np.ndarray], level: np.ndarray, bi: np.ndarray, bj: np.ndarray) -> np.ndarray:
@@ -175,126 +212,195 @@ def lookup_blocks(grids: list[np.ndarray], level: np.ndarray, bi: np.ndarray, bj
     return out
 
 
-def _draw_level(lay: TerrainLayout, depth: np.ndarray) -> np.ndarray:
-    """Sample level a patch at ``depth`` uses (may exceed L)."""
-    j = depth // 2
-    return np.where(depth % 2 == 0, lay.J - j, lay.J - j - 1)
-
-
-def _blocks_for(lay: TerrainLayout, depth: np.ndarray, cx: np.ndarray, cy: np.ndarray):
-    lvl = _draw_level(lay, depth)
-    blvl = np.minimum(lvl, lay.L)
-    span = (lay.M - 1) * (2 ** blvl)
-    return blvl, cy // span, cx // span, 2 ** (lvl - blvl)
-
-
-def _diamond_lookup(h: PatchHierarchy, t: int, lx, ly, rx, ry):
-    """(key, err, center, radius, zmin, zmax, expected-count) of the hypotenuse diamond of
-    triangles at depth t."""
-    lay = h.lay
-    j = t // 2
-    a = lay.square_side(j)
-    mx, my = (lx + rx) // 2, (ly + ry) // 2
-    if t % 2 == 0:
-        v, u = (my - a // 2) // a, (mx - a // 2) // a
-        key = v * (2**j) + u
-        if j < lay.J:
-            return key, h.sq_err[j][v, u], h.sq_c[j][v, u], h.sq_r[j][v, u], h.zmin[j][v, u], h.zmax[j][v, u], np.full(len(v), 2)
-        return key, None, None, None, h.zmin[j][v, u], h.zmax[j][v, u], None
-    horiz = ly == ry
-    o = np.where(horiz, 0, 1)
-    v = np.where(horiz, my // a, (my - a // 2) // a)
-    u = np.where(horiz, (mx - a // 2) // a, mx // a)
-    n = 2**j
-    key = (o * (n + 1) + v) * (n + 1) + u
-    border = np.where(horiz, (v == 0) | (v == n), (u == 0) | (u == n))
-    return (key, h.dg_err[j][o, v, u], h.dg_c[j][o, v, u], h.dg_r[j][o, v, u], h.dg_zmin[j][o, v, u], h.dg_zmax[j][o, v, u],
-            np.where(border, 1, 2))
-
-
-def _group_all(key: np.ndarray, flag: np.ndarray, expected: np.ndarray) -> np.ndarray:
-    """Per element: every element sharing its key has ``flag`` and the group has ``expected`` members."""
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
-    counts = np.diff(np.r_[start, len(ks)])
-    allf = np.logical_and.reduceat(flag[order], start) if len(ks) else np.zeros(0, bool)
-    ok_group = allf & (counts == expected[order][start])
-    out = np.empty(len(key), bool)
-    out[order] = np.repeat(ok_group, counts)
-    return out
-
-
-class _Projector:
-    """Pixels a unit vertical segment can move anywhere in a sphere (see module docstring)."""
-
-    def __init__(self, camera: Camera):
-        self.f = camera.height / 2 / math.tan(math.radians(camera.fovy) / 2)
-        v = camera.view_matrix()
-        self.rot, self.t = v[:3, :3], v[:3, 3]
-        self.u = np.abs(self.rot[:, 2])  # world up in camera axes
-
-    def gain(self, c: np.ndarray, r: np.ndarray) -> np.ndarray:
-        p = c @ self.rot.T + self.t
-        zlo = -p[:, 2] - r  # nearest depth in the sphere
-        ok = zlo > 0
-        z = np.where(ok, zlo, 1.0)
-        a, b = (np.abs(p[:, 0]) + r) / z, (np.abs(p[:, 1]) + r) / z
-        ux, uy, uz = self.u
-        g = self.f * np.hypot(ux + a * uz, uy + b * uz) / z
-        return np.where(ok, g, np.inf)
-
-
-def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident: Resident | None = None,
-                 request: Request | None = None) -> Front:
+def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident=None, request: Request | None = None,
+                 viewport: Viewport | None = None) -> Front:
     """The conforming K-patch cut for ``camera`` (a pure function of the camera, the data and
-    ``resident``). Patches outside the frustum are kept (their parents decide conformity)
-    but not refined; cull them per viewport with :func:`patch_boxes`."""
+    ``resident``: None = all blocks, per-level (nb, nb) bool grids, or a callable (level, bi,
+    bj) -> bool). Missing blocks are passed to ``request(level, bi, bj, priority)``. Patches
+    outside the frustum are kept (their parents decide conformity) but not refined; cull them
+    per viewport with :func:`visible_patches`.
+
+    With ``viewport`` (a sort-first tile) only diamonds whose sphere touches the tile's
+    sub-frustum refine. The split test is per diamond and does not depend on the frustum
+    otherwise, so every diamond the tile's walk reaches inside its sub-frustum gets the whole
+    frame's decision (its ancestors' spheres contain its own, so they touch the sub-frustum
+    too): the patches visible in the tile are exactly the whole-frame cut's, in the same
+    relative order; only patches the tile cannot see stay coarser."""
     lay = h.lay
-    A = lay.S - 1
-    ax = np.array([A, 0], np.int64)
-    ay = np.array([0, A], np.int64)
-    lx = np.array([0, A], np.int64)
-    ly = np.array([0, A], np.int64)
-    rx = np.array([A, 0], np.int64)
-    ry = np.array([A, 0], np.int64)
-    proj = _Projector(camera)
-    planes = camera.frustum_planes()
-    parts, deferred = [], 0
-    for t in range(2 * lay.J + 1):
-        depth = np.full(len(ax), t)
-        key, err, c, r, zlo, zhi, expected = _diamond_lookup(h, t, lx, ly, rx, ry)
-        if err is None or len(ax) == 0:  # deepest level: leaves
-            parts.append((ax, ay, lx, ly, rx, ry, depth, zlo, zhi))
+    view = View(camera, tau, None if viewport is None or viewport == camera.viewport else viewport)
+    res = Residency(resident, lay.levels, lay.L)
+    top = h.top
+    split, H0, H1, code, deferred = top.walk(view, res, request)
+    parts = [top.kept(split, H0, H1, code)]
+    s = slice(top.offsets[-2], top.offsets[-1])  # the last batched depth's diamonds
+    t = top.depths - 1
+    state = _next_state(h, t, top.o[s], top.v[s], top.u[s], H0[s], H1[s], split[s])
+    for t in range(top.depths, 2 * lay.J):
+        if len(state[0]) == 0:
             break
-        inside = np.all(c @ planes[:, :3].T + planes[:, 3] >= -r[:, None], axis=1)
-        with np.errstate(invalid="ignore"):  # 0 · inf (exact patch touching the eye) is 0
-            pix = np.nan_to_num(err * proj.gain(c, r), nan=0.0)  # pixel-error bound over the sphere
-        crit = inside & (pix > tau)
-        want = crit
-        if resident is not None:
-            cx, cy = (ax + lx + rx) // 3, (ay + ly + ry) // 3
-            blvl, bi, bj, _ = _blocks_for(lay, depth + 1, cx, cy)
-            res = resident(blvl, bi, bj)
-            miss = crit & ~res
-            if request is not None and miss.any():
-                request(blvl[miss], bi[miss], bj[miss], np.minimum(pix[miss], 1e30))
-            want = crit & res
-        split = _group_all(key, want, expected)
-        deferred += int(np.count_nonzero(crit & ~split))
-        keep = ~split
-        parts.append((ax[keep], ay[keep], lx[keep], ly[keep], rx[keep], ry[keep], depth[keep], zlo[keep], zhi[keep]))
-        sx, sy, slx, sly, srx, sry = ax[split], ay[split], lx[split], ly[split], rx[split], ry[split]
-        mx, my = (slx + srx) // 2, (sly + sry) // 2
-        # children (apex m; hypotenuses are the parent's legs): (m, l, apex) and (m, apex, r)
-        ax, ay = np.r_[mx, mx], np.r_[my, my]
-        lx, ly = np.r_[slx, sx], np.r_[sly, sy]
-        rx, ry = np.r_[sx, srx], np.r_[sy, sry]
-    cols = [np.concatenate([p[i] for p in parts]) for i in range(9)]
-    ax, ay, lx, ly, rx, ry, depth, zlo, zhi = cols
-    cx, cy = (ax + lx + rx) // 3, (ay + ly + ry) // 3
-    blvl, bi, bj, stride = _blocks_for(lay, depth, cx, cy)
-    return Front(ax, ay, lx, ly, rx, ry, depth, blvl, bi, bj, stride, zlo, zhi, deferred)
+        state, kept, d = _step(h, view, res, request, t, *state)
+        parts.append(kept)
+        deferred += d
+    else:
+        if len(state[0]):
+            parts.append(_leaves(h, view, *state))
+    f = _emit(h, parts)
+    f.deferred, f.code_vp = deferred, view_vp(camera, viewport)
+    return f
+
+
+def view_vp(camera: Camera, vp: Viewport | None) -> Viewport | None:
+    """The frustum key of a cut or cull: None for the whole frame."""
+    return None if vp is None or vp == camera.viewport else vp
+
+
+def _step(h: PatchHierarchy, view: View, res: Residency, request, t: int, o, v, u, h0, h1):
+    """One depth of the walk: decide the present diamonds, request missing blocks, return the
+    next depth's diamonds, the kept halves and the deferred-split count."""
+    lay, j, edge = h.lay, t // 2, t % 2 == 1
+    a, n = lay.square_side(j), 2**j
+    tab = h.dg_tab[j] if edge else h.sq_tab[j]
+    ids = (o * (n + 1) + v) * (n + 1) + u if edge else v * n + u
+    x = ((u + 0.5 * (1 - o)) * a if edge else (u + 0.5) * a) * h.dx
+    y = -((v + 0.5 * o) * a if edge else (v + 0.5) * a) * h.dy
+    crit, pix, code = view.test(x, y, tab[0][ids], tab[1][ids], tab[2][ids])
+    if edge:
+        ex0, ex1 = edge_exists(o, v, u, n)
+        complete = (h0 == ex0) & (h1 == ex1)
+    else:
+        complete = h0 & h1
+    ok = crit & complete
+    if not res.all:
+        ok = _resident_halves(lay, res, request, t, o, v, u, h0, h1, crit, pix, ok)
+    split = ok
+    wait = crit & ~split
+    deferred = int(np.count_nonzero(wait & h0)) + int(np.count_nonzero(wait & h1))
+    k = ~split
+    kept = (t, ids[k], o[k], v[k], u[k], h0[k], h1[k], code[k])
+    return _next_state(h, t, o, v, u, h0, h1, split), kept, deferred
+
+
+def _next_state(h: PatchHierarchy, t: int, o, v, u, h0, h1, split):
+    """The next depth's diamonds (o, v, u, h0, h1) from the ones that split at depth ``t``."""
+    edge, n = t % 2 == 1, 2 ** (t // 2)
+    s = split
+    if edge:
+        (v0, u0), (v1, u1) = edge_children(o[s], v[s], u[s], h0[s], h1[s])
+        m = 2 * n
+        id0, id1 = v0 * m + u0, v1 * m + u1
+        o0 = o1 = None
+    else:
+        (o0, v0, u0), (o1, v1, u1) = square_children(v[s], u[s])
+        id0, id1 = (o0 * (n + 1) + v0) * (n + 1) + u0, (o1 * (n + 1) + v1) * (n + 1) + u1
+    in1, only1 = merge_halves(h._mark, id0, id1)
+    nv = np.concatenate([v0, v1[only1]])
+    nu = np.concatenate([u0, u1[only1]])
+    no = np.zeros(len(nv), np.int64) if edge else np.concatenate([o0, o1[only1]])
+    nh0 = np.zeros(len(nv), bool)
+    nh0[:len(v0)] = True
+    nh1 = np.concatenate([in1, np.ones(len(nv) - len(v0), bool)])
+    return no, nv, nu, nh0, nh1
+
+
+def _resident_halves(lay, res: Residency, request, t, o, v, u, h0, h1, crit, pix, ok):
+    """``ok`` further restricted to diamonds whose present halves' children have their
+    blocks resident; requests the missing ones (priority: the pixel error)."""
+    j, a = t // 2, lay.square_side(t // 2)
+    lvl = draw_level(lay.J, t + 1)
+    blvl = min(lvl, lay.L)
+    if res.level_resident(blvl):
+        return ok
+    span, nb = (lay.M - 1) << blvl, 2 ** (lay.L - blvl)
+    if t % 2:
+        ap0, ap1, pq = edge_halves(o, v, u, a)
+    else:
+        ap0, ap1, pq = square_halves(v, u, a)
+    for ap, hh in ((ap0, h0), (ap1, h1)):
+        bi = np.clip((pq[1] + ap[1]) // 3 // span, 0, nb - 1)
+        bj = np.clip((pq[0] + ap[0]) // 3 // span, 0, nb - 1)
+        r = res.lookup(blvl, bi, bj)
+        miss = crit & hh & ~r
+        if request is not None and miss.any():
+            request(np.full(int(miss.sum()), blvl), bi[miss], bj[miss], np.minimum(pix[miss], 1e30))
+        ok = ok & (r | ~hh)
+    return ok
+
+
+def _leaves(h: PatchHierarchy, view: View, o, v, u, h0, h1):
+    """The deepest square level: every present half is a patch; spheres for culling only."""
+    lay = h.lay
+    J = lay.J
+    a, n = lay.square_side(J), 2**J
+    ids = v * n + u
+    zlo, zhi = h.sq_tab[J][3][ids], h.sq_tab[J][4][ids]
+    half = math.hypot(a / 2 * h.dx, a / 2 * h.dy)
+    dz = (zhi - zlo) / 2
+    r = np.sqrt(half * half + dz * dz)
+    px, py, pz = view.camera_space((u + 0.5) * a * h.dx, -(v + 0.5) * a * h.dy, (zlo + zhi) / 2)
+    return (2 * J, ids, o, v, u, h0, h1, view.code(px, py, pz, r))
+
+
+def _emit(h: PatchHierarchy, parts) -> Front:
+    """Patch records: the batched top's, then the walked depths' kept halves (square depths,
+    then edge depths; each depth's half-0 patches before its half-1 patches)."""
+    lay = h.lay
+    rec, rcode = parts[0]
+    groups = ([], [])  # per kind: (t, o, v, u, half, zlo, zhi, code) per depth
+    for t, ids, o, v, u, h0, h1, code in parts[1:]:
+        sel = np.concatenate([np.flatnonzero(h0), np.flatnonzero(h1)])
+        if len(sel) == 0:
+            continue
+        half = np.zeros(len(sel), bool)
+        half[int(np.count_nonzero(h0)):] = True
+        tab = h.dg_tab[t // 2] if t % 2 else h.sq_tab[t // 2]
+        i = ids[sel]
+        groups[t % 2].append((np.full(len(sel), t), o[sel], v[sel], u[sel], half, tab[3][i], tab[4][i], code[sel]))
+    cols = [[c] for c in (*rec, rcode)]
+    for kind, g in enumerate(groups):
+        if not g:
+            continue
+        t, o, v, u, half, zlo, zhi, code = (np.concatenate(c) for c in zip(*g))
+        a = np.left_shift(1, lay.n - t // 2)
+        ax, ay, lx, ly, rx, ry = patch_vertices(kind, o, v, u, half, a)
+        lvl = lay.J - t // 2 - kind
+        blvl = np.minimum(lvl, lay.L)
+        shift = blvl + lay.m
+        cx, cy = (ax + lx + rx) // 3, (ay + ly + ry) // 3
+        for c, val in zip(cols, (ax, ay, lx, ly, rx, ry, t, blvl, cy >> shift, cx >> shift, np.left_shift(1, lvl - blvl), zlo, zhi, code)):
+            c.append(val)
+    arr = [np.concatenate(c) for c in cols]
+    return Front(*arr[:13], code=arr[13].astype(np.int8))
+
+
+def visible_patches(h: PatchHierarchy, f: Front, camera: Camera, vp: Viewport | None = None) -> np.ndarray:
+    """Indices of the patches whose box touches the frustum of ``vp`` (None: the whole frame).
+    Boxes lie inside their diamond's sphere, so where the cut was taken for the same frustum
+    only patches whose sphere crosses a plane need the box test."""
+    key = view_vp(camera, vp)
+    if f.code is None:
+        maybe, sure = np.arange(len(f)), np.zeros(len(f), bool)
+    elif key == f.code_vp:
+        maybe, sure = np.flatnonzero(f.code == 1), f.code == 2
+    else:  # a tile of a whole-frame cut: outside the frame is outside the tile
+        maybe, sure = np.flatnonzero(f.code >= 1), np.zeros(len(f), bool)
+    out = sure.copy()
+    if len(maybe):
+        out[maybe] = boxes_touch(h, f, maybe, camera.frustum_planes(vp))
+    return np.flatnonzero(out)
+
+
+def boxes_touch(h: PatchHierarchy, f: Front, idx: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """(len(idx),) bool: the world box of each patch ``idx`` is not entirely outside any plane
+    (the p-vertex test of :func:`massview.lod.cull.boxes_in_frustum`, one plane at a time)."""
+    ax, lx, rx, ay, ly, ry = (getattr(f, k)[idx] for k in ("ax", "lx", "rx", "ay", "ly", "ry"))
+    x0, x1 = np.minimum(np.minimum(ax, lx), rx) * h.dx, np.maximum(np.maximum(ax, lx), rx) * h.dx
+    y0, y1 = -np.maximum(np.maximum(ay, ly), ry) * h.dy, -np.minimum(np.minimum(ay, ly), ry) * h.dy
+    z0, z1 = f.zmin[idx], f.zmax[idx]
+    ok = np.ones(len(idx), bool)
+    for nx, ny, nz, w in planes:
+        d = (x1 if nx >= 0 else x0) * nx + (y1 if ny >= 0 else y0) * ny + (z1 if nz >= 0 else z0) * nz + w
+        ok &= d >= 0
+    return ok
 
 
 def patch_boxes(h: PatchHierarchy, f: Front) -> tuple[np.ndarray, np.ndarray]:
