@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.camera import Camera
+from ..core.camera import Camera, Viewport
 from ..core.config import RenderConfig
 from ..core.errors import ConfigError
 from ..core.image import Image
@@ -25,8 +25,9 @@ from ..core.stats import FrameStats
 from ..core.task import Task
 from ..data.cache import BlockCache
 from ..data.terrain import TerrainStore
-from ..lod.cull import boxes_in_frustum, screen_rects
-from ..lod.kpatch import Front, PatchHierarchy, lookup_blocks, patch_boxes, select_front
+from ..lod.cull import screen_rects
+from ..lod.blockindex import BlockIndex, KeepSet
+from ..lod.kpatch import Front, PatchHierarchy, patch_boxes, select_front, visible_patches
 from ..lod.texlod import shading_blocks
 from ..parallel.decompose import parse_decomposition, sort_first_tiles, sort_last_ranges
 from ..parallel.exchange import agree_all, any_rank
@@ -60,7 +61,11 @@ class TerrainSystem:
         self._lod = self.store.lod_arrays()
         self._minmax = [self.store.block_minmax(lv) for lv in range(lay.levels)]
         self.h = self._hierarchy(1.0)
-        self._tex: set = set()  # shading blocks the current view wants
+        self._blocks = BlockIndex(lay.levels, lay.L)
+        self._tex_ids = np.zeros(0, np.int64)  # shading blocks the current view wants
+        self._front_mask = np.zeros(self._blocks.size, bool)  # blocks the last front(s) drew from
+        self._want_mask = np.zeros(self._blocks.size, bool)  # blocks this rank's cut requested
+        self._tex_have, self._grids = -1, None
         self.cache = BlockCache(self._load, cache_bytes, workers=2)
         self.gpu_bytes, self.loading, self._egl_device = gpu_bytes, loading, egl_device
         self._gl = None
@@ -111,7 +116,7 @@ class TerrainSystem:
     def renderer(self) -> str:
         return renderer_string(self._renderers()[0])
 
-    def _upload_ready(self, keep: set) -> int:
+    def _upload_ready(self, keep) -> int:
         _, pool, _, _ = self._renderers()
         n = 0
         for key in list(self._wanted):
@@ -127,61 +132,43 @@ class TerrainSystem:
         return n
 
     def _request(self, lv, bi, bj, prio) -> None:
-        for key, p in zip(zip(lv.tolist(), bi.tolist(), bj.tolist()), prio.tolist()):
+        ids = self._blocks.ids(lv, bi, bj)
+        self._want_mask[ids] = True
+        for key, p in zip(self._blocks.keys(ids), prio.tolist()):
             self._wanted.add(key)
             self.cache.request(key, p)
 
     # -- per frame ----------------------------------------------------------------------
+    def lod_viewport(self, comm, camera: Camera, cfg: RenderConfig) -> Viewport | None:
+        """The sub-frustum this rank's cut is restricted to: its own tile for sort-first layouts
+        fixed before the frame (horizontal, vertical, grid) on several ranks, else None (the
+        whole frame: sort-last needs it to share the visible front; kd and balanced tiles are
+        planned from it)."""
+        n = comm.Get_size()
+        kind, mode = parse_decomposition(cfg.decomposition, self.sort_last_modes)
+        if n == 1 or kind != "sort-first" or mode not in ("horizontal", "vertical", "grid"):
+            return None
+        return sort_first_tiles(mode, n, camera.width, camera.height, cfg.grid)[comm.Get_rank()]
+
     def prepare_frame(self, comm, camera: Camera, cfg: RenderConfig, stats: FrameStats) -> None:
-        """Uploads, residency agreement and the LOD front (same on every rank)."""
+        """Uploads, residency agreement and the LOD front (same on every rank, or each rank's
+        tile of it for fixed sort-first layouts)."""
         _, pool, terrain, _ = self._renderers()
         self.h = self._hierarchy(cfg.exaggeration)
         terrain.set_shading(self.shading(cfg))
         self.cache.begin_frame()
-        self._want_shading(camera)
-        top = (self.lay.L, 0, 0)
+        vp = self.lod_viewport(comm, camera, cfg)
         with stats.stage("lod"):
-            stalled, best = 0, -1
-            while True:
-                if not pool.resident[top[0]][0, 0]:
-                    self._wanted.add(top)
-                    self.cache.request(top, float("inf"))
-                keep = self._front_keys() | self._tex
-                uploaded = self._upload_ready(keep)
-                stats.count("blocks_uploaded", uploaded)
-                flat = np.concatenate([g.ravel() for g in pool.resident])
-                agreed = agree_all(comm, flat)
-                grids, o = [], 0
-                for g in pool.resident:
-                    grids.append(agreed[o:o + g.size].reshape(g.shape))
-                    o += g.size
-
-                def resident(lv, bi, bj, grids=grids):
-                    return lookup_blocks(grids, lv, bi, bj)
-
-                front = select_front(self.h, camera, cfg.tau, resident, self._request) if grids[top[0]][0, 0] else None
-                missing = front is None or front.deferred > 0
-                if self.loading != "complete" or not any_rank(comm, missing or self._shading_missing(grids)):
-                    break
-                if not any_rank(comm, missing):  # only shading blocks missing: wait while they keep arriving
-                    have = self._shading_count(grids)
-                    if have <= getattr(self, "_tex_have", -1):
-                        break
-                    self._tex_have = have
-                    self._wait_for_loads()
-                    continue
-                # complete loading: wait for the requested blocks; give up when the front stops
-                # growing (blocks only cycle through budgets too small for this view)
-                size = len(front) if front is not None else 0
-                stalled, best = (0, size) if size > best else (stalled + 1, best)
-                if stalled > 5:
-                    raise ConfigError("--loading complete: the blocks this view needs do not fit the budgets "
-                                      f"(--cache-mb {self.cache.budget >> 20}, --gpu-mb {self.gpu_bytes >> 20}); raise them or --tau")
-                self._wait_for_loads()
-        self._tex_have = -1
-        self.front = front if front is not None else Front(*(np.zeros(0, np.int64) for _ in range(13)))
+            self._want_shading(camera)
+            front, grids = self._lod_loop(comm, camera, cfg, stats, vp)
+        self._grids, self._tau = grids, cfg.tau
+        self.front = front if front is not None else Front.empty()
         terrain.set_pages(pool.page_table(grids))
-        pool.touch(self._front_keys() | self._tex)
+        self._tex_have = -1
+        self._front_mask = self._blocks.mask(self.front.block_ids(self._blocks.offset, self._blocks.nb))
+        used = self._front_mask.copy()
+        used[self._tex_ids] = True
+        pool.touch(self._blocks.keys(np.flatnonzero(used)))
         now = dict(self.cache.counters)  # loads finish between frames: count since the last report
         stats.count("blocks_loaded", now["loads"] - self._counted["loads"])
         stats.count("cache_hits", now["hits"] - self._counted["hits"])
@@ -190,29 +177,73 @@ class TerrainSystem:
         stats.count("deferred_splits", self.front.deferred)
         stats.count("front_patches", len(self.front))
 
+    def _lod_loop(self, comm, camera: Camera, cfg: RenderConfig, stats: FrameStats, vp):
+        """Upload, agree, select; with ``loading="complete"`` repeat until no rank defers a split."""
+        _, pool, _, _ = self._renderers()
+        top = (self.lay.L, 0, 0)
+        stalled, best = 0, -1
+        while True:
+            if not pool.resident[top[0]][0, 0]:
+                self._wanted.add(top)
+                self.cache.request(top, float("inf"))
+            stats.count("blocks_uploaded", self._upload_ready(KeepSet(self._blocks, self._front_mask, self._tex_ids)))
+            grids = self._agree(comm, pool, vp is not None)
+            self._want_mask[:] = False
+            front = select_front(self.h, camera, cfg.tau, grids, self._request, vp) if grids[top[0]][0, 0] else None
+            missing = front is None or front.deferred > 0
+            if self.loading != "complete" or not any_rank(comm, missing or self._shading_missing(grids)):
+                return front, grids
+            if not any_rank(comm, missing):  # only shading blocks missing: wait while they keep arriving
+                have = self._shading_count(grids)
+                if have <= self._tex_have:
+                    return front, grids
+                self._tex_have = have
+                self._wait_for_loads()
+                continue
+            # complete loading: wait for the requested blocks; give up when the fronts stop
+            # growing (blocks only cycle through budgets too small for this view)
+            size = len(front) if front is not None else 0
+            size = comm.allreduce(size) if vp is not None else size
+            stalled, best = (0, size) if size > best else (stalled + 1, best)
+            if stalled > 5:
+                raise ConfigError("--loading complete: the blocks this view needs do not fit the budgets "
+                                  f"(--cache-mb {self.cache.budget >> 20}, --gpu-mb {self.gpu_bytes >> 20}); raise them or --tau")
+            self._wait_for_loads()
+
+    def _agree(self, comm, pool, tiles: bool) -> list[np.ndarray]:
+        """Blocks resident on every rank, as per-level grids. With per-tile cuts the same
+        Allreduce also ORs the blocks each rank's cut drew from and wanted (last pass), so every
+        rank keeps and loads what any tile needs and the agreement stays the same everywhere."""
+        flat = np.concatenate([g.ravel() for g in pool.resident])
+        if not tiles:
+            agreed = agree_all(comm, flat)
+        else:
+            both = agree_all(comm, np.concatenate([flat, ~self._front_mask, ~self._want_mask]))
+            k = len(flat)
+            agreed, self._front_mask = both[:k], ~both[k:2 * k]
+            for key in self._blocks.keys(np.flatnonzero(~both[2 * k:] & ~flat)):
+                self._wanted.add(key)
+                self.cache.request(key, 1e-3)  # another tile's: after this rank's own
+        return self._blocks.grids(agreed)
+
     def _want_shading(self, camera: Camera) -> None:
         """Request the shading-pyramid blocks this view samples (after the geometry's)."""
         h = self.h
         lv, bi, bj, prio = shading_blocks(self._minmax, self.lay.M, self.store.spacing,
                                           lambda z: h.base + h.exaggeration * (z * h.vs - h.base), camera)
-        self._tex = set(zip(lv.tolist(), bi.tolist(), bj.tolist()))
+        self._tex_ids = self._blocks.ids(lv, bi, bj)
         _, pool, _, _ = self._renderers()
-        for key, p in zip(zip(lv.tolist(), bi.tolist(), bj.tolist()), prio.tolist()):
-            if not pool.resident[key[0]][key[1], key[2]]:
-                self._wanted.add(key)
-                self.cache.request(key, 1e-6 * p)
+        flat = np.concatenate([g.ravel() for g in pool.resident])
+        miss = np.flatnonzero(~flat[self._tex_ids])
+        for key, p in zip(self._blocks.keys(self._tex_ids[miss]), prio[miss].tolist()):
+            self._wanted.add(key)
+            self.cache.request(key, 1e-6 * p)
 
     def _shading_count(self, grids) -> int:
-        return sum(bool(grids[k[0]][k[1], k[2]]) for k in self._tex)
+        return int(np.count_nonzero(self._blocks.flat(grids)[self._tex_ids]))
 
     def _shading_missing(self, grids) -> bool:
-        return self._shading_count(grids) < len(self._tex)
-
-    def _front_keys(self) -> set:
-        f = self.front
-        if f is None or len(f) == 0:
-            return set()
-        return set(zip(f.level.tolist(), f.bi.tolist(), f.bj.tolist()))
+        return self._shading_count(grids) < len(self._tex_ids)
 
     def _wait_for_loads(self) -> None:
         import time
@@ -223,8 +254,7 @@ class TerrainSystem:
 
     # -- plan and render ----------------------------------------------------------------
     def _visible(self, camera: Camera, vp=None) -> np.ndarray:
-        lo, hi = patch_boxes(self.h, self.front)
-        return np.flatnonzero(boxes_in_frustum(lo, hi, camera.frustum_planes(vp)))
+        return visible_patches(self.h, self.front, camera, vp)
 
     def plan(self, camera: Camera, cfg: RenderConfig, nranks: int) -> list[Task]:
         kind, mode = parse_decomposition(cfg.decomposition, self.sort_last_modes)
@@ -265,7 +295,7 @@ class TerrainSystem:
             idx = self.select(task, camera, cfg)
             part = self.front.take(idx)
         stats.count("patches", len(part))
-        stats.count("blocks_drawn", len(set(zip(part.level.tolist(), part.bi.tolist(), part.bj.tolist()))))
+        stats.count("blocks_drawn", int(np.count_nonzero(self._blocks.mask(part.block_ids(self._blocks.offset, self._blocks.nb)))))
         return view.render(camera, task.viewport, lambda mvp: terrain.draw(part, mvp, tint, camera.position), stats, cfg.tile_targets)
 
     def finish(self, camera: Camera, cfg: RenderConfig, img: Image) -> Image:
@@ -273,9 +303,17 @@ class TerrainSystem:
         return paint_sky(camera, img)
 
     def render_reference(self, camera: Camera, cfg: RenderConfig) -> Image:
+        """The serial image: the whole frame's cut (with the residency every rank agreed on
+        this frame, so a rank whose own cut covers only its tile recomputes it) drawn alone."""
         ref_cfg = RenderConfig(width=cfg.width, height=cfg.height, tau=cfg.tau, exaggeration=cfg.exaggeration, sun=cfg.sun,
                                colormap=cfg.colormap, haze=cfg.haze)
-        return self.finish(camera, cfg, self.render(Task(0, camera.viewport), camera, ref_cfg, FrameStats(-1, 0)))
+        own = self.front
+        if own is not None and own.code_vp is not None:
+            self.front = select_front(self.h, camera, cfg.tau, self._grids)
+        try:
+            return self.finish(camera, cfg, self.render(Task(0, camera.viewport), camera, ref_cfg, FrameStats(-1, 0)))
+        finally:
+            self.front = own
 
     def close(self) -> None:
         self.cache.close()
