@@ -8,7 +8,7 @@ this registry (the first docstring line of a module is its help text).
 
 from __future__ import annotations
 
-from . import composite, dmmr, frame, ingest, paraview, reliefboards, roettger, scene, scene_ingest, terrain
+from . import composite, dmmr, frame, ingest, lod, paraview, reliefboards, roettger, scene, scene_ingest, terrain
 
 __all__ = ["BENCHES"]
 
@@ -23,4 +23,5 @@ BENCHES = {
     "roettger": roettger,
     "reliefboards": reliefboards,
     "dmmr": dmmr,
+    "lod": lod,
 }

@@ -279,3 +279,74 @@ def patch_boxes(h: PatchHierarchy, f: Front) -> tuple[np.ndarray, np.ndarray]:
     lo = np.stack([xs.min(0), ys.min(0), f.zmin], axis=1)
     hi = np.stack([xs.max(0), ys.max(0), f.zmax], axis=1)
     return lo, hi
+
+
+class BaselineStage:
+    """T1's whole LOD stage of a frame as it was before issue 20 (``systems/terrain.py``,
+    asynchronous loading): shading wants and residency as Python sets of (level, i, j) tuples,
+    the agreement, the triangle walk above, front bookkeeping, box culling of the whole front
+    and the task's share. It runs on a :class:`~massview.systems.terrain.TerrainSystem`'s GL
+    pool and block cache (shared with the new stage) with its own front and wanted set."""
+
+    def __init__(self, system):
+        from ...lod.texlod import shading_blocks
+
+        self.sys, self._shading_blocks = system, shading_blocks
+        st = system.store
+        self.h = PatchHierarchy(system.lay, *system._lod, spacing=st.spacing, vscale=st.vertical_scale)
+        self.front, self._tex, self._wanted = None, set(), set()
+
+    def _front_keys(self) -> set:
+        f = self.front
+        if f is None or len(f) == 0:
+            return set()
+        return set(zip(f.level.tolist(), f.bi.tolist(), f.bj.tolist()))
+
+    def _request(self, lv, bi, bj, prio) -> None:
+        for key, p in zip(zip(lv.tolist(), bi.tolist(), bj.tolist()), prio.tolist()):
+            self._wanted.add(key)
+            self.sys.cache.request(key, p)
+
+    def _want_shading(self, camera) -> None:
+        s, h = self.sys, self.h
+        lv, bi, bj, prio = self._shading_blocks(s._minmax, s.lay.M, s.store.spacing,
+                                                lambda z: h.base + h.exaggeration * (z * h.vs - h.base), camera)
+        self._tex = set(zip(lv.tolist(), bi.tolist(), bj.tolist()))
+        _, pool, _, _ = s.renderers()
+        for key, p in zip(zip(lv.tolist(), bi.tolist(), bj.tolist()), prio.tolist()):
+            if not pool.resident[key[0]][key[1], key[2]]:
+                self._wanted.add(key)
+                s.cache.request(key, 1e-6 * p)
+
+    def prepare_frame(self, comm, camera, cfg) -> None:
+        from ...parallel.exchange import agree_all
+
+        s = self.sys
+        _, pool, terrain, _ = s.renderers()
+        s.cache.begin_frame()
+        self._want_shading(camera)
+        keep = self._front_keys() | self._tex
+        s._wanted, saved = self._wanted, s._wanted
+        try:
+            s._upload_ready(keep)
+        finally:
+            s._wanted = saved
+        flat = np.concatenate([g.ravel() for g in pool.resident])
+        agreed = agree_all(comm, flat)
+        grids, o = [], 0
+        for g in pool.resident:
+            grids.append(agreed[o:o + g.size].reshape(g.shape))
+            o += g.size
+        front = select_front(self.h, camera, cfg.tau, lambda lv, bi, bj: lookup_blocks(grids, lv, bi, bj), self._request)
+        self.front = front
+        terrain.set_pages(pool.page_table(grids))
+        pool.touch(self._front_keys() | self._tex)
+
+    def select(self, task, camera) -> "Front":
+        """The task's share of the front (sort-first tiles and the whole frame: box culling)."""
+        from ...lod.cull import boxes_in_frustum
+
+        full = task.viewport == camera.viewport
+        lo, hi = patch_boxes(self.h, self.front)
+        vis = np.flatnonzero(boxes_in_frustum(lo, hi, camera.frustum_planes(None if full else task.viewport)))
+        return self.front.take(vis)

@@ -1,0 +1,181 @@
+"""T1's whole LOD stage per frame, old against new, and sort-first LOD per tile.
+
+``massview bench lod [--store STORE]``: one process, one rank, real GL pool and block cache,
+everything resident (warmed with complete loading first, then timed with nothing loading).
+
+Part 1: for each target front size (default 5 k, 20 k and 80 k patches) τ is bisected on the
+``orbit`` camera so the cut reaches the target, and the whole LOD stage of each frame along a
+stretch of the path — shading wants, uploads, residency agreement, the cut, front bookkeeping,
+culling and the task's share — is timed for the stage as it was before issue 20
+(:class:`~massview.app.bench.lod_baseline.BaselineStage`) and for today's, alternating frame by
+frame so both see the same load. Printed: front patches, ms per frame of each, their ratio.
+
+Part 2: sort-first on ``--tiles`` ranks (``--layout``): each rank's LOD stage restricted to its
+tile (what each rank of a real ``--ranks N`` run does) against the whole-frame LOD stage, on
+the same cameras in the same process. Printed per target: whole-frame ms, each rank's ms, the
+slowest rank's ratio to the whole frame, and the patches each rank's cut holds.
+
+The default store is the demo terrain (``~/.cache/massview/demo_terrain_4097.zarr``, generated
+as ``massview demo`` does when missing). Timings on a shared machine are noisy: compare the
+ratios, which are measured in one run.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ...core.config import RenderConfig, parse_size
+from ...core.paths import load_path
+from ...core.stats import FrameStats
+from ...core.task import Task
+
+__all__ = ["add_arguments", "run"]
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--store", default=None, help="terrain store (default: the demo terrain, generated when missing)")
+    p.add_argument("--size", default="1280x720")
+    p.add_argument("--frames", type=int, default=8, help="timed frames per target")
+    p.add_argument("--targets", default="5000,20000,80000", help="front sizes (patches) to reach")
+    p.add_argument("--tiles", type=int, default=4, help="sort-first ranks for part 2")
+    p.add_argument("--layout", default="horizontal", choices=("horizontal", "vertical", "grid"))
+    p.add_argument("--repeat", type=int, default=3, help="timings per frame (the best is kept)")
+
+
+def _store(arg) -> Path:
+    if arg:
+        return Path(arg)
+    store = Path(os.path.expanduser(os.environ.get("MASSVIEW_CACHE", "~/.cache/massview"))) / "demo_terrain_4097.zarr"
+    if not (store / "zarr.json").exists():
+        from ...data.terrain import prepare_terrain
+        from ...data.terrain.synthetic import SyntheticSource
+
+        print(f"generating the demo terrain into {store} (once) ...", flush=True)
+        prepare_terrain(SyntheticSource(4097, 1), store, vertical_scale=2.5, overwrite=True)
+    return store
+
+
+class _Rank:
+    """Rank ``r`` of ``n`` for an in-process stage: collectives return this rank's own data
+    (every tile is timed in turn on one process)."""
+
+    def __init__(self, r: int, n: int):
+        self.r, self.n = r, n
+
+    def Get_rank(self):
+        return self.r
+
+    def Get_size(self):
+        return self.n
+
+    def Allreduce(self, mine, out, op=None):
+        out[...] = mine
+
+    def allreduce(self, v, op=None):
+        return v
+
+
+def _tau_for(h, camera, target: int) -> float:
+    """τ (log bisection) whose cut on ``camera`` holds ~``target`` patches."""
+    from ...lod.kpatch import select_front
+
+    lo, hi = 1e-3, 64.0
+    for _ in range(22):
+        mid = (lo * hi) ** 0.5
+        n = len(select_front(h, camera, mid))
+        if abs(n - target) < 0.02 * target:
+            return mid
+        lo, hi = (mid, hi) if n > target else (lo, mid)
+    return (lo * hi) ** 0.5
+
+
+def _best(fn, repeat: int) -> float:
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best * 1e3
+
+
+def _new_stage(sysm, comm, cam, cfg, nranks: int):
+    def go():
+        sysm.prepare_frame(comm, cam, cfg, FrameStats(0, 0))
+        task = sysm.plan(cam, cfg, nranks)[comm.Get_rank()]
+        sysm.front.take(sysm.select(task, cam, cfg))
+    return go
+
+
+def _old_stage(old, comm, cam, cfg):
+    def go():
+        old.prepare_frame(comm, cam, cfg)
+        old.select(Task(0, cam.viewport), cam)
+    return go
+
+
+def _cameras(path, bounds, at: float, frames: int, w: int, h: int):
+    p = load_path(path, *bounds)
+    return [p.camera(min(1.0, at + 0.004 * i), w, h) for i in range(frames)]
+
+
+def run(args) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from ...parallel.runtime import self_comm
+    from ...systems.terrain import TerrainSystem
+    from .lod_baseline import BaselineStage
+
+    console = Console(width=None if Console().is_terminal else 160)
+    w, hh = parse_size(args.size)
+    store = _store(args.store)
+    t_start = time.perf_counter()
+    sysm = TerrainSystem(store, cache_bytes=1 << 30, gpu_bytes=1 << 30, loading="complete")
+    old = BaselineStage(sysm)
+    comm = self_comm()
+    targets = [int(v) for v in args.targets.split(",") if v.strip()]
+    t1 = Table(title=f"whole LOD stage per frame, old vs new: {store.name}, {w}x{hh}, orbit, {args.frames} frames, one rank")
+    for c in ("target", "τ", "front patches", "old ms", "new ms", "old ÷ new", "visible"):
+        t1.add_column(c, justify="right")
+    t2 = Table(title=f"sort-first {args.layout} on {args.tiles} ranks: each rank's LOD stage (own tile) vs the whole frame's")
+    for c in ("target", "whole-frame ms", "per rank ms", "slowest ÷ whole", "whole patches", "per rank patches"):
+        t2.add_column(c, justify="right")
+    try:
+        for target in targets:
+            cams = _cameras("orbit", sysm.bounds, 0.5, args.frames, w, hh)
+            tau = _tau_for(sysm.h, cams[0], target)
+            cfg = RenderConfig(width=w, height=hh, tau=tau, loading="complete")
+            tcfg = RenderConfig(width=w, height=hh, tau=tau, loading="complete", decomposition=f"sort-first:{args.layout}")
+            sysm.loading = "complete"
+            for cam in cams:  # warm: every block these views need, for the whole frame and for the tiles
+                sysm.prepare_frame(comm, cam, cfg, FrameStats(0, 0))
+            sysm.loading = "async"
+            old_ms, new_ms, sizes, vis, whole, ranks = [], [], [], [], [], [[] for _ in range(args.tiles)]
+            rank_sizes = [[] for _ in range(args.tiles)]
+            for cam in cams:
+                old_ms.append(_best(_old_stage(old, comm, cam, cfg), args.repeat))
+                new_ms.append(_best(_new_stage(sysm, comm, cam, cfg, 1), args.repeat))
+                sizes.append(len(sysm.front))
+                vis.append(len(sysm.select(Task(0, cam.viewport), cam, cfg)))
+                whole.append(new_ms[-1])
+                for r in range(args.tiles):
+                    ranks[r].append(_best(_new_stage(sysm, _Rank(r, args.tiles), cam, tcfg, args.tiles), args.repeat))
+                    rank_sizes[r].append(len(sysm.front))
+            o, n = float(np.mean(old_ms)), float(np.mean(new_ms))
+            t1.add_row(f"{target / 1e3:.0f} k", f"{tau:.3g}", f"{np.mean(sizes):.0f}", f"{o:.2f}", f"{n:.2f}", f"{o / n:.1f}×",
+                       f"{np.mean(vis):.0f}")
+            per = [float(np.mean(x)) for x in ranks]
+            t2.add_row(f"{target / 1e3:.0f} k", f"{np.mean(whole):.2f}", ", ".join(f"{v:.2f}" for v in per),
+                       f"{max(per) / np.mean(whole):.2f}", f"{np.mean(sizes):.0f}", ", ".join(f"{np.mean(x):.0f}" for x in rank_sizes))
+            console.print(f"target {target}: τ = {tau:.3g}, old {o:.2f} ms, new {n:.2f} ms per frame", highlight=False)
+    finally:
+        sysm.close()
+    console.print(t1)
+    console.print(t2)
+    console.print(f"bench lod: {time.perf_counter() - t_start:.0f} s (timings taken best of {args.repeat} per frame; "
+                  "compare ratios, measured in the same run)", highlight=False)
+    return 0
