@@ -38,9 +38,9 @@ import numpy as np
 
 from ..core.camera import Camera, Viewport
 from ..data.terrain.layout import TerrainLayout
+from . import kpatch_walk
 from .kpatch_top import TopBatch
-from .kpatch_cut import (Residency, View, draw_level, edge_children, edge_exists, edge_halves, merge_halves, patch_vertices,
-                         square_children, square_halves)
+from .kpatch_cut import Residency, View
 
 __all__ = ["PatchHierarchy", "Front", "select_front", "visible_patches", "patch_boxes", "lookup_blocks", "refine_uniform",
            "watertight_problems"]
@@ -231,145 +231,20 @@ def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident=N
     res = Residency(resident, lay.levels, lay.L)
     top = h.top
     split, H0, H1, code, deferred = top.walk(view, res, request)
-    parts = [top.kept(split, H0, H1, code)]
-    s = slice(top.offsets[-2], top.offsets[-1])  # the last batched depth's diamonds
+    rec, rcode = top.kept(split, H0, H1, code)
+    s = slice(top.offsets[-2], top.offsets[-1])  # the last batched depth: its splits seed the walk
     t = top.depths - 1
-    state = _next_state(h, t, top.o[s], top.v[s], top.u[s], H0[s], H1[s], split[s])
-    for t in range(top.depths, 2 * lay.J):
-        if len(state[0]) == 0:
-            break
-        state, kept, d = _step(h, view, res, request, t, *state)
-        parts.append(kept)
-        deferred += d
-    else:
-        if len(state[0]):
-            parts.append(_leaves(h, view, *state))
-    f = _emit(h, parts)
-    f.deferred, f.code_vp = deferred, view_vp(camera, viewport)
+    seed = kpatch_walk._children(h, t, kpatch_walk.pack(top.o[s], top.v[s], top.u[s], H0[s], H1[s])[split[s]])
+    parts, d = kpatch_walk.walk(h, view, res, request, top.depths, seed)
+    cols = kpatch_walk.emit(h, parts)
+    arr = [np.concatenate([r, *c]) for r, c in zip((*rec, rcode), cols)]
+    f = Front(*arr[:13], deferred=deferred + d, code=arr[13].astype(np.int8), code_vp=view_vp(camera, viewport))
     return f
 
 
 def view_vp(camera: Camera, vp: Viewport | None) -> Viewport | None:
     """The frustum key of a cut or cull: None for the whole frame."""
     return None if vp is None or vp == camera.viewport else vp
-
-
-def _step(h: PatchHierarchy, view: View, res: Residency, request, t: int, o, v, u, h0, h1):
-    """One depth of the walk: decide the present diamonds, request missing blocks, return the
-    next depth's diamonds, the kept halves and the deferred-split count."""
-    lay, j, edge = h.lay, t // 2, t % 2 == 1
-    a, n = lay.square_side(j), 2**j
-    tab = h.dg_tab[j] if edge else h.sq_tab[j]
-    ids = (o * (n + 1) + v) * (n + 1) + u if edge else v * n + u
-    x = ((u + 0.5 * (1 - o)) * a if edge else (u + 0.5) * a) * h.dx
-    y = -((v + 0.5 * o) * a if edge else (v + 0.5) * a) * h.dy
-    crit, pix, code = view.test(x, y, tab[0][ids], tab[1][ids], tab[2][ids])
-    if edge:
-        ex0, ex1 = edge_exists(o, v, u, n)
-        complete = (h0 == ex0) & (h1 == ex1)
-    else:
-        complete = h0 & h1
-    ok = crit & complete
-    if not res.all:
-        ok = _resident_halves(lay, res, request, t, o, v, u, h0, h1, crit, pix, ok)
-    split = ok
-    wait = crit & ~split
-    deferred = int(np.count_nonzero(wait & h0)) + int(np.count_nonzero(wait & h1))
-    k = ~split
-    kept = (t, ids[k], o[k], v[k], u[k], h0[k], h1[k], code[k])
-    return _next_state(h, t, o, v, u, h0, h1, split), kept, deferred
-
-
-def _next_state(h: PatchHierarchy, t: int, o, v, u, h0, h1, split):
-    """The next depth's diamonds (o, v, u, h0, h1) from the ones that split at depth ``t``."""
-    edge, n = t % 2 == 1, 2 ** (t // 2)
-    s = split
-    if edge:
-        (v0, u0), (v1, u1) = edge_children(o[s], v[s], u[s], h0[s], h1[s])
-        m = 2 * n
-        id0, id1 = v0 * m + u0, v1 * m + u1
-        o0 = o1 = None
-    else:
-        (o0, v0, u0), (o1, v1, u1) = square_children(v[s], u[s])
-        id0, id1 = (o0 * (n + 1) + v0) * (n + 1) + u0, (o1 * (n + 1) + v1) * (n + 1) + u1
-    in1, only1 = merge_halves(h._mark, id0, id1)
-    nv = np.concatenate([v0, v1[only1]])
-    nu = np.concatenate([u0, u1[only1]])
-    no = np.zeros(len(nv), np.int64) if edge else np.concatenate([o0, o1[only1]])
-    nh0 = np.zeros(len(nv), bool)
-    nh0[:len(v0)] = True
-    nh1 = np.concatenate([in1, np.ones(len(nv) - len(v0), bool)])
-    return no, nv, nu, nh0, nh1
-
-
-def _resident_halves(lay, res: Residency, request, t, o, v, u, h0, h1, crit, pix, ok):
-    """``ok`` further restricted to diamonds whose present halves' children have their
-    blocks resident; requests the missing ones (priority: the pixel error)."""
-    j, a = t // 2, lay.square_side(t // 2)
-    lvl = draw_level(lay.J, t + 1)
-    blvl = min(lvl, lay.L)
-    if res.level_resident(blvl):
-        return ok
-    span, nb = (lay.M - 1) << blvl, 2 ** (lay.L - blvl)
-    if t % 2:
-        ap0, ap1, pq = edge_halves(o, v, u, a)
-    else:
-        ap0, ap1, pq = square_halves(v, u, a)
-    for ap, hh in ((ap0, h0), (ap1, h1)):
-        bi = np.clip((pq[1] + ap[1]) // 3 // span, 0, nb - 1)
-        bj = np.clip((pq[0] + ap[0]) // 3 // span, 0, nb - 1)
-        r = res.lookup(blvl, bi, bj)
-        miss = crit & hh & ~r
-        if request is not None and miss.any():
-            request(np.full(int(miss.sum()), blvl), bi[miss], bj[miss], np.minimum(pix[miss], 1e30))
-        ok = ok & (r | ~hh)
-    return ok
-
-
-def _leaves(h: PatchHierarchy, view: View, o, v, u, h0, h1):
-    """The deepest square level: every present half is a patch; spheres for culling only."""
-    lay = h.lay
-    J = lay.J
-    a, n = lay.square_side(J), 2**J
-    ids = v * n + u
-    zlo, zhi = h.sq_tab[J][3][ids], h.sq_tab[J][4][ids]
-    half = math.hypot(a / 2 * h.dx, a / 2 * h.dy)
-    dz = (zhi - zlo) / 2
-    r = np.sqrt(half * half + dz * dz)
-    px, py, pz = view.camera_space((u + 0.5) * a * h.dx, -(v + 0.5) * a * h.dy, (zlo + zhi) / 2)
-    return (2 * J, ids, o, v, u, h0, h1, view.code(px, py, pz, r))
-
-
-def _emit(h: PatchHierarchy, parts) -> Front:
-    """Patch records: the batched top's, then the walked depths' kept halves (square depths,
-    then edge depths; each depth's half-0 patches before its half-1 patches)."""
-    lay = h.lay
-    rec, rcode = parts[0]
-    groups = ([], [])  # per kind: (t, o, v, u, half, zlo, zhi, code) per depth
-    for t, ids, o, v, u, h0, h1, code in parts[1:]:
-        sel = np.concatenate([np.flatnonzero(h0), np.flatnonzero(h1)])
-        if len(sel) == 0:
-            continue
-        half = np.zeros(len(sel), bool)
-        half[int(np.count_nonzero(h0)):] = True
-        tab = h.dg_tab[t // 2] if t % 2 else h.sq_tab[t // 2]
-        i = ids[sel]
-        groups[t % 2].append((np.full(len(sel), t), o[sel], v[sel], u[sel], half, tab[3][i], tab[4][i], code[sel]))
-    cols = [[c] for c in (*rec, rcode)]
-    for kind, g in enumerate(groups):
-        if not g:
-            continue
-        t, o, v, u, half, zlo, zhi, code = (np.concatenate(c) for c in zip(*g))
-        a = np.left_shift(1, lay.n - t // 2)
-        ax, ay, lx, ly, rx, ry = patch_vertices(kind, o, v, u, half, a)
-        lvl = lay.J - t // 2 - kind
-        blvl = np.minimum(lvl, lay.L)
-        shift = blvl + lay.m
-        cx, cy = (ax + lx + rx) // 3, (ay + ly + ry) // 3
-        for c, val in zip(cols, (ax, ay, lx, ly, rx, ry, t, blvl, cy >> shift, cx >> shift, np.left_shift(1, lvl - blvl), zlo, zhi, code)):
-            c.append(val)
-    arr = [np.concatenate(c) for c in cols]
-    return Front(*arr[:13], code=arr[13].astype(np.int8))
 
 
 def visible_patches(h: PatchHierarchy, f: Front, camera: Camera, vp: Viewport | None = None) -> np.ndarray:

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..core.camera import Camera, Viewport
 
-__all__ = ["View", "Residency", "square_halves", "edge_halves", "square_children", "edge_children", "merge_halves"]
+__all__ = ["View", "Residency", "square_halves", "edge_halves", "merge_halves", "draw_level", "edge_exists", "patch_vertices"]
 
 
 class View:
@@ -132,33 +132,6 @@ def edge_halves(o, v, u, a: int):
     x0, y0 = u * a, v * a
     h = a // 2
     return (x0 + h - a * o, y0 + h - a * (1 - o)), (x0 + h, y0 + h), (2 * x0 + a * (1 - o), 2 * y0 + a * o)
-
-
-def square_children(v, u):
-    """Edge diamonds (same level) the split squares (v, u) give a half: (o, v, u) of the
-    half-0 and of the half-1 receivers."""
-    k = len(v)
-    o = np.repeat(np.array([0, 1], np.int64), k)
-    return (o, np.concatenate([v + 1, v]), np.concatenate([u, u + 1])), (o, np.concatenate([v, v]), np.concatenate([u, u]))
-
-
-def edge_children(o, v, u, h0, h1):
-    """Square diamonds one level down the split edges (o, v, u) give a half (their halves h0
-    and h1 present): (v, u) of the half-0 receivers (from horizontal edges) and of the
-    half-1 receivers (from vertical edges)."""
-    out = []
-    for kind in (0, 1):
-        s = o == kind
-        vv, uu, a, b = v[s], u[s], h0[s], h1[s]
-        if kind == 0:  # squares above (rows 2v-1) and below (2v), columns 2u and 2u+1
-            rows = np.concatenate([2 * vv[a] - 1, 2 * vv[b]])
-            cols = np.concatenate([2 * uu[a], 2 * uu[b]])
-            out.append((np.concatenate([rows, rows]), np.concatenate([cols, cols + 1])))
-        else:  # squares left (cols 2u-1) and right (2u), rows 2v and 2v+1
-            rows = np.concatenate([2 * vv[a], 2 * vv[b]])
-            cols = np.concatenate([2 * uu[a] - 1, 2 * uu[b]])
-            out.append((np.concatenate([rows, rows + 1]), np.concatenate([cols, cols])))
-    return out[0], out[1]
 
 
 def merge_halves(mark: np.ndarray, id0: np.ndarray, id1: np.ndarray):

@@ -28,7 +28,6 @@ class TopBatch:
         self.depths = 2 * levels
         cols = {k: [] for k in ("x", "y", "cz", "r", "err", "ex0", "ex1", "par0", "par1", "o", "v", "u", "t")}
         self.offsets = [0]
-        prev_index = None  # (kind, n) -> position map of the previous depth
         for t in range(self.depths):
             j, edge = t // 2, t % 2 == 1
             a, n = lay.square_side(j), 2**j
@@ -117,6 +116,9 @@ class TopBatch:
                                          np.full(m, 2 ** (lvl - blvl)), tab[3][ids], tab[4][ids])):
                     c.append(val)
             self.rec.append([np.concatenate(c) for c in cols])
+        self.rec_int = np.stack([np.concatenate([self.rec[0][i], self.rec[1][i]]) for i in range(11)]).astype(np.int64)
+        self.rec_flt = np.stack([np.concatenate([self.rec[0][i], self.rec[1][i]]) for i in (11, 12)])
+        del self.rec
 
     def walk(self, view: View, res: Residency, request):
         """Decide the batch for one view: returns (split flags, H0, H1, crit, code, deferred)."""
@@ -147,9 +149,9 @@ class TopBatch:
 
     def kept(self, split, H0, H1, code):
         """The patches the batch keeps: (13 Front columns, codes), half-0 patches first."""
-        k0, k1 = H0 & ~split, H1 & ~split
-        cols = [np.concatenate([c0[k0], c1[k1]]) for c0, c1 in zip(*self.rec)]
-        return cols, np.concatenate([code[k0], code[k1]])
+        idx = np.concatenate([np.flatnonzero(H0 & ~split), self.size + np.flatnonzero(H1 & ~split)])
+        cols = [*self.rec_int.take(idx, axis=1), *self.rec_flt.take(idx, axis=1)]
+        return cols, np.concatenate([code, code]).take(idx)
 
     def _resident(self, res: Residency):
         if res.fn is not None:

@@ -292,8 +292,8 @@ class TerrainSystem:
     def render(self, task: Task, camera: Camera, cfg: RenderConfig, stats: FrameStats, tint=(0, 0, 0, 0)) -> Image:
         _, _, terrain, view = self._renderers()
         with stats.stage("lod"):
-            idx = self.select(task, camera, cfg)
-            part = self.front.take(idx)
+            idx = self.select(task, camera, cfg)  # increasing indices: all of them is the front itself
+            part = self.front if len(idx) == len(self.front) else self.front.take(idx)
         stats.count("patches", len(part))
         stats.count("blocks_drawn", int(np.count_nonzero(self._blocks.mask(part.block_ids(self._blocks.offset, self._blocks.nb)))))
         return view.render(camera, task.viewport, lambda mvp: terrain.draw(part, mvp, tint, camera.position), stats, cfg.tile_targets)
