@@ -7,10 +7,22 @@ Every rank runs the same K-patch LOD on the same camera. Per frame:
    the cut — a pure function of (camera, data, agreed residency) — is identical on every rank
    and in the serial reference; missing blocks are requested by priority and their coarser
    ancestors drawn meanwhile (the frame never waits, unless ``loading="complete"``);
-3. the front is filtered by the task: sort-first culls it against the tile's sub-frustum;
+3. the cut: sort-first ranks with a layout fixed before the frame (horizontal, vertical,
+   grid) restrict it to their own tile's sub-frustum, as the paper's §4.2 does ("the meta
+   bintree traversal is then restricted to the particular view frustum"), so the LOD cost
+   divides among ranks. The split test is per diamond; a tile's walk decides every diamond
+   whose sphere touches its sub-frustum as the whole frame's does, so the patches it can see
+   are the whole frame's, in the same order, and the tiles assemble bit-exactly. The same
+   Allreduce ORs each rank's front blocks and wanted blocks, so every rank keeps and loads
+   what any tile needs and the agreed residency stays global. Other decompositions cut the
+   whole frame (sort-last shares it; kd and balanced tiles are planned from it);
+4. the front is filtered by the task: sort-first culls it against the tile's sub-frustum;
    sort-last keeps the rank's range R_i by one of the paper's three enumerations (§4.1):
    ``linear`` (M-block origin x), ``quadtree`` (Morton interval of the patch's finest block),
    ``kpatch`` (an equal share of the enumerated visible front).
+
+Block sets (residency, front blocks, shading and wanted blocks) are flat boolean arrays over
+:class:`~massview.lod.blockindex.BlockIndex` ids, not sets of tuples.
 """
 
 from __future__ import annotations
@@ -63,7 +75,8 @@ class TerrainSystem:
         self.h = self._hierarchy(1.0)
         self._blocks = BlockIndex(lay.levels, lay.L)
         self._tex_ids = np.zeros(0, np.int64)  # shading blocks the current view wants
-        self._front_mask = np.zeros(self._blocks.size, bool)  # blocks the last front(s) drew from
+        self._front_mask = np.zeros(self._blocks.size, bool)  # blocks this rank's last front drew from
+        self._keep_mask = self._union = self._front_mask  # ... and, cutting tiles, every rank's (not evicted on upload)
         self._want_mask = np.zeros(self._blocks.size, bool)  # blocks this rank's cut requested
         self._tex_have, self._grids = -1, None
         self.cache = BlockCache(self._load, cache_bytes, workers=2)
@@ -166,6 +179,7 @@ class TerrainSystem:
         terrain.set_pages(pool.page_table(grids))
         self._tex_have = -1
         self._front_mask = self._blocks.mask(self.front.block_ids(self._blocks.offset, self._blocks.nb))
+        self._keep_mask = self._front_mask | self._union if vp is not None else self._front_mask
         used = self._front_mask.copy()
         used[self._tex_ids] = True
         pool.touch(self._blocks.keys(np.flatnonzero(used)))
@@ -186,7 +200,7 @@ class TerrainSystem:
             if not pool.resident[top[0]][0, 0]:
                 self._wanted.add(top)
                 self.cache.request(top, float("inf"))
-            stats.count("blocks_uploaded", self._upload_ready(KeepSet(self._blocks, self._front_mask, self._tex_ids)))
+            stats.count("blocks_uploaded", self._upload_ready(KeepSet(self._blocks, self._keep_mask, self._tex_ids)))
             grids = self._agree(comm, pool, vp is not None)
             self._want_mask[:] = False
             front = select_front(self.h, camera, cfg.tau, grids, self._request, vp) if grids[top[0]][0, 0] else None
@@ -220,7 +234,9 @@ class TerrainSystem:
         else:
             both = agree_all(comm, np.concatenate([flat, ~self._front_mask, ~self._want_mask]))
             k = len(flat)
-            agreed, self._front_mask = both[:k], ~both[k:2 * k]
+            agreed = both[:k]
+            self._union = ~both[k:2 * k]  # every rank's last front blocks
+            self._keep_mask = self._keep_mask | self._union
             for key in self._blocks.keys(np.flatnonzero(~both[2 * k:] & ~flat)):
                 self._wanted.add(key)
                 self.cache.request(key, 1e-3)  # another tile's: after this rank's own

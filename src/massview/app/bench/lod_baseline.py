@@ -293,7 +293,8 @@ class BaselineStage:
 
         self.sys, self._shading_blocks = system, shading_blocks
         st = system.store
-        self.h = PatchHierarchy(system.lay, *system._lod, spacing=st.spacing, vscale=st.vertical_scale)
+        self.h = PatchHierarchy(system.lay, *st.lod_arrays(), spacing=st.spacing, vscale=st.vertical_scale)
+        self._minmax = [st.block_minmax(lv) for lv in range(system.lay.levels)]
         self.front, self._tex, self._wanted = None, set(), set()
 
     def _front_keys(self) -> set:
@@ -309,7 +310,7 @@ class BaselineStage:
 
     def _want_shading(self, camera) -> None:
         s, h = self.sys, self.h
-        lv, bi, bj, prio = self._shading_blocks(s._minmax, s.lay.M, s.store.spacing,
+        lv, bi, bj, prio = self._shading_blocks(self._minmax, s.lay.M, s.store.spacing,
                                                 lambda z: h.base + h.exaggeration * (z * h.vs - h.base), camera)
         self._tex = set(zip(lv.tolist(), bi.tolist(), bj.tolist()))
         _, pool, _, _ = s.renderers()
@@ -318,6 +319,20 @@ class BaselineStage:
                 self._wanted.add(key)
                 s.cache.request(key, 1e-6 * p)
 
+    def _upload_ready(self, pool, keep: set) -> int:
+        n = 0
+        for key in list(self._wanted):
+            if pool.resident[key[0]][key[1], key[2]]:
+                self._wanted.discard(key)
+                continue
+            verts = self.sys.cache.get(key)
+            if verts is not None:
+                span = (self.sys.lay.M - 1) << key[0]
+                if pool.upload(key, verts, (key[1] * span, key[2] * span), 2 ** key[0], keep):
+                    self._wanted.discard(key)
+                    n += 1
+        return n
+
     def prepare_frame(self, comm, camera, cfg) -> None:
         from ...parallel.exchange import agree_all
 
@@ -325,12 +340,7 @@ class BaselineStage:
         _, pool, terrain, _ = s.renderers()
         s.cache.begin_frame()
         self._want_shading(camera)
-        keep = self._front_keys() | self._tex
-        s._wanted, saved = self._wanted, s._wanted
-        try:
-            s._upload_ready(keep)
-        finally:
-            s._wanted = saved
+        self._upload_ready(pool, self._front_keys() | self._tex)
         flat = np.concatenate([g.ravel() for g in pool.resident])
         agreed = agree_all(comm, flat)
         grids, o = [], 0
