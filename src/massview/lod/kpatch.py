@@ -40,7 +40,7 @@ from ..core.camera import Camera, Viewport
 from ..data.terrain.layout import TerrainLayout
 from . import kpatch_walk
 from .kpatch_top import TopBatch
-from .kpatch_cut import Residency, View
+from .kpatch_cut import Dims, Residency, View
 
 __all__ = ["PatchHierarchy", "Front", "select_front", "visible_patches", "patch_boxes", "lookup_blocks", "refine_uniform",
            "watertight_problems"]
@@ -58,6 +58,7 @@ class PatchHierarchy:
     def __init__(self, layout: TerrainLayout, sq_err, dg_err, zmin, zmax, spacing=(1.0, 1.0), vscale: float = 1.0,
                  exaggeration: float = 1.0):
         self.lay = layout
+        self.dims = Dims(layout)
         self.dx, self.dy = (float(v) for v in spacing)
         self.vs = float(vscale)
         self.exaggeration = Z = float(exaggeration)
@@ -226,7 +227,7 @@ def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident=N
     frame's decision (its ancestors' spheres contain its own, so they touch the sub-frustum
     too): the patches visible in the tile are exactly the whole-frame cut's, in the same
     relative order; only patches the tile cannot see stay coarser."""
-    lay = h.lay
+    lay = h.dims
     view = View(camera, tau, None if viewport is None or viewport == camera.viewport else viewport)
     res = Residency(resident, lay.levels, lay.L)
     top = h.top

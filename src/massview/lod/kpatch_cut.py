@@ -29,7 +29,18 @@ import numpy as np
 
 from ..core.camera import Camera, Viewport
 
-__all__ = ["View", "Residency", "square_halves", "edge_halves", "merge_halves", "draw_level", "edge_exists", "patch_vertices"]
+__all__ = ["Dims", "View", "Residency", "square_halves", "edge_halves", "merge_halves", "draw_level", "edge_exists", "patch_vertices"]
+
+
+class Dims:
+    """The layout's integers as plain attributes (a :class:`TerrainLayout` derives them with
+    logarithms on every access; the walk reads them hundreds of times a frame)."""
+
+    def __init__(self, lay):
+        self.n, self.m, self.J, self.L, self.M, self.levels = lay.n, lay.m, lay.J, lay.L, lay.M, lay.levels
+
+    def square_side(self, j: int) -> int:
+        return 1 << (self.n - j)
 
 
 class View:

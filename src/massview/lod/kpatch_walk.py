@@ -34,7 +34,7 @@ def walk(h, view: View, res: Residency, request, t0: int, key: np.ndarray):
     """Depths t0 … 2J of the walk from the present diamonds ``key`` at depth t0. Returns the
     kept parts ((t, ids, keys, codes) per depth) and the deferred-split count."""
     parts, deferred = [], 0
-    J = h.lay.J
+    J = h.dims.J
     for t in range(t0, 2 * J):
         if len(key) == 0:
             return parts, deferred
@@ -47,7 +47,7 @@ def walk(h, view: View, res: Residency, request, t0: int, key: np.ndarray):
 
 
 def _step(h, view: View, res: Residency, request, t: int, key):
-    lay, j, edge = h.lay, t // 2, t % 2 == 1
+    lay, j, edge = h.dims, t // 2, t % 2 == 1
     a, n = lay.square_side(j), 2**j
     o, v, u, h0, h1 = _unpack(key)
     tab = h.dg_tab[j] if edge else h.sq_tab[j]
@@ -127,7 +127,7 @@ def _resident(lay, res: Residency, request, t, o, v, u, h0, h1, crit, pix, split
 
 def _leaves(h, view: View, key):
     """The deepest square level: every present half is a patch; spheres for culling only."""
-    lay, J = h.lay, h.lay.J
+    lay, J = h.dims, h.dims.J
     a, n = lay.square_side(J), 2**J
     _, v, u, _, _ = _unpack(key)
     ids = v * n + u
@@ -141,7 +141,7 @@ def _leaves(h, view: View, key):
 def emit(h, parts) -> list[np.ndarray]:
     """The 13 Front columns and the codes of the kept halves of ``parts`` (square depths, then
     edge depths; in each depth its half-0 patches before its half-1 patches)."""
-    lay = h.lay
+    lay = h.dims
     groups = ([], [])
     for t, ids, key, code in parts:
         h0, h1 = (key & _H0) != 0, (key & _H1) != 0
