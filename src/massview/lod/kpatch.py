@@ -237,10 +237,8 @@ def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident=N
     t = top.depths - 1
     seed = kpatch_walk._children(h, t, kpatch_walk.pack(top.o[s], top.v[s], top.u[s], H0[s], H1[s])[split[s]])
     parts, d = kpatch_walk.walk(h, view, res, request, top.depths, seed)
-    cols = kpatch_walk.emit(h, parts)
-    arr = [np.concatenate([r, *c]) for r, c in zip((*rec, rcode), cols)]
-    f = Front(*arr[:13], deferred=deferred + d, code=arr[13].astype(np.int8), code_vp=view_vp(camera, viewport))
-    return f
+    arr = kpatch_walk.emit(h, parts, (rec, rcode))
+    return Front(*arr[:13], deferred=deferred + d, code=arr[13], code_vp=view_vp(camera, viewport))
 
 
 def view_vp(camera: Camera, vp: Viewport | None) -> Viewport | None:

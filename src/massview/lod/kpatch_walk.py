@@ -138,9 +138,10 @@ def _leaves(h, view: View, key):
     return (2 * J, ids, key, view.code(px, py, pz, np.sqrt(half * half + dz * dz)))
 
 
-def emit(h, parts) -> list[np.ndarray]:
-    """The 13 Front columns and the codes of the kept halves of ``parts`` (square depths, then
-    edge depths; in each depth its half-0 patches before its half-1 patches)."""
+def emit(h, parts, head) -> list[np.ndarray]:
+    """The 13 Front columns and the codes: ``head`` (the batched top's columns and codes), then
+    the kept halves of ``parts`` (square depths, then edge depths; in each depth its half-0
+    patches before its half-1 patches), written once into the output arrays."""
     lay = h.dims
     groups = ([], [])
     for t, ids, key, code in parts:
@@ -148,24 +149,35 @@ def emit(h, parts) -> list[np.ndarray]:
         sel = np.concatenate([np.flatnonzero(h0), np.flatnonzero(h1)])
         if len(sel) == 0:
             continue
-        half = np.zeros(len(sel), bool)
-        half[int(np.count_nonzero(h0)):] = True
+        n0 = int(np.count_nonzero(h0))
         tab = h.dg_tab[t // 2] if t % 2 else h.sq_tab[t // 2]
         i = ids.take(sel)
-        groups[t % 2].append((np.full(len(sel), t), key.take(sel), half, tab[3].take(i), tab[4].take(i), code.take(sel)))
-    cols = [[] for _ in range(14)]
+        groups[t % 2].append((t, n0, len(sel), key.take(sel), tab[3].take(i), tab[4].take(i), code.take(sel)))
+    m = len(head[0][0])
+    total = m + sum(g[2] for grp in groups for g in grp)
+    out = [np.empty(total, np.int64) for _ in range(11)] + [np.empty(total), np.empty(total), np.empty(total, np.int8)]
+    for o_, c in zip(out, (*head[0], head[1])):
+        o_[:m] = c
     for kind, g in enumerate(groups):
         if not g:
             continue
-        t, key, half, zlo, zhi, code = (np.concatenate(c) for c in zip(*g))
+        cnt = np.array([x[2] for x in g])
+        ts = np.array([x[0] for x in g])
+        t = np.repeat(ts, cnt)
+        half = np.concatenate([np.arange(x[2]) >= x[1] for x in g])
+        key = np.concatenate([x[3] for x in g])
         o, v, u, _, _ = _unpack(key)
-        a = np.left_shift(1, lay.n - t // 2)
-        ax, ay, lx, ly, rx, ry = patch_vertices(kind, o, v, u, half, a)
-        lvl = lay.J - t // 2 - kind
+        a = np.repeat(np.left_shift(1, lay.n - ts // 2), cnt)
+        lvl = lay.J - ts // 2 - kind
         blvl = np.minimum(lvl, lay.L)
-        shift = blvl + lay.m
-        cx, cy = (ax + lx + rx) // 3, (ay + ly + ry) // 3
-        for c, val in zip(cols, (ax, ay, lx, ly, rx, ry, t, blvl, cy >> shift, cx >> shift, np.left_shift(1, lvl - blvl), zlo, zhi,
-                                 code)):
-            c.append(val)
-    return cols
+        e = m + int(cnt.sum())
+        ax, ay, lx, ly, rx, ry = patch_vertices(kind, o, v, u, half, a)
+        shift = np.repeat(blvl + lay.m, cnt)
+        cols = (ax, ay, lx, ly, rx, ry, t, np.repeat(blvl, cnt), ((ay + ly + ry) // 3) >> shift, ((ax + lx + rx) // 3) >> shift,
+                np.repeat(np.left_shift(1, lvl - blvl), cnt))
+        for o_, c in zip(out, cols):
+            o_[m:e] = c
+        for o_, k in zip(out[11:], (4, 5, 6)):
+            np.concatenate([x[k] for x in g], out=o_[m:e])
+        m = e
+    return out
