@@ -26,6 +26,12 @@ refinement back where data is missing, and the presence test keeps that conformi
 The result is backend-free: a :class:`Front` of patch records (integer vertex coordinates in
 finest-sample units, the block each patch draws from and its sample stride) that the renderer
 turns into one multi-draw call.
+
+The walk itself decides once per diamond, not per triangle (:mod:`.kpatch_cut` for the rule and
+the split test, :mod:`.kpatch_top` for the first depths as one precomputed batch,
+:mod:`.kpatch_walk` for the lower depths as packed int64 keys). It selects exactly the
+patches of the triangle-by-triangle walk it replaced (``massview.app.bench.lod_baseline``;
+tests/test_lod_stage.py), and it can be restricted to a sort-first tile's sub-frustum.
 """
 
 from __future__ import annotations
