@@ -19,6 +19,7 @@ from ..core.config import RenderConfig
 from ..core.errors import ConfigError
 from ..core.paths import load_path
 from ..core.stats import summarize
+from ..lod.boardpolicy import DEFAULT_TNZ, BoardPolicy
 
 __all__ = ["add_render_args", "options_from_args", "cmd_render", "run", "m2_summary"]
 
@@ -34,7 +35,7 @@ def _stall(spec: str) -> tuple[int, float | None]:
 def add_render_args(p: argparse.ArgumentParser) -> None:
     """The M2 flags of ``massview render --system reliefboards``."""
     g = p.add_argument_group("reliefboards (--system reliefboards)")
-    g.add_argument("--tnz", type=int, default=None, help="near-zone triangles t_nz (default 350000: the paper's 3.5 M scaled to llvmpipe)")
+    g.add_argument("--tnz", type=int, default=None, help=f"near-zone triangles t_nz (default {DEFAULT_TNZ}: the paper's 3.5 M scaled to this machine, see lod/boardpolicy.py)")
     g.add_argument("--epsilon", type=float, default=11.5, help="angle error (deg) past which a board is renewed (default 11.5)")
     g.add_argument("--max-error", type=float, default=45.0, help="angle error (deg) past which the original is drawn (default 45)")
     g.add_argument("--size-threshold", type=float, default=0.30, help="relative projected-size change that renews a board (default 0.3)")
@@ -44,18 +45,20 @@ def add_render_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--placement-seed", type=int, default=0, help="seed of the random replica placement")
     g.add_argument("--stall-backend", type=_stall, default=None, metavar="RANK[:SEC]",
                    help="simulate a stalled backend (holds every request until the end) or a slow one (SEC more per board)")
+    g.add_argument("--tie-rule", choices=("pending", "frame"), default="pending",
+                   help="c-collision ties: fewest requests assigned and still pending (default), or assigned in this frame only")
+    g.add_argument("--wait-boards", action="store_true",
+                   help="deterministic mode for comparisons: each frame waits until every pending board has arrived (not M2's behaviour)")
 
 
 def options_from_args(args):
     from ..systems.reliefboards import ReliefboardOptions
 
     stall = args.stall_backend or (None, None)
-    kw = dict(epsilon_deg=args.epsilon, max_error_deg=args.max_error, size_threshold=args.size_threshold,
-              p=args.board_px, replicas=args.replicas, seed=args.placement_seed, min_triangles=args.min_triangles,
-              stall_backend=stall[0], stall_s=stall[1])
-    if args.tnz is not None:
-        kw["t_nz"] = args.tnz
-    return ReliefboardOptions(**kw)
+    policy = BoardPolicy(epsilon_deg=args.epsilon, max_error_deg=args.max_error, size_threshold=args.size_threshold,
+                         t_nz=DEFAULT_TNZ if args.tnz is None else args.tnz, p=args.board_px)
+    return ReliefboardOptions(policy, replicas=args.replicas, seed=args.placement_seed, min_triangles=args.min_triangles,
+                              stall_backend=stall[0], stall_s=stall[1], tie_rule=args.tie_rule, wait_boards=args.wait_boards)
 
 
 def _quantiles(values) -> dict:
@@ -185,7 +188,7 @@ def add_parsers(prepare_sub) -> None:
     """``massview prepare reliefboards SCENE``: §4 clustering stored in the scene store."""
     p = prepare_sub.add_parser("reliefboards", help="M2: cluster a scene store into feasible objects (§4), stored in the store")
     p.add_argument("scene", help="a scene store (massview prepare scene / generate scene)")
-    p.add_argument("--tnz", type=int, default=350_000, help="near-zone triangles t_nz (default 350000: 3.5 M scaled to llvmpipe)")
+    p.add_argument("--tnz", type=int, default=DEFAULT_TNZ, help=f"near-zone triangles t_nz (default {DEFAULT_TNZ}: the paper's 3.5 M scaled to this machine, see lod/boardpolicy.py)")
     p.add_argument("--board-px", type=int, default=128, help="largest projected board side p in pixels (default 128)")
     p.add_argument("--size", default="1024x768", help="display WIDTHxHEIGHT; its height is r_y (default 1024x768, the paper's)")
     p.add_argument("--fovy", type=float, default=45.0, help="vertical field of view in degrees (default 45)")
