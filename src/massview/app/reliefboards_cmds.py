@@ -97,8 +97,10 @@ def m2_summary(records: list[dict]) -> dict:
     }
 
 
-def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool = True, write_frames: bool = True):
-    """Render ``cfg.frames`` frames of ``cfg.path`` with M2; returns the summary on rank 0."""
+def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool = True, write_frames: bool = True,
+        cameras=None):
+    """Render ``cfg.frames`` frames of ``cfg.path`` (or the given ``cameras``, needed on rank 0
+    only) with M2; returns the summary on rank 0."""
     from ..systems.boardscene import open_board_objects
     from ..systems.reliefboards import run_reliefboards
     from .render_cmd import write_png
@@ -106,7 +108,8 @@ def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool
     rank = comm.Get_rank()
     fovy = 45.0
     objects = open_board_objects(scene, opts.cluster_params(cfg.height, fovy))
-    cameras = load_path(cfg.path, *objects.bounds).cameras(cfg.frames, cfg.width, cfg.height) if rank == 0 else None
+    if rank == 0 and cameras is None:
+        cameras = load_path(cfg.path, *objects.bounds).cameras(cfg.frames, cfg.width, cfg.height)
     if rank == 0 and cameras and abs(cameras[0].fovy - fovy) > 1e-9:
         raise ConfigError(f"--path {cfg.path}: the reliefboards system classifies objects for fovy {fovy}, the path has {cameras[0].fovy}")
     stats_file = None
