@@ -47,6 +47,8 @@ def add_render_args(p: argparse.ArgumentParser) -> None:
                    help="simulate a stalled backend (holds every request until the end) or a slow one (SEC more per board)")
     g.add_argument("--tie-rule", choices=("pending", "frame"), default="pending",
                    help="c-collision ties: fewest requests assigned and still pending (default), or assigned in this frame only")
+    g.add_argument("--reference-every", type=int, default=1, metavar="K",
+                   help="with --reference, draw the all-original reference on every K-th frame only (default 1)")
     g.add_argument("--wait-boards", action="store_true",
                    help="deterministic mode for comparisons: each frame waits until every pending board has arrived (not M2's behaviour)")
 
@@ -58,7 +60,8 @@ def options_from_args(args):
     policy = BoardPolicy(epsilon_deg=args.epsilon, max_error_deg=args.max_error, size_threshold=args.size_threshold,
                          t_nz=DEFAULT_TNZ if args.tnz is None else args.tnz, p=args.board_px)
     return ReliefboardOptions(policy, replicas=args.replicas, seed=args.placement_seed, min_triangles=args.min_triangles,
-                              stall_backend=stall[0], stall_s=stall[1], tie_rule=args.tie_rule, wait_boards=args.wait_boards)
+                              stall_backend=stall[0], stall_s=stall[1], tie_rule=args.tie_rule, wait_boards=args.wait_boards,
+                              reference_every=args.reference_every)
 
 
 def _quantiles(values) -> dict:
@@ -143,9 +146,10 @@ def _summary(res, scene: str, cfg: RenderConfig, opts, objects, backends: int) -
     summary.update(m2_summary(records))
     summary.update(objects=objects.count, feasible=int(objects.feasible.sum()), d_nz=objects.d_nz, sl_c=objects.sl_c,
                    t_nz=opts.t_nz, late_boards=extra["late_boards"], backend_counters=extra["backends"])
-    if cfg.reference:
-        summary["max_abs_diff"] = max(r["counters"]["ref_max_abs_diff"] for r in records)
-        summary["diff_fraction"] = max(r["counters"]["ref_diff_fraction"] for r in records)
+    refs = [r["counters"] for r in records if "ref_max_abs_diff" in r["counters"]]
+    if cfg.reference and refs:
+        summary["max_abs_diff"] = max(k["ref_max_abs_diff"] for k in refs)
+        summary["diff_fraction"] = max(k["ref_diff_fraction"] for k in refs)
     return summary
 
 

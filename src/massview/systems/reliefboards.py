@@ -65,7 +65,9 @@ class ReliefboardOptions:
     assignment persists until its board arrives and counts as load, :mod:`ccollision`) or
     "frame" (only this frame's assignments count); ``wait_boards``: the visualization rank
     waits at the start of each frame until every pending board has arrived — a deterministic
-    mode for the API/CLI comparison and references only, never the system's behaviour."""
+    mode for the API/CLI comparison and references only, never the system's behaviour;
+    ``reference_every``: with ``--reference``, draw the all-original reference every k-th frame
+    only (benchmarks: the baseline costs several boards frames)."""
 
     policy: BoardPolicy = field(default_factory=BoardPolicy)
     replicas: int = 3
@@ -75,6 +77,7 @@ class ReliefboardOptions:
     stall_s: float | None = None
     tie_rule: str = "pending"
     wait_boards: bool = False
+    reference_every: int = 1
 
     def __post_init__(self) -> None:
         if not isinstance(self.policy, BoardPolicy):
@@ -83,6 +86,8 @@ class ReliefboardOptions:
             raise ConfigError(f"--replicas must be at least 1, got {self.replicas}")
         if self.stall_s is not None and self.stall_s < 0:
             raise ConfigError(f"--stall-backend delay must be non-negative, got {self.stall_s}")
+        if self.reference_every < 1:
+            raise ConfigError(f"--reference-every must be at least 1, got {self.reference_every}")
         if self.tie_rule not in ("pending", "frame"):
             raise ConfigError(f"--tie-rule must be pending or frame, got {self.tie_rule!r}")
         if self.wait_boards and self.stall_backend is not None and self.stall_s is None:
@@ -298,7 +303,7 @@ def run_reliefboards(comm, objects: BoardObjects, opts: ReliefboardOptions, came
     try:
         for f, cam in enumerate(cameras):
             image, stats = vis.frame(cam, f)
-            if reference:
+            if reference and f % opts.reference_every == 0:
                 ref_stats = FrameStats(frame=f, rank=0)
                 ref = vis.render_reference(cam, ref_stats)
                 stats.counters["ref_frame_ms"] = round(ref_stats.times_ms["draw"] + ref_stats.times_ms["readback"], 3)
