@@ -48,7 +48,8 @@ from ...lod.boardpolicy import DEFAULT_TNZ, MACHINE_RATE, PAPER_RATE, machine_sc
 __all__ = ["add_arguments", "run", "scaled_scene", "arc_path"]
 
 PAPER = {"forest": 25e6, "plant": 12.4e6, "forest60": 60e6}  # triangles (§7.2, §7.5)
-LAYOUT = {"forest": ("forest", 1.0), "plant": ("plant", 0.15), "forest60": ("forest", 2.4)}  # generator kind, size
+LAYOUT = {"forest": ("forest", 1.0), "plant": ("plant", 0.15), "forest60": ("forest", 2.4)}  # generator kind, size at s = 0.1
+GROWS = {"plant"}  # its generator size follows s (the plant's density is fixed); the forests keep their object counts
 
 
 def add_arguments(p) -> None:
@@ -89,6 +90,7 @@ def scaled_scene(item: str, scale: float, workdir: Path) -> tuple[Path, dict]:
     from ...data.scene.writer import SceneWriter
 
     kind, size = LAYOUT[item]
+    size = size * scale / 0.1 if item in GROWS else size
     path = workdir / f"{item}-s{scale:g}.zarr"
     meta = path.with_suffix(".json")
     if meta.exists() and (path / "zarr.json").exists() and '"complete": true' in (path / "zarr.json").read_text():
