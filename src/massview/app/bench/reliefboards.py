@@ -227,37 +227,14 @@ def run(args) -> int:
     work, out = args.workdir, args.out or args.workdir
     work.mkdir(parents=True, exist_ok=True)
     out.mkdir(parents=True, exist_ok=True)
-    results = {"scale": args.scale, "t_nz": args.tnz, "board_px": args.board_px, "min_triangles": args.min_triangles, "size": [w, h], "frames": args.frames, "items": {},
-               "scenes": {}}
+    results = {"scale": args.scale, "t_nz": args.tnz, "board_px": args.board_px, "min_triangles": args.min_triangles,
+               "size": [w, h], "frames": args.frames, "items": {}, "scenes": {}}
     print(f"scale s = {args.scale:g}: t_nz = {args.tnz} (default {DEFAULT_TNZ}), p = {args.board_px} px, min triangles "
           f"{args.min_triangles}, {w}x{h}", flush=True)
     if {"forest", "tie"} & set(items):
-        forest, results["scenes"]["forest"] = scaled_scene("forest", args.scale, work)
-        rate = measure_rate(forest, w, h)
-        results["rate_tris_per_s"] = rate
-        print(f"triangle rate here now: {rate / 1e6:.1f} M/s all-original (nominal {MACHINE_RATE / 1e6:g} M/s; the paper's node "
-              f"{PAPER_RATE / 1e6:g} M/s)", flush=True)
-        arc = arc_path(forest, args.deg_per_frame * args.frames, work / "forest-arc.json")
-        if "forest" in items:
-            _experiment("forest", forest, arc, counts, args.frames, args, out, work, results)
-        if "tie" in items:  # the tie rule matters where requests trickle: the previous session's slow circle
-            nb = 4 if 4 in counts else max(counts)
-            slow = arc_path(forest, 0.3 * args.frames, work / "forest-slow-arc.json")
-            tie = {"backends": nb, "deg_per_frame": 0.3}
-            for rule in ("frame", "pending"):
-                s = _run_one(forest, slow, nb, args.frames, args, work / f"forest-{nb}-slow-{rule}", ("--tie-rule", rule))
-                _row(f"tie:{rule[:4]}", nb, s)
-                tie[rule] = {"loads": s["loads_per_backend"], "after_frame0": s["loads_after_frame0"]}
-            results["items"]["tie"] = tie
+        _forest_items(args, items, counts, work, out, results)
     if "plant" in items:
-        plant, results["scenes"]["plant"] = scaled_scene("plant", args.scale, work)
-        prep = _cli("prepare", "reliefboards", plant, "--tnz", args.tnz, "--board-px", args.board_px, "--size", args.size,
-                    "--min-triangles", args.min_triangles, "--picture", out / "plant-clusters.png")
-        print(prep.stdout.strip(), flush=True)
-        results["scenes"]["plant"]["clustering"] = prep.stdout.strip()
-        path = "flyover" if args.plant_path == "flyover" else arc_path(plant, args.deg_per_frame * args.frames, work / "plant-arc.json",
-                                                                        1.1, 0.6)
-        _experiment("plant", plant, path, counts, args.frames, args, out, work, results)
+        _plant_item(args, counts, work, out, results)
     if "forest60" in items:
         big, results["scenes"]["forest60"] = scaled_scene("forest60", args.scale, work)
         arc = arc_path(big, args.deg_per_frame * args.big_frames, work / "forest60-arc.json")
@@ -267,6 +244,39 @@ def run(args) -> int:
     (out / "results.json").write_text(json.dumps(results, indent=1, default=float) + "\n")
     print(f"wrote {out}/results.json and the figures ({results['wall_s']} s)")
     return 0
+
+
+def _forest_items(args, items, counts, work: Path, out: Path, results: dict) -> None:
+    """The forest along its circle at every backend count, and the two tie rules on a slow circle."""
+    w, h = results["size"]
+    forest, results["scenes"]["forest"] = scaled_scene("forest", args.scale, work)
+    rate = measure_rate(forest, w, h)
+    results["rate_tris_per_s"] = rate
+    print(f"triangle rate here now: {rate / 1e6:.1f} M/s all-original (nominal {MACHINE_RATE / 1e6:g} M/s; the paper's node "
+          f"{PAPER_RATE / 1e6:g} M/s)", flush=True)
+    if "forest" in items:
+        arc = arc_path(forest, args.deg_per_frame * args.frames, work / "forest-arc.json")
+        _experiment("forest", forest, arc, counts, args.frames, args, out, work, results)
+    if "tie" in items:  # the tie rule matters where requests trickle: the previous session's slow circle
+        nb = 4 if 4 in counts else max(counts)
+        slow = arc_path(forest, 0.3 * args.frames, work / "forest-slow-arc.json")
+        tie = {"backends": nb, "deg_per_frame": 0.3}
+        for rule in ("frame", "pending"):
+            s = _run_one(forest, slow, nb, args.frames, args, work / f"forest-{nb}-slow-{rule}", ("--tie-rule", rule))
+            _row(f"tie:{rule[:4]}", nb, s)
+            tie[rule] = {"loads": s["loads_per_backend"], "after_frame0": s["loads_after_frame0"]}
+        results["items"]["tie"] = tie
+
+
+def _plant_item(args, counts, work: Path, out: Path, results: dict) -> None:
+    """The plant clustered by §4 (``prepare reliefboards``), around it or along ``flyover``."""
+    plant, results["scenes"]["plant"] = scaled_scene("plant", args.scale, work)
+    prep = _cli("prepare", "reliefboards", plant, "--tnz", args.tnz, "--board-px", args.board_px, "--size", args.size,
+                "--min-triangles", args.min_triangles, "--picture", out / "plant-clusters.png")
+    print(prep.stdout.strip(), flush=True)
+    results["scenes"]["plant"]["clustering"] = prep.stdout.strip()
+    path = "flyover" if args.plant_path == "flyover" else arc_path(plant, args.deg_per_frame * args.frames, work / "plant-arc.json", 1.1, 0.6)
+    _experiment("plant", plant, path, counts, args.frames, args, out, work, results)
 
 
 def _paper_table(res: dict) -> None:
