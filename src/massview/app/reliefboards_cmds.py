@@ -45,8 +45,9 @@ def add_render_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--placement-seed", type=int, default=0, help="seed of the random replica placement")
     g.add_argument("--stall-backend", type=_stall, default=None, metavar="RANK[:SEC]",
                    help="simulate a stalled backend (holds every request until the end) or a slow one (SEC more per board)")
-    g.add_argument("--tie-rule", choices=("pending", "frame"), default="pending",
-                   help="c-collision ties: fewest requests assigned and still pending (default), or assigned in this frame only")
+    g.add_argument("--tie-rule", choices=("pending", "frame", "run"), default="pending",
+                   help="c-collision ties: fewest requests assigned and still pending (default), assigned in this frame only, "
+                        "or assigned over the whole run")
     g.add_argument("--reference-every", type=int, default=1, metavar="K",
                    help="with --reference, draw the all-original reference on every K-th frame only (default 1)")
     g.add_argument("--wait-boards", action="store_true",

@@ -25,7 +25,9 @@ one backend take a whole burst of requests whose objects share holders; the fewe
 rule spreads such a burst over the holders. Counting only this frame's assignments leaves a
 skew *across* frames: a frame with one request always sends it to its lowest-rank holder
 (measured on the forest with 4 backends: 26, 12, 2, 3 requests); counting the persisting
-assignments sends it to the holder with the shortest queue instead.
+assignments sends it to the holder with the shortest queue instead — which changes nothing
+when the boards arrive before the next request (measured: identical loads), so the system also
+offers counting every assignment of the run (``--tie-rule run``).
 
 Pure Python/numpy: no MPI here; the system sends the requests where this module says.
 """
@@ -77,7 +79,8 @@ def assign_requests(objects, holders: np.ndarray, n_backends: int, outstanding=N
     """Assign requests for ``objects`` (int (n,), in issue order) to backends, where
     ``holders[o]`` lists the distinct backends with a replica of object ``o`` (rows padded
     with -1 where objects have fewer replicas). ``outstanding``: int (n_backends,) requests
-    assigned earlier and not yet answered, counted as assigned in the tie rule (None: zeros).
+    assigned earlier and not yet answered, counted as assigned in the tie rule (None: zeros; the
+    system's ``--tie-rule run`` passes every earlier assignment of the run instead).
     ``Assignment.loads`` counts this frame's requests only."""
     objects = np.asarray(objects, np.int64)
     holders = np.asarray(holders)

@@ -62,8 +62,9 @@ class ReliefboardOptions:
     place they are declared); ``replicas`` per object and the ``seed`` of their placement;
     ``min_triangles`` (None: 2·p²); ``stall_backend`` (rank, or None) and ``stall_s`` (None:
     stalled for the whole run; else seconds added per board); ``tie_rule``: "pending" (an
-    assignment persists until its board arrives and counts as load, :mod:`ccollision`) or
-    "frame" (only this frame's assignments count); ``wait_boards``: the visualization rank
+    assignment persists until its board arrives and counts as load, :mod:`ccollision`),
+    "frame" (only this frame's assignments count) or "run" (every assignment of the run counts:
+    not the issue's "in the frame", but the one that evens out single-request frames); ``wait_boards``: the visualization rank
     waits at the start of each frame until every pending board has arrived — a deterministic
     mode for the API/CLI comparison and references only, never the system's behaviour;
     ``reference_every``: with ``--reference``, draw the all-original reference every k-th frame
@@ -88,8 +89,8 @@ class ReliefboardOptions:
             raise ConfigError(f"--stall-backend delay must be non-negative, got {self.stall_s}")
         if self.reference_every < 1:
             raise ConfigError(f"--reference-every must be at least 1, got {self.reference_every}")
-        if self.tie_rule not in ("pending", "frame"):
-            raise ConfigError(f"--tie-rule must be pending or frame, got {self.tie_rule!r}")
+        if self.tie_rule not in ("pending", "frame", "run"):
+            raise ConfigError(f"--tie-rule must be pending, frame or run, got {self.tie_rule!r}")
         if self.wait_boards and self.stall_backend is not None and self.stall_s is None:
             raise ConfigError("--wait-boards with a backend stalled for the whole run would never finish; give --stall-backend RANK:SECONDS")
 
@@ -129,6 +130,7 @@ class VisualizationRank:
         self.pending_to = np.full(n, -1, np.int64)
         self.pending_since = np.zeros(n)
         self.serial = 0
+        self.assigned = np.zeros(len(self.backends), np.int64)  # requests assigned per backend over the run
         self.tint_boards = tint_boards
         self.centers, self.radii = objects.centers, objects.radii
 
@@ -182,8 +184,9 @@ class VisualizationRank:
         if len(plan.requests) == 0:
             stats.counters["loads"] = [0] * len(self.backends)
             return
-        outstanding = self._pending_by_backend() if self.opts.tie_rule == "pending" else None
-        a = assign_requests(plan.requests, self.holders, len(self.backends), outstanding)
+        prior = {"pending": self._pending_by_backend(), "run": self.assigned, "frame": None}[self.opts.tie_rule]
+        a = assign_requests(plan.requests, self.holders, len(self.backends), prior)
+        self.assigned += a.loads
         now = time.perf_counter()
         for oid, d, s, b in zip(plan.requests, plan.request_dirs, plan.request_sizes, a.backend):
             rank = self.backends[int(b)]

@@ -20,7 +20,8 @@ of 1/10 the triangles); with p = 128 a board of a 1/10-scale object costs more t
   frame for ``--frames`` frames (40 by default: 60° of the circle);
 * ``tie`` — the forest at 4 backends on a slow circle (0.3° per frame, where requests trickle
   one or two a frame) with ``--tie-rule frame`` (ties by this frame's assignments only) and
-  ``pending`` (assignments persist until their boards arrive): the backend loads before/after;
+  ``pending`` (assignments persist until their boards arrive) and ``run`` (every assignment of
+  the run counts): the backend loads before/after;
 * ``plant`` — the generated plant (12.4 M · s triangles) clustered by §4 (the paper: ~150
   objects) along ``flyover``;
 * ``forest60`` — a 600-object forest of 60 M · s triangles at the largest backend count: the
@@ -261,7 +262,7 @@ def _forest_items(args, items, counts, work: Path, out: Path, results: dict) -> 
         nb = 4 if 4 in counts else max(counts)
         slow = arc_path(forest, 0.3 * args.frames, work / "forest-slow-arc.json")
         tie = {"backends": nb, "deg_per_frame": 0.3}
-        for rule in ("frame", "pending"):
+        for rule in ("frame", "pending", "run"):
             s = _run_one(forest, slow, nb, args.frames, args, work / f"forest-{nb}-slow-{rule}", ("--tie-rule", rule))
             _row(f"tie:{rule[:4]}", nb, s)
             tie[rule] = {"loads": s["loads_per_backend"], "after_frame0": s["loads_after_frame0"]}
@@ -299,6 +300,6 @@ def _paper_table(res: dict) -> None:
                   f"angle error mean {s['angle_error_deg'].get('mean')}° (paper Fig. 11: mean 16° at 28 nodes)")
     if "tie" in it:
         t = it["tie"]
-        print(f"loads at {t['backends']} backends (forest, 0.3 deg/frame): ties by this frame's assignments {t['frame']['loads']} -> "
-              f"counting pending assignments {t['pending']['loads']}; after the first frame's burst "
-              f"{t['frame']['after_frame0']} -> {t['pending']['after_frame0']}")
+        print(f"loads at {t['backends']} backends (forest, 0.3 deg/frame), all / after the first frame's burst: ties by this frame's "
+              f"assignments {t['frame']['loads']} / {t['frame']['after_frame0']}; counting pending ones {t['pending']['loads']} / "
+              f"{t['pending']['after_frame0']}; counting the run's {t['run']['loads']} / {t['run']['after_frame0']}")
