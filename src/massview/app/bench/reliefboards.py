@@ -6,24 +6,31 @@ the visualization rank draws ten times fewer triangles per second than the paper
 scene fractions take the same share of a frame. The scenes keep the paper's object counts and
 layouts; each object's triangle count is scaled by picking, object by object, the generator's
 own simplification level (halving per level) that keeps the running total on ``s`` × the
-paper's count. The board side p is scaled by √s (128 → 40 px), so a board still has about as
-many triangles, relative to the object it replaces, as in the paper (≤ 2·p² against objects
-of 1/10 the triangles); with p = 128 a board of a 1/10-scale object costs more than the object
-— the reason last session's plant boards did not pay (0.94×).
+paper's count. p stays 128 px (a pixel size on the paper's 1024×768 screen); the rule "too few
+triangles for a board" (2·p²) is scaled by ``s`` like every triangle count.
+
+**Why §4 clusters do not pay at this scale** (the README has the measurement): a board costs
+~2 triangles per covered pixel whatever the object; a feasible cluster at the near-zone border
+projects to ≤ p px and holds about t_nz·(2·tan(fovy/2)·p/r_y)² triangles (surface-like scene),
+so its triangles over its board's are t_nz / (2·(r_y/(2·tan(fovy/2)))²) = t_nz / 1.72 M at
+1024×768 — independent of p and of the scene's density: ~2 with the paper's 3.5 M, 0.2 with
+350 k. The forest's objects, compact trees used directly, still pay.
 
 **Items** (``--items``, all by default), each at 1024×768 with 1, 2, 4, 8 backends:
 
 * ``forest`` — 250 compact objects used directly (conifers, broad-leaved trees and pyvista's
   ``ant.ply``, the packaged real-world mesh; no scanned bunny ships offline), 25 M · s
   triangles, circled along an arc: the paper turns 360° in 6000 steps of ~16 ms, 3.75°/s; here
-  a frame takes ~0.4 s, so the same turn rate in wall time is ``--deg-per-frame`` 1.5° per
+  a frame takes ~0.4 s (0.5–2 s under load), so the same turn rate in wall time is ``--deg-per-frame`` 1.5° per
   frame for ``--frames`` frames (40 by default: 60° of the circle);
 * ``tie`` — the forest at 4 backends on a slow circle (0.3° per frame, where requests trickle
   one or two a frame) with ``--tie-rule frame`` (ties by this frame's assignments only) and
   ``pending`` (assignments persist until their boards arrive) and ``run`` (every assignment of
   the run counts): the backend loads before/after;
 * ``plant`` — the generated plant (12.4 M · s triangles) clustered by §4 (the paper: ~150
-  objects) along ``flyover``;
+  objects) on an arc around it at 1.1 half-diagonals with the whole plant in view (the paper's
+  Fig. 8 path is not available; ``--plant-path flyover`` takes the built-in one, which stays
+  mostly inside the near zone);
 * ``forest60`` — a 600-object forest of 60 M · s triangles at the largest backend count: the
   paper's 18 fps with boards against ~2 fps all-original (9 PCs), as a ratio.
 
