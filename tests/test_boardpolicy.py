@@ -85,3 +85,18 @@ def test_never_two_pending_requests_for_one_object():
 def test_policy_validation():
     with pytest.raises(ConfigError, match="epsilon"):
         BoardPolicy(epsilon_deg=50, max_error_deg=45)
+
+
+def test_one_source_for_the_policy_defaults():
+    from massview.app.cli import build_parser
+    from massview.app.reliefboards_cmds import options_from_args
+    from massview.lod.boardpolicy import DEFAULT_TNZ, MACHINE_RATE, PAPER_RATE, PAPER_TNZ
+    from massview.lod.clusters import ClusterParams
+    from massview.systems.reliefboards import ReliefboardOptions
+
+    assert DEFAULT_TNZ == round(PAPER_TNZ * MACHINE_RATE / PAPER_RATE) == 350_000
+    assert ReliefboardOptions().policy == BoardPolicy() and ReliefboardOptions().t_nz == DEFAULT_TNZ == ClusterParams().t_nz
+    args = build_parser().parse_args(["render", "builtin:objects", "--system", "reliefboards"])
+    assert options_from_args(args) == ReliefboardOptions()  # the CLI's defaults are the policy's
+    args = build_parser().parse_args(["render", "builtin:objects", "--system", "reliefboards", "--tnz", "7", "--board-px", "16"])
+    assert options_from_args(args).policy == BoardPolicy(t_nz=7, p=16) and BoardPolicy(p=16).max_board_px == 32

@@ -70,3 +70,19 @@ def test_placement_is_random_distinct_and_reproducible():
     assert place_replicas(10, 2, 3).shape == (10, 2)
     with pytest.raises(ConfigError, match="backend"):
         place_replicas(10, 0)
+
+
+def test_persisting_assignments_count_in_the_tie_rule():
+    holders = np.array([[0, 1, 2]] * 4)
+    # one request per frame: alone, each would go to the lowest rank; counting the requests
+    # still pending on each backend (an assignment persists until its board arrives) spreads them
+    assert assign_requests([0], holders, 3).backend.tolist() == [0]
+    pending = np.zeros(3, np.int64)
+    for o in range(4):
+        a = assign_requests([o], holders, 3, outstanding=pending)
+        pending += a.loads
+    assert pending.tolist() == [2, 1, 1] and a.loads.sum() == 1
+    b = assign_requests([0, 1], holders, 3, outstanding=[0, 0, 0])
+    assert b.backend.tolist() == assign_requests([0, 1], holders, 3).backend.tolist() == [0, 1]
+    with pytest.raises(ConfigError, match="outstanding"):
+        assign_requests([0], holders, 3, outstanding=[1, 2])

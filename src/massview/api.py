@@ -202,18 +202,30 @@ def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
 
 def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camera] | None = None, *, ranks: int | None = None,
            out: str | Path | None = None, depth: bool = False, images: bool = True, progress: bool = False,
-           frames: int | None = None, size=None, config: RenderConfig | None = None, **options) -> RenderResult | None:
+           frames: int | None = None, size=None, config: RenderConfig | None = None, reliefboards=None,
+           **options) -> RenderResult | None:
     """Render a path or cameras on ``ranks`` local ranks (see the module docstring).
 
     ``what``: a path name or keyframe file (with ``frames`` and ``size``; default: the ``path``
     option, ``"orbit"``), a :class:`Camera`, or a list of cameras. ``out``: also write ``frames/``, ``stats.jsonl`` and ``summary.json`` there.
     ``options``: :class:`RenderConfig` fields. Returns a :class:`RenderResult` (``None`` on ranks
-    other than 0 when called collectively inside an MPI job).
+    other than 0 when called collectively inside an MPI job). ``system="reliefboards"`` (M2)
+    runs its own role loop (:mod:`massview.app.reliefboards_api`); ``reliefboards``: its
+    ``ReliefboardOptions`` or a dict of their fields (``t_nz``, ``epsilon_deg``, ...).
     """
+    cfg = render_config(config, **options)
+    if cfg.system == "reliefboards":  # M2: one visualization rank and backends (issue 19)
+        from .app.reliefboards_api import render_reliefboards
+
+        if what is None or isinstance(what, (str, Path)):
+            w, h = _size(size) if size is not None else (cfg.width, cfg.height)
+            cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": int(frames or cfg.frames)})
+        spec = scene.spec if isinstance(scene, Scene) else str(scene)
+        return render_reliefboards(spec, what, cfg, ranks, out, images, depth, reliefboards)
     owned = not isinstance(scene, Scene)
     scene = open_scene(scene)
     try:
-        return _render(scene, what, ranks, out, depth, images, progress, frames, size, render_config(config, **options))
+        return _render(scene, what, ranks, out, depth, images, progress, frames, size, cfg)
     finally:
         if owned:
             scene.close()

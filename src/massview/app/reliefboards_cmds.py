@@ -19,6 +19,7 @@ from ..core.config import RenderConfig
 from ..core.errors import ConfigError
 from ..core.paths import load_path
 from ..core.stats import summarize
+from ..lod.boardpolicy import DEFAULT_TNZ, BoardPolicy
 
 __all__ = ["add_render_args", "options_from_args", "cmd_render", "run", "m2_summary"]
 
@@ -34,7 +35,7 @@ def _stall(spec: str) -> tuple[int, float | None]:
 def add_render_args(p: argparse.ArgumentParser) -> None:
     """The M2 flags of ``massview render --system reliefboards``."""
     g = p.add_argument_group("reliefboards (--system reliefboards)")
-    g.add_argument("--tnz", type=int, default=None, help="near-zone triangles t_nz (default 350000: the paper's 3.5 M scaled to llvmpipe)")
+    g.add_argument("--tnz", type=int, default=None, help=f"near-zone triangles t_nz (default {DEFAULT_TNZ}: the paper's 3.5 M scaled to this machine, see lod/boardpolicy.py)")
     g.add_argument("--epsilon", type=float, default=11.5, help="angle error (deg) past which a board is renewed (default 11.5)")
     g.add_argument("--max-error", type=float, default=45.0, help="angle error (deg) past which the original is drawn (default 45)")
     g.add_argument("--size-threshold", type=float, default=0.30, help="relative projected-size change that renews a board (default 0.3)")
@@ -44,18 +45,24 @@ def add_render_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--placement-seed", type=int, default=0, help="seed of the random replica placement")
     g.add_argument("--stall-backend", type=_stall, default=None, metavar="RANK[:SEC]",
                    help="simulate a stalled backend (holds every request until the end) or a slow one (SEC more per board)")
+    g.add_argument("--tie-rule", choices=("pending", "frame", "run"), default="pending",
+                   help="c-collision ties: fewest requests assigned and still pending (default), assigned in this frame only, "
+                        "or assigned over the whole run")
+    g.add_argument("--reference-every", type=int, default=1, metavar="K",
+                   help="with --reference, draw the all-original reference on every K-th frame only (default 1)")
+    g.add_argument("--wait-boards", action="store_true",
+                   help="deterministic mode for comparisons: each frame waits until every pending board has arrived (not M2's behaviour)")
 
 
 def options_from_args(args):
     from ..systems.reliefboards import ReliefboardOptions
 
     stall = args.stall_backend or (None, None)
-    kw = dict(epsilon_deg=args.epsilon, max_error_deg=args.max_error, size_threshold=args.size_threshold,
-              p=args.board_px, replicas=args.replicas, seed=args.placement_seed, min_triangles=args.min_triangles,
-              stall_backend=stall[0], stall_s=stall[1])
-    if args.tnz is not None:
-        kw["t_nz"] = args.tnz
-    return ReliefboardOptions(**kw)
+    policy = BoardPolicy(epsilon_deg=args.epsilon, max_error_deg=args.max_error, size_threshold=args.size_threshold,
+                         t_nz=DEFAULT_TNZ if args.tnz is None else args.tnz, p=args.board_px)
+    return ReliefboardOptions(policy, replicas=args.replicas, seed=args.placement_seed, min_triangles=args.min_triangles,
+                              stall_backend=stall[0], stall_s=stall[1], tie_rule=args.tie_rule, wait_boards=args.wait_boards,
+                              reference_every=args.reference_every)
 
 
 def _quantiles(values) -> dict:
@@ -94,8 +101,10 @@ def m2_summary(records: list[dict]) -> dict:
     }
 
 
-def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool = True, write_frames: bool = True):
-    """Render ``cfg.frames`` frames of ``cfg.path`` with M2; returns the summary on rank 0."""
+def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool = True, write_frames: bool = True,
+        cameras=None):
+    """Render ``cfg.frames`` frames of ``cfg.path`` (or the given ``cameras``, needed on rank 0
+    only) with M2; returns the summary on rank 0."""
     from ..systems.boardscene import open_board_objects
     from ..systems.reliefboards import run_reliefboards
     from .render_cmd import write_png
@@ -103,7 +112,8 @@ def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool
     rank = comm.Get_rank()
     fovy = 45.0
     objects = open_board_objects(scene, opts.cluster_params(cfg.height, fovy))
-    cameras = load_path(cfg.path, *objects.bounds).cameras(cfg.frames, cfg.width, cfg.height) if rank == 0 else None
+    if rank == 0 and cameras is None:
+        cameras = load_path(cfg.path, *objects.bounds).cameras(cfg.frames, cfg.width, cfg.height)
     if rank == 0 and cameras and abs(cameras[0].fovy - fovy) > 1e-9:
         raise ConfigError(f"--path {cfg.path}: the reliefboards system classifies objects for fovy {fovy}, the path has {cameras[0].fovy}")
     stats_file = None
@@ -137,9 +147,10 @@ def _summary(res, scene: str, cfg: RenderConfig, opts, objects, backends: int) -
     summary.update(m2_summary(records))
     summary.update(objects=objects.count, feasible=int(objects.feasible.sum()), d_nz=objects.d_nz, sl_c=objects.sl_c,
                    t_nz=opts.t_nz, late_boards=extra["late_boards"], backend_counters=extra["backends"])
-    if cfg.reference:
-        summary["max_abs_diff"] = max(r["counters"]["ref_max_abs_diff"] for r in records)
-        summary["diff_fraction"] = max(r["counters"]["ref_diff_fraction"] for r in records)
+    refs = [r["counters"] for r in records if "ref_max_abs_diff" in r["counters"]]
+    if cfg.reference and refs:
+        summary["max_abs_diff"] = max(k["ref_max_abs_diff"] for k in refs)
+        summary["diff_fraction"] = max(k["ref_diff_fraction"] for k in refs)
     return summary
 
 
@@ -185,7 +196,7 @@ def add_parsers(prepare_sub) -> None:
     """``massview prepare reliefboards SCENE``: §4 clustering stored in the scene store."""
     p = prepare_sub.add_parser("reliefboards", help="M2: cluster a scene store into feasible objects (§4), stored in the store")
     p.add_argument("scene", help="a scene store (massview prepare scene / generate scene)")
-    p.add_argument("--tnz", type=int, default=350_000, help="near-zone triangles t_nz (default 350000: 3.5 M scaled to llvmpipe)")
+    p.add_argument("--tnz", type=int, default=DEFAULT_TNZ, help=f"near-zone triangles t_nz (default {DEFAULT_TNZ}: the paper's 3.5 M scaled to this machine, see lod/boardpolicy.py)")
     p.add_argument("--board-px", type=int, default=128, help="largest projected board side p in pixels (default 128)")
     p.add_argument("--size", default="1024x768", help="display WIDTHxHEIGHT; its height is r_y (default 1024x768, the paper's)")
     p.add_argument("--fovy", type=float, default=45.0, help="vertical field of view in degrees (default 45)")

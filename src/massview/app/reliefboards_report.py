@@ -35,8 +35,9 @@ def write_run_report(out: Path, records: list[dict], summary: dict) -> Path:
     fig, ax = plt.subplots(2, 2, figsize=(11, 7))
     a = ax[0, 0]
     a.plot(f, [r["times_ms"]["total"] for r in recs], "k-", lw=1.5, label="with Reliefboards")
-    if all("ref_frame_ms" in k for k in c):
-        a.plot(f, [k["ref_frame_ms"] for k in c], "r-", lw=1, label="all original geometry")
+    ref = [(fr, k["ref_frame_ms"]) for fr, k in zip(f, c) if "ref_frame_ms" in k]
+    if ref:  # every frame, or every k-th with --reference-every
+        a.plot(*zip(*ref), "r.-", lw=1, label="all original geometry")
     a.set_ylabel("frame time (ms)")
     a.set_title("frame time along the path (paper Fig. 10)")
     a.legend(fontsize=8)

@@ -18,7 +18,18 @@ table) and can be tested without GL or MPI:
 The projected size is the projected diameter of the object's bounding sphere,
 ``2 · radius · r_y / (2 · distance · tan(fovy/2))`` pixels, clamped to
 ``[min_board_px, max_board_px]`` (a feasible object beyond d_nz projects to about p = 128
-pixels a side at most; its bounding sphere to up to √3·p, hence the 256 default cap).
+pixels a side at most; its bounding sphere to up to √3·p, hence the cap of 2·p).
+
+**t_nz at this machine's scale** (the one place it is defined; the README and
+``massview bench reliefboards`` cite it): the paper draws t_nz = 3.5 M triangles in the near
+zone (§7.2) on a visualization node that draws about :data:`PAPER_RATE` = 120 M triangles/s (its
+60 M-triangle forest at about 2 fps all-original, §7.5). Here the visualization rank draws with
+llvmpipe on 2 CPU cores, nominally :data:`MACHINE_RATE` = 12 M triangles/s at 1024×768 (5–15 M
+measured idle; the bench measures and prints it). Triangle budgets scale by the rate ratio::
+
+    t_nz = 3.5 M · MACHINE_RATE / PAPER_RATE = 3.5 M / 10 = 350 000        (:data:`DEFAULT_TNZ`)
+
+and the bench scales its scenes' triangle counts by the same factor, :func:`machine_scale`.
 """
 
 from __future__ import annotations
@@ -33,19 +44,45 @@ from ..core.errors import ConfigError
 from .cull import spheres_in_frustum
 from .reliefboard import angle_error_deg
 
-__all__ = ["BoardPolicy", "FramePlan", "plan_frame", "projected_size_px"]
+__all__ = ["BoardPolicy", "FramePlan", "plan_frame", "projected_size_px", "PAPER_TNZ", "PAPER_RATE", "MACHINE_RATE",
+           "DEFAULT_TNZ", "machine_scale", "scaled_tnz"]
+
+PAPER_TNZ = 3_500_000  # triangles, §7.2
+PAPER_RATE = 120e6  # triangles/s of the paper's visualization node: 60 M triangles at ~2 fps all-original (§7.5)
+MACHINE_RATE = 12e6  # triangles/s of llvmpipe on this machine's 2 cores at 1024x768 (nominal; 5-15 M measured idle)
+
+
+def machine_scale(rate: float = MACHINE_RATE) -> float:
+    """The factor that maps the paper's triangle counts to a machine drawing ``rate`` triangles/s."""
+    return float(rate) / PAPER_RATE
+
+
+def scaled_tnz(rate: float = MACHINE_RATE) -> int:
+    """t_nz for a machine drawing ``rate`` triangles/s: 3.5 M · rate / 120 M."""
+    return max(1, int(round(PAPER_TNZ * machine_scale(rate))))
+
+
+DEFAULT_TNZ = scaled_tnz()  # 350 000
 
 
 @dataclass(frozen=True)
 class BoardPolicy:
-    """§6.1/§7.2 parameters: ε and E in degrees, the relative size threshold, t_nz triangles."""
+    """§6.1/§7.2 parameters, the single source of M2's defaults: ε and E in degrees, the
+    relative size threshold, t_nz triangles (:data:`DEFAULT_TNZ`, the paper's 3.5 M scaled to
+    this machine), p the largest projected board side in pixels (the paper gives none: 128);
+    requested board sizes are clamped to ``[min_board_px, 2·p]``."""
 
     epsilon_deg: float = 11.5
     max_error_deg: float = 45.0
     size_threshold: float = 0.30
-    t_nz: int = 3_500_000
+    t_nz: int = DEFAULT_TNZ
+    p: int = 128
     min_board_px: int = 4
-    max_board_px: int = 256
+
+    @property
+    def max_board_px(self) -> int:
+        """The largest board resolution requested: 2·p (a bounding sphere projects to up to √3·p)."""
+        return max(self.min_board_px, 2 * self.p)
 
     def __post_init__(self) -> None:
         if not 0 < self.epsilon_deg <= self.max_error_deg <= 180:
@@ -54,8 +91,10 @@ class BoardPolicy:
             raise ConfigError(f"size threshold must be positive, got {self.size_threshold}")
         if self.t_nz < 0:
             raise ConfigError(f"--tnz must be non-negative, got {self.t_nz}")
-        if not 2 <= self.min_board_px <= self.max_board_px:
-            raise ConfigError(f"board size bounds must satisfy 2 <= min <= max, got {self.min_board_px}, {self.max_board_px}")
+        if self.p < 1:
+            raise ConfigError(f"--board-px must be at least 1 pixel, got {self.p}")
+        if self.min_board_px < 2:
+            raise ConfigError(f"the smallest board side must be at least 2 pixels, got {self.min_board_px}")
 
 
 @dataclass(frozen=True)

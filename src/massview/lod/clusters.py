@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.errors import ConfigError
+from .boardpolicy import DEFAULT_TNZ
 
 __all__ = ["ClusterParams", "Clustering", "agglomerate", "cluster_scene", "near_zone_range", "cluster_side_length",
            "FEASIBLE", "TOO_LARGE", "TOO_FEW_TRIANGLES"]
@@ -44,11 +45,11 @@ FEASIBLE, TOO_LARGE, TOO_FEW_TRIANGLES = 0, 1, 2
 
 @dataclass(frozen=True)
 class ClusterParams:
-    """§4 parameters: ``t_nz`` near-zone triangles, ``p`` largest board side (px), ``r_y`` vertical
+    """§4 parameters: ``t_nz`` near-zone triangles (default: :data:`~massview.lod.boardpolicy.DEFAULT_TNZ`), ``p`` largest board side (px), ``r_y`` vertical
     resolution (px), ``fovy`` (degrees), ``k`` candidates per cluster, ``min_triangles`` (None:
     ``2 · p²``, the largest board's triangle count)."""
 
-    t_nz: int = 3_500_000
+    t_nz: int = DEFAULT_TNZ
     p: int = 128
     r_y: int = 768
     fovy: float = 45.0

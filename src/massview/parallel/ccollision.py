@@ -9,16 +9,25 @@ requests to backends with a modified c-collision protocol [Dietzfelbinger, Meyer
 2. A backend offered at most ``c`` requests accepts all of them; one offered more accepts none.
 3. The accepted requests are settled in the order they were issued: a request accepted by
    several backends goes to the one with the fewest requests assigned so far in this frame,
-   then the lowest rank.
+   then the lowest rank. "Assigned" counts the assignments that persist from earlier frames
+   (an assignment persists until its board arrives: ``outstanding``, the requests still pending
+   on each backend) plus those made in this frame; without ``outstanding`` (the golden traces)
+   only this frame's count.
 4. ``c`` starts at 1; a round that assigns nothing raises ``c`` by one (until a round serves a
    request), and a round that assigns something resets ``c`` to 1.
 
 Every request is served (each round with ``c`` ≥ the number of unassigned requests assigns at
 least one), only by backends holding its object. As the paper says, the dynamic ``c`` gives up
 the original protocol's contention bound; :class:`Assignment` reports the loads. The
-assignment of a request persists until its board arrives (the caller keeps it). Sending ties
-to the lowest rank instead would let one backend take a whole burst of requests whose objects
-share holders; the fewest-assigned rule spreads such a burst over the holders.
+assignment of a request persists until its board arrives (the caller keeps it and passes the
+per-backend count back as ``outstanding``). Sending ties to the lowest rank instead would let
+one backend take a whole burst of requests whose objects share holders; the fewest-assigned
+rule spreads such a burst over the holders. Counting only this frame's assignments leaves a
+skew *across* frames: a frame with one request always sends it to its lowest-rank holder
+(measured on the forest with 4 backends: 26, 12, 2, 3 requests); counting the persisting
+assignments sends it to the holder with the shortest queue instead — which changes nothing
+when the boards arrive before the next request (measured: identical loads), so the system also
+offers counting every assignment of the run (``--tie-rule run``).
 
 Pure Python/numpy: no MPI here; the system sends the requests where this module says.
 """
@@ -66,14 +75,20 @@ def _round(unassigned: list[int], holders: np.ndarray, objects: np.ndarray, c: i
     return [[int(b) for b in holders[objects[q]] if b >= 0 and accepts[b]] for q in unassigned]
 
 
-def assign_requests(objects, holders: np.ndarray, n_backends: int) -> Assignment:
+def assign_requests(objects, holders: np.ndarray, n_backends: int, outstanding=None) -> Assignment:
     """Assign requests for ``objects`` (int (n,), in issue order) to backends, where
     ``holders[o]`` lists the distinct backends with a replica of object ``o`` (rows padded
-    with -1 where objects have fewer replicas)."""
+    with -1 where objects have fewer replicas). ``outstanding``: int (n_backends,) requests
+    assigned earlier and not yet answered, counted as assigned in the tie rule (None: zeros; the
+    system's ``--tie-rule run`` passes every earlier assignment of the run instead).
+    ``Assignment.loads`` counts this frame's requests only."""
     objects = np.asarray(objects, np.int64)
     holders = np.asarray(holders)
     backend = np.full(len(objects), -1, np.int32)
     loads = np.zeros(n_backends, np.int64)
+    held = np.zeros(n_backends, np.int64) if outstanding is None else np.asarray(outstanding, np.int64).copy()
+    if held.shape != (n_backends,) or np.any(held < 0):
+        raise ConfigError(f"outstanding must be {n_backends} non-negative counts, got {held.tolist()}")
     unassigned = list(range(len(objects)))
     c, rounds, max_c = 1, 0, 1
     while unassigned:
@@ -85,9 +100,10 @@ def assign_requests(objects, holders: np.ndarray, n_backends: int) -> Assignment
             if not acc:
                 left.append(q)
                 continue
-            b = min(acc, key=lambda k: (loads[k], k))
+            b = min(acc, key=lambda k: (held[k], k))
             backend[q] = b
             loads[b] += 1
+            held[b] += 1
         c = c + 1 if len(left) == len(unassigned) else 1
         unassigned = left
     return Assignment(backend, loads, rounds, max_c)

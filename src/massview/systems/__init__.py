@@ -39,9 +39,9 @@ def open_system(spec: str, cfg=None):
         from .roettger import RoettgerSystem
 
         return RoettgerSystem((spec, *cfg.layers), cfg)
-    if getattr(cfg, "system", "auto") == "reliefboards":  # M2 runs its own role loop (app/reliefboards_cmds.py)
-        raise ConfigError("system 'reliefboards' (M2) runs through the CLI only so far: "
-                          f"`massview render {spec} --system reliefboards --ranks N` or `massview view ... --system reliefboards`")
+    if getattr(cfg, "system", "auto") == "reliefboards":  # M2 runs its own role loop (app/reliefboards_api.py)
+        raise ConfigError("system 'reliefboards' (M2) has no in-process system object: use massview.render(scene, cameras, "
+                          f"ranks=N, system='reliefboards') or `massview render {spec} --system reliefboards --ranks N`")
     kind = scene_kind(spec)
     if getattr(cfg, "system", "auto") == "dmmr":  # M1: server + clients over a scene (or builtin:objects)
         from .dmmr import DmmrSystem

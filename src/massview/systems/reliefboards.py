@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -57,32 +57,50 @@ ROLES = (Role("visualization", 1), Role("backend", None, minimum=1))
 
 @dataclass(frozen=True)
 class ReliefboardOptions:
-    """M2 parameters (paper defaults): ε, E (degrees), size threshold, t_nz (triangles, scaled
-    to this machine: 3.5 M / 10, see the README), p (largest board side, px), replicas, seed of
-    the placement, min_triangles (None: 2·p²), stall_backend (rank, or None), stall_s (None:
-    stalled for the whole run; else seconds added per board)."""
+    """M2 parameters. ``policy``: the §6.1 parameters (ε, E, size threshold, t_nz, p) with the
+    paper's defaults, t_nz scaled to this machine (:mod:`massview.lod.boardpolicy`, the one
+    place they are declared); ``replicas`` per object and the ``seed`` of their placement;
+    ``min_triangles`` (None: 2·p²); ``stall_backend`` (rank, or None) and ``stall_s`` (None:
+    stalled for the whole run; else seconds added per board); ``tie_rule``: "pending" (an
+    assignment persists until its board arrives and counts as load, :mod:`ccollision`),
+    "frame" (only this frame's assignments count) or "run" (every assignment of the run counts:
+    not the issue's "in the frame", but the one that evens out single-request frames); ``wait_boards``: the visualization rank
+    waits at the start of each frame until every pending board has arrived — a deterministic
+    mode for the API/CLI comparison and references only, never the system's behaviour;
+    ``reference_every``: with ``--reference``, draw the all-original reference every k-th frame
+    only (benchmarks: the baseline costs several boards frames)."""
 
-    epsilon_deg: float = 11.5
-    max_error_deg: float = 45.0
-    size_threshold: float = 0.30
-    t_nz: int = 350_000
-    p: int = 128
+    policy: BoardPolicy = field(default_factory=BoardPolicy)
     replicas: int = 3
     seed: int = 0
     min_triangles: int | None = None
     stall_backend: int | None = None
     stall_s: float | None = None
+    tie_rule: str = "pending"
+    wait_boards: bool = False
+    reference_every: int = 1
 
     def __post_init__(self) -> None:
-        self.policy()  # validates ε, E, threshold, t_nz
+        if not isinstance(self.policy, BoardPolicy):
+            raise ConfigError(f"policy must be a massview.lod.boardpolicy.BoardPolicy, got {type(self.policy).__name__}")
         if self.replicas < 1:
             raise ConfigError(f"--replicas must be at least 1, got {self.replicas}")
         if self.stall_s is not None and self.stall_s < 0:
             raise ConfigError(f"--stall-backend delay must be non-negative, got {self.stall_s}")
+        if self.reference_every < 1:
+            raise ConfigError(f"--reference-every must be at least 1, got {self.reference_every}")
+        if self.tie_rule not in ("pending", "frame", "run"):
+            raise ConfigError(f"--tie-rule must be pending, frame or run, got {self.tie_rule!r}")
+        if self.wait_boards and self.stall_backend is not None and self.stall_s is None:
+            raise ConfigError("--wait-boards with a backend stalled for the whole run would never finish; give --stall-backend RANK:SECONDS")
 
-    def policy(self) -> BoardPolicy:
-        return BoardPolicy(self.epsilon_deg, self.max_error_deg, self.size_threshold, self.t_nz,
-                           max_board_px=max(4, 2 * self.p))
+    @property
+    def t_nz(self) -> int:
+        return self.policy.t_nz
+
+    @property
+    def p(self) -> int:
+        return self.policy.p
 
     def cluster_params(self, height: int, fovy: float) -> ClusterParams:
         return ClusterParams(t_nz=max(1, self.t_nz), p=self.p, r_y=height, fovy=fovy, min_triangles=self.min_triangles)
@@ -95,7 +113,7 @@ class VisualizationRank:
                  tint_boards=False):
         if not backends:
             raise ConfigError("the reliefboards system needs at least one backend: run with --ranks 2 or more")
-        self.obj, self.opts, self.policy = objects, opts, opts.policy()
+        self.obj, self.opts, self.policy = objects, opts, opts.policy
         self.backends = list(backends)
         self.holders = place_replicas(objects.count, len(self.backends), opts.replicas, opts.seed)
         self.link = VisualizationLink(comm, self.backends)
@@ -112,6 +130,7 @@ class VisualizationRank:
         self.pending_to = np.full(n, -1, np.int64)
         self.pending_since = np.zeros(n)
         self.serial = 0
+        self.assigned = np.zeros(len(self.backends), np.int64)  # requests assigned per backend over the run
         self.tint_boards = tint_boards
         self.centers, self.radii = objects.centers, objects.radii
 
@@ -131,8 +150,12 @@ class VisualizationRank:
         return image, stats
 
     def _receive(self, stats: FrameStats) -> None:
+        got = self.link.poll()
+        while self.opts.wait_boards and len(got) < int(self.pending.sum()):  # deterministic mode only
+            time.sleep(0.001)
+            got += self.link.poll()
         now = time.perf_counter()
-        for src, data in self.link.poll():
+        for src, data in got:
             board = decode_board(data)
             oid = board.object_id
             if self.pending_to[oid] != src:
@@ -161,7 +184,9 @@ class VisualizationRank:
         if len(plan.requests) == 0:
             stats.counters["loads"] = [0] * len(self.backends)
             return
-        a = assign_requests(plan.requests, self.holders, len(self.backends))
+        prior = {"pending": self._pending_by_backend(), "run": self.assigned, "frame": None}[self.opts.tie_rule]
+        a = assign_requests(plan.requests, self.holders, len(self.backends), prior)
+        self.assigned += a.loads
         now = time.perf_counter()
         for oid, d, s, b in zip(plan.requests, plan.request_dirs, plan.request_sizes, a.backend):
             rank = self.backends[int(b)]
@@ -172,6 +197,11 @@ class VisualizationRank:
         stats.counters["loads"] = a.loads.tolist()
         stats.counters["c_rounds"] = a.rounds
 
+    def _pending_by_backend(self) -> np.ndarray:
+        """int64 (n_backends,) requests assigned and not yet answered, per backend index."""
+        index = np.searchsorted(self.backends, self.pending_to[self.pending])
+        return np.bincount(index, minlength=len(self.backends)).astype(np.int64)
+
     def _record(self, plan, stats: FrameStats) -> None:
         t = self.obj.triangles
         stats.counters["tris_near"] = int(plan.near_triangles)
@@ -180,8 +210,7 @@ class VisualizationRank:
         stats.counters["boards_drawn"] = len(plan.far_board)
         stats.counters["far_original"] = len(plan.far_original)
         stats.counters["pending"] = int(self.pending.sum())
-        index = np.searchsorted(self.backends, self.pending_to[self.pending])
-        stats.counters["pending_by_backend"] = np.bincount(index, minlength=len(self.backends)).tolist()
+        stats.counters["pending_by_backend"] = self._pending_by_backend().tolist()
         stats.counters["angle_error"] = np.round(plan.angle_error, 3).tolist()
         far = np.concatenate([plan.far_original, plan.far_board])
         stats.counters["view_complete"] = int(len(plan.far_original) == 0 and not self.pending[far].any())
@@ -277,7 +306,7 @@ def run_reliefboards(comm, objects: BoardObjects, opts: ReliefboardOptions, came
     try:
         for f, cam in enumerate(cameras):
             image, stats = vis.frame(cam, f)
-            if reference:
+            if reference and f % opts.reference_every == 0:
                 ref_stats = FrameStats(frame=f, rank=0)
                 ref = vis.render_reference(cam, ref_stats)
                 stats.counters["ref_frame_ms"] = round(ref_stats.times_ms["draw"] + ref_stats.times_ms["readback"], 3)

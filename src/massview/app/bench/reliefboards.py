@@ -1,29 +1,49 @@
 """M2 Reliefboards: the paper's §7 experiments at this machine's scale (`massview bench reliefboards`).
 
-For each scene (a generated **forest** of compact objects used directly, circled on an arc;
-a generated **plant** clustered by §4, along ``flyover``) and each backend count (1, 2, 4, 8
-by default) it runs ``massview render SCENE --system reliefboards --reference`` under real
-mpiexec and reports, from the run's own records:
+**Scale.** Triangle counts are the paper's times ``s = MACHINE_RATE / PAPER_RATE`` (12 M / 120 M
+triangles/s = 1/10, :mod:`massview.lod.boardpolicy`, where t_nz = 3.5 M · s = 350 k is defined):
+the visualization rank draws ten times fewer triangles per second than the paper's, so the same
+scene fractions take the same share of a frame. The scenes keep the paper's object counts and
+layouts; each object's triangle count is scaled by picking, object by object, the generator's
+own simplification level (halving per level) that keeps the running total on ``s`` × the
+paper's count. p stays 128 px (a pixel size on the paper's 1024×768 screen); the rule "too few
+triangles for a board" (2·p²) is scaled by ``s`` like every triangle count.
 
-* frame time with Reliefboards against drawing every object as original, measured in the
-  same frames (the paper's Fig. 10: 43 ms against ~16 ms on the power plant), as a ratio;
-* mean and maximum response time (Fig. 9) and the angle-error distribution (Fig. 11);
-* the time until the view is complete from an empty board table (the paper: about the mean
-  response time on the plant, twice it on the forest);
-* the loads per backend under the c-collision assignment.
+**Why §4 clusters do not pay at this scale** (the README has the measurement): a board costs
+~2 triangles per covered pixel whatever the object; a feasible cluster at the near-zone border
+projects to ≤ p px and holds about t_nz·(2·tan(fovy/2)·p/r_y)² triangles (surface-like scene),
+so its triangles over its board's are t_nz / (2·(r_y/(2·tan(fovy/2)))²) = t_nz / 1.72 M at
+1024×768 — independent of p and of the scene's density: ~2 with the paper's 3.5 M, 0.2 with
+350 k. The forest's objects, compact trees used directly, still pay.
 
-t_nz is the paper's 3.5 M triangles scaled by this machine's triangle rate against the
-paper's visualization node: ``t_nz = 3.5 M · R_here / R_paper`` with ``R_paper`` = 120 M
-triangles/s (its 60 M-triangle forest at about 2 fps drawn all-original) and ``R_here``
-measured here by drawing the forest all-original before the runs. Figures are ratios against
-baselines measured in the same run; the backends share this machine's CPU with the
-visualization rank (the paper's were separate PCs), so frame times with many backends are
-inflated by their work.
+**Items** (``--items``, all by default), each at 1024×768 with 1, 2, 4, 8 backends:
+
+* ``forest`` — 250 compact objects used directly (conifers, broad-leaved trees and pyvista's
+  ``ant.ply``, the packaged real-world mesh; no scanned bunny ships offline), 25 M · s
+  triangles, circled along an arc: the paper turns 360° in 6000 steps of ~16 ms, 3.75°/s; here
+  a frame takes ~0.4 s (0.5–2 s under load), so the same turn rate in wall time is ``--deg-per-frame`` 1.5° per
+  frame for ``--frames`` frames (40 by default: 60° of the circle);
+* ``tie`` — the forest at 4 backends on a slow circle (0.3° per frame, where requests trickle
+  one or two a frame) with ``--tie-rule frame`` (ties by this frame's assignments only) and
+  ``pending`` (assignments persist until their boards arrive) and ``run`` (every assignment of
+  the run counts): the backend loads before/after;
+* ``plant`` — the generated plant (12.4 M · s triangles) clustered by §4 (the paper: ~150
+  objects) on an arc around it at 1.1 half-diagonals with the whole plant in view (the paper's
+  Fig. 8 path is not available; ``--plant-path flyover`` takes the built-in one, which stays
+  mostly inside the near zone);
+* ``forest60`` — a 600-object forest of 60 M · s triangles at the largest backend count: the
+  paper's 18 fps with boards against ~2 fps all-original (9 PCs), as a ratio.
+
+Each run is ``massview render SCENE --system reliefboards --reference --reference-every K``
+under real mpiexec; the all-original baseline is drawn in the same run (every K-th frame), so
+frame times are compared as ratios measured together. Backends share this machine's CPU with
+the visualization rank (the paper's were separate PCs).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -32,28 +52,35 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["add_arguments", "run"]
+from ...lod.boardpolicy import DEFAULT_TNZ, MACHINE_RATE, PAPER_RATE, machine_scale
 
-PAPER_TNZ = 3_500_000
-PAPER_RATE = 120e6  # triangles/s: 60 M triangles at ~2 fps all-original (§7.5)
+__all__ = ["add_arguments", "run", "scaled_scene", "arc_path"]
+
+PAPER = {"forest": 25e6, "plant": 12.4e6, "forest60": 60e6}  # triangles (§7.2, §7.5)
+LAYOUT = {"forest": ("forest", 1.0), "plant": ("plant", 0.15), "forest60": ("forest", 2.4)}  # generator kind, size at s = 0.1
+GROWS = {"plant"}  # its generator size follows s (the plant's density is fixed); the forests keep their object counts
 
 
 def add_arguments(p) -> None:
+    p.add_argument("--items", default="forest,tie,plant,forest60", help="experiments (default forest,tie,plant,forest60)")
     p.add_argument("--backends", default="1,2,4,8", help="backend counts, comma-separated (default 1,2,4,8)")
     p.add_argument("--size", default="1024x768", help="image size (default 1024x768, the paper's)")
-    p.add_argument("--frames", type=int, default=120, help="frames per path (default 120; the paper: 6000)")
-    p.add_argument("--arc", type=float, default=36.0,
-                   help="degrees of the forest circle flown in --frames (default 36: 0.3 deg/frame; the paper: 360 in 6000)")
-    p.add_argument("--forest-size", type=float, default=0.2, help="generate scene forest --size (default 0.2: 50 objects)")
-    p.add_argument("--plant-size", type=float, default=0.05, help="generate scene plant --size (default 0.05)")
-    p.add_argument("--scenes", default="forest,plant", help="which scenes (default forest,plant)")
-    p.add_argument("--board-px", type=int, default=128, help="p, the largest projected board side (default 128)")
-    p.add_argument("--plant-min-triangles", type=int, default=None,
-                   help="prepare the plant with this --min-triangles (default: the paper's rule, 2·p²)")
-    p.add_argument("--tnz", type=int, default=None, help="t_nz (default: 3.5 M scaled by the measured triangle rate)")
+    p.add_argument("--frames", type=int, default=40, help="frames per run of forest and plant (default 40; the paper: 6000)")
+    p.add_argument("--big-frames", type=int, default=16, help="frames of the forest60 run (default 16)")
+    p.add_argument("--deg-per-frame", type=float, default=1.5,
+                   help="degrees of the forest circle per frame (default 1.5: the paper's 3.75 deg/s, 360 deg in 6000 steps of ~16 ms, "
+                        "at this machine's ~0.4 s frames)")
+    p.add_argument("--plant-path", choices=("arc", "flyover"), default="arc",
+                   help="the plant's path: arc (around it at 1.1 half-diagonals, the whole plant in view, default) or flyover")
+    p.add_argument("--reference-every", type=int, default=4, help="draw the all-original baseline every K-th frame (default 4)")
+    p.add_argument("--scale", type=float, default=machine_scale(),
+                   help=f"triangle scale s against the paper's scenes (default {machine_scale():g} = {MACHINE_RATE / 1e6:g} M / {PAPER_RATE / 1e6:g} M triangles/s)")
+    p.add_argument("--board-px", type=int, default=128, help="p, the largest board side (default 128)")
+    p.add_argument("--min-triangles", type=int, default=None, help="fewer triangles make an object infeasible (default s · 2·p²)")
+    p.add_argument("--tnz", type=int, default=None, help="t_nz (default 3.5 M · s)")
     p.add_argument("--workdir", type=Path, default=Path("out/bench-reliefboards"), help="scenes and runs go here")
     p.add_argument("--out", type=Path, default=None, help="write the figures and results.json here (default: workdir)")
-    p.add_argument("--reuse", action="store_true", help="reuse finished runs in the workdir (same --frames and t_nz)")
+    p.add_argument("--reuse", action="store_true", help="reuse finished runs in the workdir (same frames, t_nz and p)")
 
 
 def _cli(*args, timeout=3600) -> subprocess.CompletedProcess:
@@ -64,25 +91,50 @@ def _cli(*args, timeout=3600) -> subprocess.CompletedProcess:
     return proc
 
 
-def _scene(workdir: Path, kind: str, size: float) -> Path:
-    from ...data.generators.scenes import generate_scene
+def scaled_scene(item: str, scale: float, workdir: Path) -> tuple[Path, dict]:
+    """The generated scene of ``item`` with ``scale`` × the paper's triangles: per object the
+    generator's simplification level that keeps the running total on target (see the module
+    docstring). Written once per (item, scale); returns the store and its figures."""
+    from ...data.generators.scenes import PATH_DEPTH, place_levels, scene_nodes, shape_levels
+    from ...data.scene.writer import SceneWriter
 
-    path = workdir / f"{kind}-{size:g}.zarr"
-    if not (path / "zarr.json").exists() or '"complete": true' not in (path / "zarr.json").read_text():
-        print(f"generating {kind} (size {size}) -> {path}", flush=True)
-        generate_scene(kind, path, copies=1, size=size, overwrite=True)
-    return path
+    kind, size = LAYOUT[item]
+    size = size * scale / 0.1 if item in GROWS else size
+    path = workdir / f"{item}-s{scale:g}.zarr"
+    meta = path.with_suffix(".json")
+    if meta.exists() and (path / "zarr.json").exists() and '"complete": true' in (path / "zarr.json").read_text():
+        return path, json.loads(meta.read_text())
+    t0 = time.perf_counter()
+    nodes, _ = scene_nodes(kind, size, 1)
+    full = [len(shape_levels(n.shape)[0][0].indices) for n in nodes]  # level-0 triangles (shapes cached)
+    ratio = PAPER[item] * scale / sum(full)
+    w = SceneWriter(path, {"generator": kind, "size": size, "scale": scale, "item": item},
+                    {"source": f"bench reliefboards {item}", "units": "m"}, path_depth=PATH_DEPTH[kind], overwrite=True)
+    total = target = 0.0
+    for node, n0 in zip(nodes, full):
+        levels, errors, closed = place_levels(node, np.zeros(3))
+        target += n0 * ratio
+        counts = np.array([len(lv.indices) for lv in levels])
+        k = int(np.argmin(np.abs(total + counts - target)))
+        total += counts[k]
+        w.add_object(w.add_geometry(levels[k:], errors[k:], closed), (0, *node.path))
+        w.step()
+    w.finish({"scale": scale})
+    info = {"objects": len(nodes), "triangles": int(total), "unscaled_triangles": int(sum(full)), "write_s": round(time.perf_counter() - t0, 1)}
+    meta.write_text(json.dumps(info))
+    print(f"wrote {path}: {len(nodes)} objects, {total / 1e6:.2f} M triangles ({sum(full) / 1e6:.2f} M at level 0) in {info['write_s']} s", flush=True)
+    return path, info
 
 
-def measure_rate(scene: Path, width: int, height: int, repeat: int = 3) -> tuple[float, int]:
-    """Triangles per second drawing every object of ``scene`` as original, and the count."""
+def measure_rate(scene: Path, width: int, height: int, repeat: int = 2) -> float:
+    """Triangles per second drawing every object of ``scene`` as original (this machine, now)."""
+    from ...core.camera import Camera
     from ...core.stats import FrameStats
     from ...lod.clusters import ClusterParams
     from ...render.context import create_context
     from ...render.meshes import MeshRenderer
     from ...render.view import ViewRenderer
     from ...systems.boardscene import open_board_objects
-    from ...core.camera import Camera
 
     obj = open_board_objects(str(scene), ClusterParams(t_nz=1, r_y=height))
     lo, hi = obj.bounds
@@ -90,19 +142,20 @@ def measure_rate(scene: Path, width: int, height: int, repeat: int = 3) -> tuple
     cam = Camera.look_at(c + np.array([0.6, -0.7, 0.4]) * ext, c, near=ext * 0.01, far=ext * 4, width=width, height=height)
     ctx = create_context()
     meshes, view = MeshRenderer(ctx, *obj.concatenated()), ViewRenderer(ctx)
-    items = np.arange(obj.count)
     times = []
     for _ in range(repeat + 1):
         st = FrameStats(frame=0, rank=0)
-        view.render(cam, cam.viewport, lambda mvp: meshes.draw(items, mvp), st)
-        times.append(st.times_ms["draw"])
-    tris = int(obj.triangles.sum())
-    return tris / (min(times[1:]) / 1e3), tris
+        view.render(cam, cam.viewport, lambda mvp: meshes.draw(np.arange(obj.count), mvp), st)
+        times.append(st.times_ms["draw"] + st.times_ms["readback"])
+    meshes.release()
+    view.release()
+    return float(obj.triangles.sum()) / (min(times[1:]) / 1e3)
 
 
-def arc_path(scene: Path, arc_deg: float, out: Path) -> Path:
-    """A keyframe path circling the scene's centre at 0.75 of its half diagonal, 1/8 of it
-    above the ground, looking at the centre, over ``arc_deg`` degrees (keyframes every 2°)."""
+def arc_path(scene: Path, arc_deg: float, out: Path, radius: float = 0.75, height: float = 0.25) -> Path:
+    """A keyframe path circling the scene's centre at ``radius`` × its half diagonal,
+    ``height`` × it above the centre, looking at the centre, over ``arc_deg`` degrees
+    (keyframes every 2°)."""
     from ...data.scene import SceneStore
 
     lo, hi = SceneStore(scene).bounds
@@ -110,78 +163,151 @@ def arc_path(scene: Path, arc_deg: float, out: Path) -> Path:
     n = max(2, int(arc_deg / 2) + 1)
     keys = []
     for i, a in enumerate(np.radians(np.linspace(0.0, arc_deg, n))):
-        pos = c + np.array([np.cos(a) * 0.75 * r, np.sin(a) * 0.75 * r, 0.25 * r])
+        pos = c + np.array([np.cos(a) * radius * r, np.sin(a) * radius * r, height * r])
         keys.append({"time": i / (n - 1), "position": pos.tolist(), "look_at": c.tolist()})
     out.write_text(json.dumps({"keyframes": keys, "fovy": 45.0, "near": r * 0.005, "far": r * 4}))
     return out
 
 
-def _run_cli(scene: Path, path, nb: int, args, tnz: int, out: Path) -> None:
-    _cli("render", scene, "--system", "reliefboards", "--ranks", nb + 1, "--frames", args.frames, "--path", path,
-         "--size", args.size, "--tnz", tnz, "--board-px", args.board_px, "--reference", "--out", out, "-q")
-
-
-def _run_one(scene: Path, path: str, nb: int, args, tnz: int, out: Path) -> dict:
+def _run_one(scene: Path, path, nb: int, frames: int, args, out: Path, extra=()) -> dict:
     done = out / "summary.json"
     old = json.loads(done.read_text()) if done.exists() else {}
-    if args.reuse and old.get("frames") == args.frames and old.get("t_nz") == tnz:
+    t0 = time.perf_counter()
+    if args.reuse and old.get("frames") == frames and old.get("t_nz") == args.tnz and old.get("board_px") == args.board_px \
+            and old.get("min_triangles") == args.min_triangles:
         print(f"(reusing {out})", flush=True)
     else:
-        _run_cli(scene, path, nb, args, tnz, out)
+        _cli("render", scene, "--system", "reliefboards", "--ranks", nb + 1, "--frames", frames, "--path", path, "--size", args.size,
+             "--tnz", args.tnz, "--board-px", args.board_px, "--reference", "--reference-every", args.reference_every,
+             "--min-triangles", args.min_triangles, "--out", out, "-q", *extra)
     s = json.loads(done.read_text())
+    if "wall_s" not in s:  # a fresh run (a reused one keeps its own)
+        s["board_px"], s["min_triangles"], s["wall_s"] = args.board_px, args.min_triangles, round(time.perf_counter() - t0, 1)
+        done.write_text(json.dumps(s, indent=2) + "\n")
     recs = [json.loads(line) for line in (out / "stats.jsonl").read_text().splitlines()]
-    s["ref_frame_ms_mean"] = float(np.mean([r["counters"]["ref_frame_ms"] for r in recs]))
-    s["boards_frame_ms_mean"] = float(np.mean([r["times_ms"]["draw"] + r["times_ms"]["readback"] for r in recs]))
+    ref = [r for r in recs if "ref_frame_ms" in r["counters"]]  # the frames with the baseline
+    s["ref_ms"] = float(np.mean([r["counters"]["ref_frame_ms"] for r in ref]))
+    s["boards_ms"] = float(np.mean([r["times_ms"]["draw"] + r["times_ms"]["readback"] for r in ref]))
+    s["speedup"] = s["ref_ms"] / max(s["boards_ms"], 1e-9)
+    from ..reliefboards_report import write_run_report
+
+    write_run_report(out, recs, s)  # Fig. 10: frame time along the path, boards against all-original
+    later = [r["counters"]["loads"] for r in recs if r["frame"] > 0 and r["counters"].get("loads")]
+    s["loads_after_frame0"] = np.sum(later, axis=0).tolist() if later else []  # the trickle after the first burst
     s["_response"] = [x for r in recs for x in r["counters"].get("response_ms", [])]
     s["_angles"] = [x for r in recs for x in r["counters"].get("angle_error", [])]
     return s
 
 
-def _print_row(kind, nb, s):
+def _row(item, nb, s) -> None:
     rt, ae = s["response_ms"], s["angle_error_deg"]
-    print(f"{kind:6s} {nb:3d} | draw+read {s['boards_frame_ms_mean']:8.1f} ms vs all-original {s['ref_frame_ms_mean']:8.1f} ms "
-          f"(x{s['ref_frame_ms_mean'] / max(s['boards_frame_ms_mean'], 1e-9):.2f}) | frame {s['mean_frame_ms']:8.1f} ms | "
-          f"response mean {rt.get('mean', float('nan')):7.1f} max {rt.get('max', float('nan')):7.1f} ms | angle err q1/med/q3/mean "
-          f"{ae.get('q1', 0):.1f}/{ae.get('median', 0):.1f}/{ae.get('q3', 0):.1f}/{ae.get('mean', 0):.1f} | complete after "
-          f"{s['ms_to_complete_view']} ms | loads {s['loads_per_backend']}", flush=True)
+    print(f"{item:8s} {nb:2d} | draw+read boards {s['boards_ms']:7.0f} ms vs all-original {s['ref_ms']:7.0f} ms (x{s['speedup']:.2f}) | "
+          f"response mean {rt.get('mean', float('nan')):6.0f} max {rt.get('max', float('nan')):6.0f} ms | angle min/q1/med/q3/max/mean "
+          f"{ae.get('min', 0):.1f}/{ae.get('q1', 0):.1f}/{ae.get('median', 0):.1f}/{ae.get('q3', 0):.1f}/{ae.get('max', 0):.1f}/"
+          f"{ae.get('mean', 0):.1f} | complete after {s['ms_to_complete_view']} ms | loads {s['loads_per_backend']} | {s['wall_s']} s",
+          flush=True)
+
+
+def _experiment(item, scene, path, counts, frames, args, out, work, results) -> None:
+    from ..reliefboards_report import write_backend_figures
+
+    runs = {}
+    for nb in counts:
+        s = _run_one(scene, path, nb, frames, args, work / f"{item}-{nb}")
+        _row(item, nb, s)
+        runs[nb] = {"response_ms": s.pop("_response"), "angle_error": s.pop("_angles")}
+        results["items"].setdefault(item, {})[nb] = s
+    w, h = results["size"]
+    write_backend_figures(out / f"{item}-backends.png", runs, f"{item} · {frames} frames · {w}x{h} · t_nz {args.tnz} · p {args.board_px}")
 
 
 def run(args) -> int:
-    from ..reliefboards_report import write_backend_figures
     from ...core.config import parse_size
 
+    t_start = time.perf_counter()
     w, h = parse_size(args.size)
     counts = [int(v) for v in args.backends.split(",")]
-    work = args.workdir
+    items = args.items.split(",")
+    bad = set(items) - {"forest", "tie", "plant", "forest60"}
+    if bad:
+        raise SystemExit(f"--items: unknown {', '.join(sorted(bad))}; choose from forest, tie, plant, forest60")
+    args.min_triangles = args.min_triangles or max(1, round(args.scale * 2 * args.board_px ** 2))
+    args.tnz = args.tnz or max(1, round(3_500_000 * args.scale))
+    work, out = args.workdir, args.out or args.workdir
     work.mkdir(parents=True, exist_ok=True)
-    out = args.out or work
-    wanted = args.scenes.split(",")
-    scenes = {}
-    if "forest" in wanted:
-        forest = _scene(work, "forest", args.forest_size)
-        scenes["forest"] = (forest, arc_path(forest, args.arc, work / "forest-arc.json"))
-    if "plant" in wanted:
-        scenes["plant"] = (_scene(work, "plant", args.plant_size), "flyover")
-    first = next(iter(scenes.values()))[0]
-    rate, tris = measure_rate(first, w, h)
-    tnz = args.tnz or max(1, int(PAPER_TNZ * rate / PAPER_RATE))
-    how = "given with --tnz" if args.tnz else f"3.5 M x {rate / 1e6:.1f} / {PAPER_RATE / 1e6:.0f}"
-    print(f"triangle rate here: {rate / 1e6:.1f} M/s ({tris / 1e6:.2f} M triangles all-original); t_nz = {tnz} ({how})", flush=True)
-    results = {"rate_tris_per_s": rate, "t_nz": tnz, "size": [w, h], "frames": args.frames, "scenes": {}}
-    for kind, (scene, path) in scenes.items():
-        if kind == "plant":
-            extra = ["--min-triangles", args.plant_min_triangles] if args.plant_min_triangles else []
-            _cli("prepare", "reliefboards", scene, "--tnz", tnz, "--board-px", args.board_px, "--size", args.size,
-                 "--picture", out / "plant-clusters.png", *extra)
-        runs = {}
-        for nb in counts:
-            t0 = time.perf_counter()
-            s = _run_one(scene, path, nb, args, tnz, work / f"{kind}-{nb}")
-            s["wall_s"] = round(time.perf_counter() - t0, 1)
-            _print_row(kind, nb, s)
-            runs[nb] = {"response_ms": s.pop("_response"), "angle_error": s.pop("_angles")}
-            results["scenes"].setdefault(kind, {})[nb] = s
-        write_backend_figures(out / f"{kind}-backends.png", runs, f"{kind} · {args.frames} frames · {w}x{h} · t_nz {tnz}")
+    out.mkdir(parents=True, exist_ok=True)
+    results = {"scale": args.scale, "t_nz": args.tnz, "board_px": args.board_px, "min_triangles": args.min_triangles,
+               "size": [w, h], "frames": args.frames, "items": {}, "scenes": {}}
+    print(f"scale s = {args.scale:g}: t_nz = {args.tnz} (default {DEFAULT_TNZ}), p = {args.board_px} px, min triangles "
+          f"{args.min_triangles}, {w}x{h}", flush=True)
+    if {"forest", "tie"} & set(items):
+        _forest_items(args, items, counts, work, out, results)
+    if "plant" in items:
+        _plant_item(args, counts, work, out, results)
+    if "forest60" in items:
+        big, results["scenes"]["forest60"] = scaled_scene("forest60", args.scale, work)
+        arc = arc_path(big, args.deg_per_frame * args.big_frames, work / "forest60-arc.json")
+        _experiment("forest60", big, arc, [max(counts)], args.big_frames, args, out, work, results)
+    results["wall_s"] = round(time.perf_counter() - t_start, 1)
+    _paper_table(results)
     (out / "results.json").write_text(json.dumps(results, indent=1, default=float) + "\n")
-    print(f"wrote {out}/results.json and the figures")
+    print(f"wrote {out}/results.json and the figures ({results['wall_s']} s)")
     return 0
+
+
+def _forest_items(args, items, counts, work: Path, out: Path, results: dict) -> None:
+    """The forest along its circle at every backend count, and the two tie rules on a slow circle."""
+    w, h = results["size"]
+    forest, results["scenes"]["forest"] = scaled_scene("forest", args.scale, work)
+    rate = measure_rate(forest, w, h)
+    results["rate_tris_per_s"] = rate
+    print(f"triangle rate here now: {rate / 1e6:.1f} M/s all-original (nominal {MACHINE_RATE / 1e6:g} M/s; the paper's node "
+          f"{PAPER_RATE / 1e6:g} M/s)", flush=True)
+    if "forest" in items:
+        arc = arc_path(forest, args.deg_per_frame * args.frames, work / "forest-arc.json")
+        _experiment("forest", forest, arc, counts, args.frames, args, out, work, results)
+    if "tie" in items:  # the tie rule matters where requests trickle: the previous session's slow circle
+        nb = 4 if 4 in counts else max(counts)
+        slow = arc_path(forest, 0.3 * args.frames, work / "forest-slow-arc.json")
+        tie = {"backends": nb, "deg_per_frame": 0.3}
+        for rule in ("frame", "pending", "run"):
+            s = _run_one(forest, slow, nb, args.frames, args, work / f"forest-{nb}-slow-{rule}", ("--tie-rule", rule))
+            _row(f"tie:{rule[:4]}", nb, s)
+            tie[rule] = {"loads": s["loads_per_backend"], "after_frame0": s["loads_after_frame0"]}
+        results["items"]["tie"] = tie
+
+
+def _plant_item(args, counts, work: Path, out: Path, results: dict) -> None:
+    """The plant clustered by §4 (``prepare reliefboards``), around it or along ``flyover``."""
+    plant, results["scenes"]["plant"] = scaled_scene("plant", args.scale, work)
+    prep = _cli("prepare", "reliefboards", plant, "--tnz", args.tnz, "--board-px", args.board_px, "--size", args.size,
+                "--min-triangles", args.min_triangles, "--picture", out / "plant-clusters.png")
+    print(prep.stdout.strip(), flush=True)
+    results["scenes"]["plant"]["clustering"] = prep.stdout.strip()
+    path = "flyover" if args.plant_path == "flyover" else arc_path(plant, args.deg_per_frame * args.frames, work / "plant-arc.json", 1.1, 0.6)
+    _experiment("plant", plant, path, counts, args.frames, args, out, work, results)
+
+
+def _paper_table(res: dict) -> None:
+    """Ours beside the paper's (§7.2–7.5)."""
+    it = res["items"]
+    print("\n-- beside the paper (ours: ratios measured in the same runs; this machine shared, under load) --")
+    if "plant" in it:
+        sp = ", ".join(f"{nb}: x{s['speedup']:.2f}" for nb, s in it["plant"].items())
+        print(f"plant frame time, all-original / boards: paper 43/16 ms = x2.7, nearly independent of backends | ours {sp}")
+    if "forest60" in it:
+        nb, s = next(iter(it["forest60"].items()))
+        print(f"60 M forest, boards fps / all-original fps: paper 18/2 = x9 with 9 PCs | ours x{s['speedup']:.2f} with {nb} backends "
+              f"({res['scenes']['forest60']['triangles'] / 1e6:.1f} M triangles)")
+    for item in ("forest", "plant"):
+        for nb, s in it.get(item, {}).items():
+            mean = s["response_ms"].get("mean")
+            comp = s["ms_to_complete_view"]
+            ratio = f"{comp / mean:.1f}x mean response" if comp and mean else "n/a"
+            print(f"{item} {nb} backends: complete view after {comp} ms = {ratio} (paper: ~1x on the plant, ~2x on the forest); "
+                  f"angle error mean {s['angle_error_deg'].get('mean')}° (paper Fig. 11: mean 16° at 28 nodes)")
+    if "tie" in it:
+        t = it["tie"]
+        print(f"loads at {t['backends']} backends (forest, 0.3 deg/frame), all / after the first frame's burst: ties by this frame's "
+              f"assignments {t['frame']['loads']} / {t['frame']['after_frame0']}; counting pending ones {t['pending']['loads']} / "
+              f"{t['pending']['after_frame0']}; counting the run's {t['run']['loads']} / {t['run']['after_frame0']}")
