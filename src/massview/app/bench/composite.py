@@ -29,7 +29,7 @@ from ...core.config import RenderConfig, parse_size
 from ...core.paths import load_path
 from ...core.stats import FrameStats
 from ...core.task import Task
-from ...parallel.composite import COMPOSITORS, composite, deliver
+from ...parallel.composite import COMPOSITORS, composite, deliver, final_regions
 from ...parallel.decompose import sort_last_ranges
 from ...parallel.exchange import max_over_ranks, measure_bandwidth, measure_memory_bandwidth
 from ...parallel.runtime import relaunch, world
@@ -69,7 +69,7 @@ def worker(args) -> int:
             comm.Barrier()
             t0, c0 = time.perf_counter(), time.thread_time()
             piece = composite(comm, image, method, 4, st, args.codec)
-            deliver(comm, piece, [(0, cam.viewport)], st, args.codec)
+            deliver(comm, piece, [(0, cam.viewport)], st, args.codec, final_regions(n, method, 4, cam.viewport))
             cpu = max_over_ranks(comm, time.thread_time() - c0)
             dt = max_over_ranks(comm, time.perf_counter() - t0)
             if dt < best:
