@@ -113,7 +113,8 @@ def test_final_regions_partition_the_frame_in_row_bands(method, n):
 def test_launch_env_defaults_do_not_override_the_user():
     from massview.parallel.runtime import WAIT_ENV, launch_env, raster_threads
 
-    env = launch_env(4, {"PATH": "/bin"})
-    assert all(env[k] == v for k, v in WAIT_ENV.items()) and env["LP_NUM_THREADS"] == str(raster_threads(4))
+    assert raster_threads(2, cores=2) is None and raster_threads(4, cores=2) == 0
+    env = launch_env(1 << 20, {"PATH": "/bin"})  # more ranks than any machine has cores
+    assert all(env[k] == v for k, v in WAIT_ENV.items()) and env["LP_NUM_THREADS"] == "0"
     mine = launch_env(4, {"LP_NUM_THREADS": "3", "MPIR_CVAR_CH4_PROGRESS_THROTTLE": "0"})
     assert mine["LP_NUM_THREADS"] == "3" and mine["MPIR_CVAR_CH4_PROGRESS_THROTTLE"] == "0"

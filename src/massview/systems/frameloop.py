@@ -84,7 +84,9 @@ def _finish(comm, system, cfg: RenderConfig, camera: Camera, image: Image, stats
         piece = image
     tile = deliver(comm, piece, display_tiles(cfg, comm.Get_size()), stats, cfg.codec, regions)
     if tile is not None and hasattr(system, "finish"):
-        tile = system.finish(camera, cfg, tile)
+        with stats.stage("finish"):
+            tile = system.finish(camera, cfg, tile)
+        stats.count("finished_pixels", tile.viewport.area)
     return tile
 
 
