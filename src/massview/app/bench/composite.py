@@ -9,11 +9,14 @@ frame (max over ranks, best of the repeats), bytes moved (all ranks' sends), and
 the floor measured in the same job, and the CPU time of the slowest rank (its thread time: what the
 kernels cost apart from waiting for a core or a peer on a shared machine). The floor of a rank is
 
-    bytes it receives ÷ point-to-point bandwidth (ping-pong between ranks 0 and 1)
+    bytes it receives ÷ point-to-point bandwidth (every pair of ranks swapping 8 MiB at once)
   + bytes it must read and write (``touched_*`` counters: pixels 8 B each of the bands it sends and
     keeps and of the result, plus its messages) ÷ memory bandwidth (every rank copying at once)
 
-and a case's floor is the largest over its ranks. Nothing here asserts a time.
+and a case's floor is the largest over its ranks. Both bandwidths are measured in the job
+itself, with its rank count, from a common barrier until the last rank is done: what each
+rank gets while all of them work, as they do when they composite (ranks that share a core
+share it in the measurement too). Nothing here asserts a time.
 """
 
 from __future__ import annotations
