@@ -123,10 +123,13 @@ def _step(value: str, grid: dict, mv: dict, ranks: list[int]) -> int:
 
 def icet_composite_ms(workdir: Path, name: str) -> dict | None:
     """IceT's own compositing time per frame from the pvbatch ranks' timer files
-    (``NAME.icet.RANK.json``, see ``pvbatch_script.py``): per frame the slowest rank's
+    (``NAME.icet.RANK.json``, see ``pvbatch_script.py``: rank 0's, the only rank that runs the
+    script, its wait for the others included): per frame the slowest rank's
     ``ICET_COMPOSITE_TIME`` (and ``ICET_COLLECT_TIME``, ``ICET_TOTAL_DRAW_TIME``), mean over
-    frames, in ms; None when no rank wrote timers (one rank: IceT does not composite)."""
+    frames, in ms, over the ranks that could read them; None when none could (one rank: IceT does
+not composite)."""
     ranks = [json.loads(f.read_text())["frames"] for f in sorted(Path(workdir).glob(f"{name}.icet.*.json"))]
+    ranks = [frames for frames in ranks if frames and all(f is not None for f in frames)]
     if not ranks:
         return None
     out = {}
@@ -208,9 +211,9 @@ def _print(console, pv: dict, mv: dict, ranks: list[int], steps: list[int], args
 
 
 def _print_compositing(console, pv: dict, mv: dict, ranks: list[int], steps: list[int]) -> None:
-    """Compositing per frame at the largest rank count: IceT's own timer (slowest rank) against
-    massview's encode + transfer + composite (slowest rank's stage means, synchronous loop);
-    both include waiting for the slower rank's draw."""
+    """Compositing per frame at the largest rank count: IceT's own timer (rank 0, the display
+    rank) against massview's encode + transfer + composite (the slowest rank's stage means,
+    synchronous loop: at least rank 0's); both include waiting for the slower rank's draw."""
     n = ranks[-1]
     if n < 2:
         return

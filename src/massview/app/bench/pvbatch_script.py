@@ -12,13 +12,14 @@ rank 0. Rank 0 writes per-frame seconds, triangles and the ranks to OUT.json.
 IceT's own timers, per frame and rank: after each ``Render()`` the IceT context ParaView's
 ``vtkIceTCompositePass`` drew with is still current, and IceT's state holds that frame's
 timings (IceT 2.1 ``IceT.h``: ``ICET_RENDER_TIME`` … ``ICET_BYTES_SENT``, 0xC1–0xCA), read
-with ``icetGetDoublev`` from the ``libvtkIceTCore`` ParaView already loaded (ctypes). Every
-rank writes them to OUT.json.icet.RANK.json (none when the library is not found or no IceT
-context is current, e.g. one rank without compositing).
+with ``icetGetDoublev`` from the ``libvtkIceTCore`` ParaView already loaded (ctypes). pvbatch
+runs this script on rank 0 only (the other ranks serve), so these are rank 0's timers — the
+display rank, whose compositing time includes waiting for the other ranks' images. They go to
+OUT.json.icet.0.json (a frame's entry is null when the library is not
+found or no IceT context is current, e.g. one rank without compositing).
 """
 
 import ctypes
-import glob
 import json
 import sys
 import time
@@ -63,22 +64,31 @@ ICET_BYTES_SENT = 0xCA
 
 
 def icet_library():
-    """ParaView's IceT core library (already loaded by the render view), or None."""
-    for path in sorted(glob.glob("/usr/lib*/**/libvtkIceTCore*.so*", recursive=True)) + ["libvtkIceTCore-pv5.11.so"]:
+    """ParaView's IceT core library, the copy this process already loaded (found in
+    /proc/self/maps, else by its soname), or None."""
+    paths = []
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = sorted({line.split()[-1] for line in maps if "libvtkIceTCore" in line})
+    except OSError:
+        pass
+    for path in paths + ["libvtkIceTCore-pv5.11.so.1"]:
         try:
             lib = ctypes.CDLL(path)
             lib.icetGetContext.restype = ctypes.c_void_p
             return lib
-        except OSError:
+        except (OSError, AttributeError):
             continue
     return None
 
 
-icet = icet_library()
+icet = None  # looked up after the first render, when the render view has loaded it
 
 
 def icet_timings():
     """This rank's IceT timers of the frame just drawn (seconds; bytes sent), or None."""
+    global icet
+    icet = icet or icet_library()
     if icet is None or not icet.icetGetContext():
         return None
     out, d, n = {}, ctypes.c_double(), ctypes.c_int()
@@ -107,8 +117,8 @@ for c in cams["cameras"]:
     frame()
     times.append(time.perf_counter() - t0)
     icet_frames.append(icet_timings())
-if all(f is not None for f in icet_frames):
-    json.dump({"rank": pm.GetPartitionId(), "frames": icet_frames}, open(f"{out_path}.icet.{pm.GetPartitionId()}.json", "w"))
+json.dump({"rank": pm.GetPartitionId(), "frames": icet_frames, "library": getattr(icet, "_name", None)},
+          open(f"{out_path}.icet.{pm.GetPartitionId()}.json", "w"))
 if len(sys.argv) > 10:  # a picture of the last camera, to check the view matches massview's
     from paraview.simple import SaveScreenshot
 
