@@ -73,8 +73,10 @@ def _begin(comm, system, cfg: RenderConfig, camera: Camera | None, frame: int, s
 
 def _finish(comm, system, cfg: RenderConfig, camera: Camera, image: Image, stats: FrameStats) -> Image | None:
     """Composite (sort-last) and deliver one frame, then the system's display-side touches on the
-    final pixels (``system.finish``, terrain: the sky; numpy only); only point-to-point calls and
-    one allgather on ``comm``, no GL: safe on the communication thread with its own ``comm``."""
+    final pixels (``system.finish``, terrain: the sky; numpy only, timed as stage ``finish``);
+    only point-to-point calls on ``comm`` (sort-first: also one allgather of the tiles; sort-last
+    ranks compute where every region is), no GL: safe on the communication thread with its own
+    ``comm``."""
     kind, _ = parse_decomposition(cfg.decomposition, system.sort_last_modes)
     regions = None  # sort-first: each rank's tile, allgathered by deliver
     if kind == "sort-last":
