@@ -89,3 +89,32 @@ def test_kd_balances_weight():
 def test_grid_shape_prefers_square_tiles():
     assert grid_shape(4, 1280, 1024) == (2, 2)
     assert grid_shape(2, 1280, 720) == (1, 2)
+
+
+@pytest.mark.parametrize("method", ["direct-send", "binary-swap", "radix-k"])
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 6, 7])
+def test_final_regions_partition_the_frame_in_row_bands(method, n):
+    """What deliver learns without an allgather: the regions tile the frame, rows in order
+    (parallel == serial renders in test_parallel_render check them against real compositing)."""
+    from massview.parallel.composite import final_regions
+
+    vp = Viewport(0, 0, 37, 29)
+    regions = final_regions(n, method, 3, vp)
+    assert len(regions) == n
+    cover = np.zeros((vp.h, vp.w), int)
+    for r in regions:
+        cover[r.y:r.y + r.h, r.x:r.x + r.w] += 1
+    assert (cover == 1).all()
+    if method == "binary-swap" and n & (n - 1):
+        p = 1 << (n.bit_length() - 1)
+        assert all(regions[r].empty for r in range(1, 2 * (n - p), 2))  # folded ranks hold nothing
+
+
+def test_launch_env_defaults_do_not_override_the_user():
+    from massview.parallel.runtime import WAIT_ENV, launch_env, raster_threads
+
+    assert raster_threads(2, cores=2) is None and raster_threads(4, cores=2) == 0
+    env = launch_env(1 << 20, {"PATH": "/bin"})  # more ranks than any machine has cores
+    assert all(env[k] == v for k, v in WAIT_ENV.items()) and env["LP_NUM_THREADS"] == "0"
+    mine = launch_env(4, {"LP_NUM_THREADS": "3", "MPIR_CVAR_CH4_PROGRESS_THROTTLE": "0"})
+    assert mine["LP_NUM_THREADS"] == "3" and mine["MPIR_CVAR_CH4_PROGRESS_THROTTLE"] == "0"

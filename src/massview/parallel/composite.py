@@ -39,7 +39,7 @@ from ..core.stats import FrameStats
 from .codec import encode_image, encode_region, merge_into, paste_into
 from .exchange import exchange
 
-__all__ = ["COMPOSITORS", "combine", "split_rows", "radix_factors", "composite", "deliver"]
+__all__ = ["COMPOSITORS", "combine", "split_rows", "radix_factors", "composite", "final_regions", "deliver"]
 
 COMPOSITORS = ("direct-send", "binary-swap", "radix-k")
 
@@ -167,14 +167,7 @@ def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: 
     n, me = comm.Get_size(), comm.Get_rank()
     if n == 1:
         return img
-    if method == "direct-send":
-        return _radix_rounds(comm, img, list(range(n)), [n], stats, codec, 0)
-    if method == "radix-k":
-        return _radix_rounds(comm, img, list(range(n)), radix_factors(n, k), stats, codec, 0)
-    if method != "binary-swap":
-        raise ConfigError(f"unknown compositor {method!r}; use one of {', '.join(COMPOSITORS)}")
-    p = 1 << (n.bit_length() - 1)
-    extra = n - p
+    members, factors, extra = _plan(n, method, k)
     if me < 2 * extra:  # fold pairs (2i, 2i+1) so that P ranks remain, in order
         if me % 2:
             with stats.stage("encode"):
@@ -189,20 +182,52 @@ def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: 
             img = _owned(img, False)
             merge_into(img, got[me + 1], front=False)
         _count_touched(stats, "composite", 2 * img.nbytes + got[me + 1].size)
-    members = [r for r in range(n) if r >= 2 * extra or r % 2 == 0]
-    return _radix_rounds(comm, img, members, [2] * (p.bit_length() - 1), stats, codec, 0, owned=me < 2 * extra)
+    return _radix_rounds(comm, img, members, factors, stats, codec, 0, owned=me < 2 * extra)
 
 
-def deliver(comm, piece: Image, tiles: list[tuple[int, Viewport]], stats: FrameStats | None = None, codec: str = "blosc2") -> Image | None:
+def _plan(n: int, method: str, k: int) -> tuple[list[int], list[int], int]:
+    """(members of the radix rounds, their digits, ranks folded away first) of ``method``."""
+    if method == "direct-send":
+        return list(range(n)), [n], 0
+    if method == "radix-k":
+        return list(range(n)), radix_factors(n, k), 0
+    if method != "binary-swap":
+        raise ConfigError(f"unknown compositor {method!r}; use one of {', '.join(COMPOSITORS)}")
+    p = 1 << (n.bit_length() - 1)
+    extra = n - p
+    return [r for r in range(n) if r >= 2 * extra or r % 2 == 0], [2] * (p.bit_length() - 1), extra
+
+
+def final_regions(n: int, method: str, k: int, vp: Viewport) -> list[Viewport]:
+    """The region each of ``n`` ranks holds after :func:`composite` of full-frame images of
+    ``vp`` (what :func:`deliver` would otherwise learn with an allgather): computed the way the
+    rounds split it, so every rank knows all regions without a message."""
+    if n == 1:
+        return [vp]
+    members, factors, _ = _plan(n, method, k)
+    regions = [Viewport(0, 0, 0, 0)] * n
+    for idx, rank in enumerate(members):
+        current, stride = vp, 1
+        for f in factors:
+            current = split_rows(current, f)[(idx // stride) % f]
+            stride *= f
+        regions[rank] = current
+    return regions
+
+
+def deliver(comm, piece: Image, tiles: list[tuple[int, Viewport]], stats: FrameStats | None = None, codec: str = "blosc2",
+            regions: list[Viewport] | None = None) -> Image | None:
     """Move final pixels to display tiles. ``piece`` is the region this rank holds (regions of
-    all ranks partition the frame); ``tiles`` lists (display rank, tile viewport). Returns the
-    assembled tile on display ranks, None elsewhere (on one rank whose one tile is the piece's
-    viewport: the piece itself)."""
+    all ranks partition the frame); ``tiles`` lists (display rank, tile viewport); ``regions``
+    every rank's region when the caller knows them (:func:`final_regions`), else they are
+    allgathered. Returns the assembled tile on display ranks, None elsewhere (on one rank whose
+    one tile is the piece's viewport: the piece itself)."""
     stats = stats if stats is not None else FrameStats(frame=-1, rank=comm.Get_rank())
     me = comm.Get_rank()
     if comm.Get_size() == 1 and tiles == [(0, piece.viewport)]:
         return piece  # one rank, one tile: the image is the tile (no copy)
-    regions = [Viewport.from_json(v) for v in comm.allgather(piece.viewport.to_json())]
+    if regions is None:
+        regions = [Viewport.from_json(v) for v in comm.allgather(piece.viewport.to_json())]
     with stats.stage("encode"):
         sends = {}
         for rank, tile in tiles:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..core.errors import MassviewError, ParallelError
 
-__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "raster_threads"]
+__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "raster_threads", "launch_env"]
 
 _JOB_VARS = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "HYDRA_CONTROL_FD", "MASSVIEW_UNDER_MPI")
 
@@ -50,7 +50,7 @@ def find_mpiexec() -> str:
 def relaunch(argv: list[str], nranks: int) -> int:
     """Run ``python -m massview argv...`` on ``nranks`` local ranks; returns the exit status."""
     cmd = [find_mpiexec(), "-n", str(nranks), sys.executable, "-m", "massview", *argv]
-    env = dict(os.environ, MASSVIEW_UNDER_MPI="1")
+    env = launch_env(nranks, dict(os.environ, MASSVIEW_UNDER_MPI="1"))
     proc = subprocess.Popen(cmd, env=env)
     while True:
         try:
@@ -112,13 +112,35 @@ def reuse_freed_memory(mmap_max: int = 32 << 20, keep: int = 64 << 20) -> bool:
     return bool(mallopt(m_mmap_threshold, mmap_max)) and bool(mallopt(m_trim_threshold, keep))
 
 
-def raster_threads(ranks_here: int, cores: int | None = None) -> int:
-    """LP_NUM_THREADS for llvmpipe when ``ranks_here`` ranks share this machine's ``cores``: the
-    cores a rank gets beyond its own main thread, or 0 (rasterize on the main thread, no
-    hand-off) when the ranks already fill the cores. Mesa's default is one raster thread per
-    core in every rank: 2 ranks on 2 cores run 6 threads. ``massview bench frame
-    --lp-threads auto,default`` measures the two."""
+def raster_threads(ranks_here: int, cores: int | None = None) -> int | None:
+    """LP_NUM_THREADS for llvmpipe when ``ranks_here`` ranks share this machine's ``cores``:
+    None (Mesa's own default, one raster thread per core in every rank) while the ranks do not
+    outnumber the cores, else 0 (every rank rasterizes on its main thread, no hand-off).
+    Decided by ``massview bench frame --lp-threads auto,default,1`` (issue 20, README): at 2
+    ranks on 2 cores Mesa's default was faster in both runs, at 4 ranks 0 was (0.60–0.82× the
+    frame time); on a loaded machine more threads also win a larger share of the CPU."""
     if cores is None:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    share = cores // max(1, ranks_here)
-    return share if share > 1 else 0
+    return None if ranks_here <= cores else 0
+
+
+# How waiting ranks give their core back: after this many polls that made no progress MPICH's
+# ch4 progress loop sleeps (usleep(1)) instead of spinning on. MPICH's default spins forever,
+# and on a machine where ranks (and llvmpipe's raster threads) outnumber the cores a spinning
+# rank burns the core the peer it waits for needs (issue 20: `massview bench composite`
+# measured with and without; figures in the README).
+WAIT_ENV = {"MPIR_CVAR_CH4_PROGRESS_THROTTLE": "1", "MPIR_CVAR_CH4_PROGRESS_THROTTLE_NO_PROGRESS_COUNT": "4096"}
+
+
+def launch_env(nranks: int, env: dict[str, str]) -> dict[str, str]:
+    """``env`` with the launcher's defaults for ``nranks`` local ranks added where the user set
+    nothing: MPICH's waiting ranks yield their core (:data:`WAIT_ENV`), and llvmpipe gets
+    :func:`raster_threads` raster threads per rank (``LP_NUM_THREADS``, when it says so). Variables already in
+    ``env`` win, so either can be set by hand."""
+    out = dict(env)
+    for key, value in WAIT_ENV.items():
+        out.setdefault(key, value)
+    threads = raster_threads(nranks)
+    if threads is not None:
+        out.setdefault("LP_NUM_THREADS", str(threads))
+    return out

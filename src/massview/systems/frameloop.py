@@ -21,7 +21,7 @@ from ..core.config import RenderConfig
 from ..core.errors import MassviewError
 from ..core.image import Image
 from ..core.stats import FrameStats
-from ..parallel.composite import composite, deliver
+from ..parallel.composite import composite, deliver, final_regions
 from ..parallel.decompose import parse_decomposition, parse_wall
 from ..render.meshes import rank_tint
 
@@ -73,13 +73,22 @@ def _begin(comm, system, cfg: RenderConfig, camera: Camera | None, frame: int, s
 
 def _finish(comm, system, cfg: RenderConfig, camera: Camera, image: Image, stats: FrameStats) -> Image | None:
     """Composite (sort-last) and deliver one frame, then the system's display-side touches on the
-    final pixels (``system.finish``, terrain: the sky; numpy only); only point-to-point calls and
-    one allgather on ``comm``, no GL: safe on the communication thread with its own ``comm``."""
+    final pixels (``system.finish``, terrain: the sky; numpy only, timed as stage ``finish``);
+    only point-to-point calls on ``comm`` (sort-first: also one allgather of the tiles; sort-last
+    ranks compute where every region is), no GL: safe on the communication thread with its own
+    ``comm``."""
     kind, _ = parse_decomposition(cfg.decomposition, system.sort_last_modes)
-    piece = composite(comm, image, cfg.compositor, cfg.radix_k, stats, cfg.codec) if kind == "sort-last" else image
-    tile = deliver(comm, piece, display_tiles(cfg, comm.Get_size()), stats, cfg.codec)
+    regions = None  # sort-first: each rank's tile, allgathered by deliver
+    if kind == "sort-last":
+        piece = composite(comm, image, cfg.compositor, cfg.radix_k, stats, cfg.codec)
+        regions = final_regions(comm.Get_size(), cfg.compositor, cfg.radix_k, image.viewport)
+    else:
+        piece = image
+    tile = deliver(comm, piece, display_tiles(cfg, comm.Get_size()), stats, cfg.codec, regions)
     if tile is not None and hasattr(system, "finish"):
-        tile = system.finish(camera, cfg, tile)
+        with stats.stage("finish"):
+            tile = system.finish(camera, cfg, tile)
+        stats.count("finished_pixels", tile.viewport.area)
     return tile
 
 

@@ -9,11 +9,14 @@ frame (max over ranks, best of the repeats), bytes moved (all ranks' sends), and
 the floor measured in the same job, and the CPU time of the slowest rank (its thread time: what the
 kernels cost apart from waiting for a core or a peer on a shared machine). The floor of a rank is
 
-    bytes it receives ÷ point-to-point bandwidth (ping-pong between ranks 0 and 1)
+    bytes it receives ÷ point-to-point bandwidth (every pair of ranks swapping 8 MiB at once)
   + bytes it must read and write (``touched_*`` counters: pixels 8 B each of the bands it sends and
     keeps and of the result, plus its messages) ÷ memory bandwidth (every rank copying at once)
 
-and a case's floor is the largest over its ranks. Nothing here asserts a time.
+and a case's floor is the largest over its ranks. Both bandwidths are measured in the job
+itself, with its rank count, from a common barrier until the last rank is done: what each
+rank gets while all of them work, as they do when they composite (ranks that share a core
+share it in the measurement too). Nothing here asserts a time.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from ...core.config import RenderConfig, parse_size
 from ...core.paths import load_path
 from ...core.stats import FrameStats
 from ...core.task import Task
-from ...parallel.composite import COMPOSITORS, composite, deliver
+from ...parallel.composite import COMPOSITORS, composite, deliver, final_regions
 from ...parallel.decompose import sort_last_ranges
 from ...parallel.exchange import max_over_ranks, measure_bandwidth, measure_memory_bandwidth
 from ...parallel.runtime import relaunch, world
@@ -69,7 +72,7 @@ def worker(args) -> int:
             comm.Barrier()
             t0, c0 = time.perf_counter(), time.thread_time()
             piece = composite(comm, image, method, 4, st, args.codec)
-            deliver(comm, piece, [(0, cam.viewport)], st, args.codec)
+            deliver(comm, piece, [(0, cam.viewport)], st, args.codec, final_regions(n, method, 4, cam.viewport))
             cpu = max_over_ranks(comm, time.thread_time() - c0)
             dt = max_over_ranks(comm, time.perf_counter() - t0)
             if dt < best:

@@ -17,14 +17,18 @@ Per stage, the floor of a rank (the slowest rank's floor is the stage's floor) i
 * ``draw``: the triangles it drew ÷ the plain-mesh rate;
 * ``readback``: its pixels (8 B each) ÷ memory bandwidth;
 * ``encode``/``composite``: the bytes those kernels must touch (``touched_*`` counters) ÷
-  memory bandwidth; ``transfer``: the bytes it received ÷ point-to-point bandwidth.
+  memory bandwidth; ``transfer``: the bytes it received ÷ point-to-point bandwidth;
+* ``finish``: the system's display-side touch of the final tile (terrain: the sky painted on its
+  background pixels), its pixels read and written once (8 B each) ÷ memory bandwidth;
+* ``other``: the rest of the frame (the camera and plan broadcasts, the LOD's bookkeeping
+  outside its ``lod`` stage); no floor.
 
 Printed: per rank count, each stage's mean (over frames, slowest rank) and its ratio to the
 floor, the frame time, the share of the frame that is not drawing, and pipelined vs
 synchronous throughput and latency. ``--png`` draws the stage breakdown. Ranks share the
 cores with llvmpipe's raster threads: ``--lp-threads`` sets ``LP_NUM_THREADS`` per case
-(``auto``: :func:`massview.parallel.runtime.raster_threads`; ``default``: Mesa's own choice,
-one thread per core in every rank). Nothing here asserts a time.
+(``auto``: :func:`massview.parallel.runtime.raster_threads`, the launcher's default; ``default``:
+Mesa's own choice, one thread per CPU in every rank). Nothing here asserts a time.
 """
 
 from __future__ import annotations
@@ -46,7 +50,8 @@ from ...parallel.runtime import raster_threads, relaunch, world
 
 __all__ = ["add_arguments", "run", "worker", "STAGES"]
 
-STAGES = ("lod", "draw", "readback", "encode", "transfer", "composite")
+STAGES = ("lod", "draw", "readback", "encode", "transfer", "composite", "finish", "other")
+_TIMED = STAGES[:-1]  # "other": the rest of the frame (broadcasts, LOD bookkeeping outside "lod")
 _FRONT_BYTES = 13 * 8  # the front's per-patch arrays (lod/kpatch.py Front), int64 each
 
 
@@ -118,7 +123,8 @@ def _floors(st: FrameStats, pixels: int, bw: float, mem: float, rate: float) -> 
     c = st.counters
     return {"lod": 2 * c.get("front_patches", 0) * _FRONT_BYTES / mem, "draw": st.triangles / rate,
             "readback": 8 * pixels / mem, "encode": c.get("touched_encode", 0) / mem,
-            "transfer": st.bytes_recv / bw if bw else 0.0, "composite": c.get("touched_composite", 0) / mem}
+            "transfer": st.bytes_recv / bw if bw else 0.0, "composite": c.get("touched_composite", 0) / mem,
+            "finish": 8 * c.get("finished_pixels", 0) / mem, "other": 0.0}
 
 
 def _loop(comm, system, cfg, cams, pixels, bw, mem, rate) -> dict:
@@ -129,7 +135,9 @@ def _loop(comm, system, cfg, cams, pixels, bw, mem, rate) -> dict:
     t0 = time.perf_counter()
     for res in render_frames(comm, system, cfg, cams):
         st = res.stats
-        stages.append([max_over_ranks(comm, st.times_ms.get(s, 0.0) / 1e3) for s in STAGES])
+        mine = [st.times_ms.get(s, 0.0) / 1e3 for s in _TIMED]
+        mine.append(max(0.0, st.times_ms["total"] / 1e3 - sum(mine)))
+        stages.append([max_over_ranks(comm, v) for v in mine])
         floors.append([max_over_ranks(comm, v) for v in _floors(st, pixels, bw, mem, rate).values()])
         totals.append(max_over_ranks(comm, st.times_ms["total"] / 1e3))
         tris.append(comm.allreduce(st.triangles))
@@ -156,7 +164,7 @@ def worker(args) -> int:
     pixels = w * h  # sort-last: every rank reads back the full frame; sort-first: its tile
     if not args.decomposition.startswith("sort-last"):
         pixels = -(-w * h // n)
-    out = {"ranks": n, "lp_threads": os.environ.get("LP_NUM_THREADS", "default"), "plain_Mtri_s": rate / 1e6,
+    out = {"ranks": n, "lp_threads": os.environ.get("LP_NUM_THREADS", "Mesa default"), "plain_Mtri_s": rate / 1e6,
            "p2p_MBps": bw / 1e6, "mem_MBps": mem / 1e6}
     out["sync"] = _loop(comm, system, replace(cfg, pipeline="off"), cams if rank == 0 else None, pixels, bw, mem, rate)
     out["pipelined"] = _loop(comm, system, replace(cfg, pipeline="on"), cams if rank == 0 else None, pixels, bw, mem, rate)
@@ -176,11 +184,10 @@ def _launch(args, store: Path, n: int, lp: str, tmp: str) -> dict | None:
     argv = ["bench", "frame", str(store), "--worker", str(out), "--size", args.size, "--frames", str(args.frames),
             "--decomposition", args.decomposition, "--compositor", args.compositor]
     saved = os.environ.get("LP_NUM_THREADS")
-    threads = raster_threads(n) if lp == "auto" else (None if lp == "default" else int(lp))
-    if threads is None:
-        os.environ.pop("LP_NUM_THREADS", None)
-    else:
-        os.environ["LP_NUM_THREADS"] = str(threads)
+    # "default": Mesa's own choice, one raster thread per CPU in every rank (set explicitly,
+    # since the launcher would otherwise put its own default in)
+    threads = raster_threads(n) if lp == "auto" else (os.cpu_count() or 1 if lp == "default" else int(lp))
+    os.environ["LP_NUM_THREADS"] = str(os.cpu_count() or 1 if threads is None else threads)
     try:
         rc = relaunch(argv, n)
     finally:

@@ -8,7 +8,8 @@ from pathlib import Path
 
 __all__ = ["plot_stages"]
 
-_COLORS = {"lod": "#8c6bb1", "draw": "#2b8cbe", "readback": "#7bccc4", "encode": "#fdae6b", "transfer": "#e6550d", "composite": "#a63603"}
+_COLORS = {"lod": "#8c6bb1", "draw": "#2b8cbe", "readback": "#7bccc4", "encode": "#fdae6b", "transfer": "#e6550d", "composite": "#a63603",
+           "finish": "#74c476", "other": "#bdbdbd"}
 
 
 def plot_stages(results: list[dict], path: Path, title: str) -> None:

@@ -6,11 +6,14 @@
    flyover path (position, focal point, up, field of view) — the cameras massview renders;
 2. runs ``pvbatch`` (under ``xvfb-run`` when there is no display, llvmpipe through GLX) on 1
    and 2 ranks (``mpiexec`` of the MPI ParaView was built with, found on PATH as
-   ``mpiexec.openmpi``/``mpiexec``), drawing the full surface (2·(n−1)² triangles) and a
-   surface of every other sample (about a quarter: "equal triangles" with massview's LOD);
-3. runs massview on the same cameras (``bench frame``'s job: warm caches, synchronous loop) for
-   sort-last and sort-first on 1 and 2 ranks;
-4. prints frame times, triangles, the 1→2-rank speed-ups and the ratios.
+   ``mpiexec.openmpi``/``mpiexec``), drawing a surface of every STEP-th sample (``--steps``;
+   ``auto``: the step that gives as many triangles as massview drew — equal triangles; 1: the
+   full surface, 2·(n−1)² triangles), and reads IceT's own timers on every rank
+   (``ICET_COMPOSITE_TIME`` …) to isolate its compositing per frame;
+3. runs massview first, on the same cameras (``bench frame``'s job: warm caches, synchronous
+   loop) for sort-last and sort-first on 1 and 2 ranks;
+4. prints frame times, triangles, the 1→2-rank speed-ups and the ratios, and compositing per
+   frame at 2 ranks: IceT's against massview's encode + transfer + composite.
 
 When ``pvbatch`` is not installed it says so and exits 0 (Debian/Ubuntu: ``apt-get install
 paraview xvfb``). ParaView is never a dependency of massview or of its tests. Nothing here
@@ -30,6 +33,8 @@ import numpy as np
 
 from ...core.paths import load_path
 from ...core.config import parse_size
+from ...core.errors import ConfigError
+from .frame import STAGES as _STAGE_NAMES
 
 __all__ = ["add_arguments", "run"]
 
@@ -42,7 +47,8 @@ def add_arguments(p) -> None:
     p.add_argument("--frames", type=int, default=8, help="cameras along the flyover path (default 8)")
     p.add_argument("--ranks", default="1,2", help="rank counts (default 1,2)")
     p.add_argument("--workdir", default="out/bench", help="where the exported grid and the demo terrain go")
-    p.add_argument("--steps", default="1,2", help="ParaView surfaces: every STEP-th sample, comma-separated (default 1,2: full and ~equal triangles)")
+    p.add_argument("--steps", default="auto", help="ParaView surfaces: every STEP-th sample, comma-separated; auto: as many triangles as massview drew "
+                        "(default auto; 1 is the full surface)")
     p.add_argument("--skip-massview", action="store_true", help="only run pvbatch")
     p.add_argument("--reuse", action="store_true", help="reuse pvbatch results already in --workdir (pv_RANKS_STEP.json)")
 
@@ -94,11 +100,44 @@ def run_pvbatch(grid: dict, cams: Path, step: int, ranks: int, workdir: Path) ->
     if not os.environ.get("DISPLAY"):
         cmd = ["xvfb-run", "-a", "-s", "-screen 0 1920x1200x24", *cmd]
     env = dict(os.environ, OMPI_MCA_btl_vader_single_copy_mechanism="none")
+    for stale in workdir.glob(f"{out.name}.icet.*.json"):
+        stale.unlink()
     for attempt in range(2):  # xvfb-run -a can lose a race for a display number on a busy machine
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
         if proc.returncode == 0 and out.exists():
-            return json.loads(out.read_text())
+            return {**json.loads(out.read_text()), "icet": icet_composite_ms(workdir, out.name)}
     raise RuntimeError(f"pvbatch failed (exit {proc.returncode}): {' '.join(map(str, cmd))}\n{(proc.stdout + proc.stderr)[-3000:]}")
+
+
+def _step(value: str, grid: dict, mv: dict, ranks: list[int]) -> int:
+    """A ParaView sample step; ``auto``: the one whose surface has about as many triangles as
+    massview drew (its sort-last run on the fewest ranks): equal triangles."""
+    if value != "auto":
+        return int(value)
+    run = mv.get(("sort-last", ranks[0]))
+    if not run:
+        raise ConfigError("--steps auto needs massview's own run (leave out --skip-massview)")
+    full = 2.0 * (grid["rows"] - 1) * (grid["cols"] - 1)
+    return max(1, round((full / max(run["sync"]["triangles"], 1.0)) ** 0.5))
+
+
+def icet_composite_ms(workdir: Path, name: str) -> dict | None:
+    """IceT's own compositing time per frame from the pvbatch ranks' timer files
+    (``NAME.icet.RANK.json``, see ``pvbatch_script.py``: rank 0's, the only rank that runs the
+    script, its wait for the others included): per frame the slowest rank's
+    ``ICET_COMPOSITE_TIME`` (and ``ICET_COLLECT_TIME``, ``ICET_TOTAL_DRAW_TIME``), mean over
+    frames, in ms, over the ranks that could read them; None when none could (one rank: IceT does
+not composite)."""
+    ranks = [json.loads(f.read_text())["frames"] for f in sorted(Path(workdir).glob(f"{name}.icet.*.json"))]
+    ranks = [frames for frames in ranks if frames and all(f is not None for f in frames)]
+    if not ranks:
+        return None
+    out = {}
+    for key in ("composite", "collect", "total_draw", "render"):
+        per_frame = np.max([[f[key] for f in frames] for frames in ranks], axis=0)
+        out[key] = 1e3 * float(np.mean(per_frame))
+    out["bytes_sent"] = float(np.mean(np.sum([[f["bytes_sent"] for f in frames] for frames in ranks], axis=0)))
+    return out
 
 
 def _massview(args, store: Path, ranks: list[int]) -> dict:
@@ -133,8 +172,9 @@ def run(args) -> int:
     cams = workdir / "pv_cameras.json"
     export_cameras(store, args.frames, args.size, cams)
     ranks = [int(v) for v in args.ranks.split(",") if v.strip()]
+    mv = {} if args.skip_massview else _massview(args, store, ranks)
     pv = {}
-    steps = [int(v) for v in args.steps.split(",") if v.strip()]
+    steps = [_step(v.strip(), grid, mv, ranks) for v in args.steps.split(",") if v.strip()]
     for step in steps:
         for n in ranks:
             done = workdir / f"pv_{n}_{step}.json"
@@ -143,7 +183,6 @@ def run(args) -> int:
                 continue
             console.print(f"[dim]pvbatch, {n} rank(s), every {step} sample(s) ...[/]")
             pv[(step, n)] = run_pvbatch(grid, cams, step, n, workdir)
-    mv = {} if args.skip_massview else _massview(args, store, ranks)
     _print(console, pv, mv, ranks, steps, args, store)
     return 0
 
@@ -166,5 +205,29 @@ def _print(console, pv: dict, mv: dict, ranks: list[int], steps: list[int], args
     for system, label, ms, mtri in rows:
         t.add_row(system, label, *(f"{v:.0f}" for v in ms), f"{mtri:.1f}", f"{ms[0] / ms[-1]:.2f}×")
     console.print(t)
+    _print_compositing(console, pv, mv, ranks, steps)
     console.print("ParaView times: Render() + reading the composited image back on rank 0, after one untimed render; "
                   "massview: the synchronous frame (LOD, draw, readback, compositing, delivery to rank 0) with warm caches.")
+
+
+def _print_compositing(console, pv: dict, mv: dict, ranks: list[int], steps: list[int]) -> None:
+    """Compositing per frame at the largest rank count: IceT's own timer (rank 0, the display
+    rank) against massview's encode + transfer + composite (the slowest rank's stage means,
+    synchronous loop: at least rank 0's); both include waiting for the slower rank's draw."""
+    n = ranks[-1]
+    if n < 2:
+        return
+    for step in steps:
+        icet = pv[(step, n)].get("icet")
+        if not icet:
+            console.print(f"IceT timers not read at {n} ranks, every {step} samples (libvtkIceTCore not found)")
+            continue
+        line = (f"compositing per frame at {n} ranks: IceT (every {step} samples) {icet['composite']:.1f} ms "
+                f"(collect {icet['collect']:.1f}, IceT total draw {icet['total_draw']:.1f}, {icet['bytes_sent'] / 1e6:.2f} MB sent)")
+        for mode in ("sort-last", "sort-first"):
+            r = mv.get((mode, n))
+            if r:
+                st = dict(zip(_STAGE_NAMES, r["sync"]["stage_ms"]))
+                ours = st["encode"] + st["transfer"] + st["composite"]
+                line += f"; massview {mode} {ours:.1f} ms ({ours / icet['composite']:.2f}× IceT's)" if icet["composite"] > 0 else ""
+        console.print(line)
