@@ -59,23 +59,45 @@ def ramp(name: str) -> np.ndarray:
 def paint_sky(camera, img):
     """``img`` (an Image of the final frame or a tile of it) with its background pixels (depth
     1) painted with the sky gradient along each pixel's view ray — done once on the assembled
-    pixels, so compositing and image codecs keep treating the background as empty."""
-    bg = img.depth >= 1.0
-    if not bg.any():
+    pixels, so compositing and image codecs keep treating the background as empty.
+
+    The ray terms are separable (one vector per row, one per column), so they are evaluated
+    only at the background pixels: the same float64 operations in the same order as a
+    whole-image evaluation, hence the same bytes, at a cost proportional to the sky's area."""
+    rows, cols = np.nonzero(img.depth >= 1.0)
+    if rows.size == 0:
         return img
     vp = img.viewport
     t = math.tan(math.radians(camera.fovy) / 2)
     px = (vp.x + np.arange(vp.w) + 0.5) / camera.width * 2 - 1
     py = 1 - (vp.y + np.arange(vp.h) + 0.5) / camera.height * 2
     rot = np.asarray(camera.view_matrix())[:3, :3].T  # camera-to-world
-    dz = (py[:, None] * t * rot[2, 1] + px[None, :] * t * camera.width / camera.height * rot[2, 0] - rot[2, 2])
-    norm = np.sqrt((px[None, :] * t * camera.width / camera.height) ** 2 + (py[:, None] * t) ** 2 + 1.0)
-    e = dz / norm  # sine of the ray's elevation
-    hor, zen = np.array(SKY_HORIZON), np.array(SKY_ZENITH)
-    t = np.clip((e + 0.05) / 0.65, 0, 1)
-    up = hor + (zen - hor) * (t * t * (3 - 2 * t))[..., None]  # smoothstep(-0.05, 0.6, e), as sky.glsl
-    rgb = (up * 255 + 0.5).astype(np.uint8)
+    col_x = px * t * camera.width / camera.height
+    dz = (py * t * rot[2, 1])[rows] + (col_x * rot[2, 0])[cols]
+    dz -= rot[2, 2]
+    norm = (col_x ** 2)[cols] + ((py * t) ** 2)[rows]
+    norm += 1.0
+    np.sqrt(norm, out=norm)
+    dz /= norm  # sine of the ray's elevation
     color = img.color.copy()
-    color[bg, :3] = rgb[bg]
-    color[bg, 3] = 255
+    color[rows, cols] = _sky_rgba(dz)
     return type(img)(color, img.depth, vp)
+
+
+def _sky_rgba(e: np.ndarray) -> np.ndarray:
+    """(n, 4) uint8 sky colours for the sines of elevation ``e`` (float64, consumed in place):
+    smoothstep(-0.05, 0.6, e) between horizon and zenith, as sky.glsl."""
+    e += 0.05
+    e /= 0.65
+    np.clip(e, 0, 1, out=e)
+    s = e * e * (3 - 2 * e)
+    hor, zen = np.array(SKY_HORIZON), np.array(SKY_ZENITH)
+    out = np.empty((e.size, 4), np.uint8)
+    out[:, 3] = 255
+    for ch in range(3):
+        v = s * (zen[ch] - hor[ch])
+        v += hor[ch]
+        v *= 255
+        v += 0.5
+        out[:, ch] = v
+    return out

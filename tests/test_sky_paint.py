@@ -1,0 +1,51 @@
+"""paint_sky evaluates the sky only at background pixels; it must give the same bytes as the
+whole-image evaluation it replaced (kept here as the reference)."""
+import math
+
+import numpy as np
+import pytest
+
+from massview.core.camera import Camera
+from massview.core.image import Image, Viewport
+from massview.render.colormaps import SKY_HORIZON, SKY_ZENITH, paint_sky
+
+
+def _reference(camera, img):
+    bg = img.depth >= 1.0
+    vp = img.viewport
+    t = math.tan(math.radians(camera.fovy) / 2)
+    px = (vp.x + np.arange(vp.w) + 0.5) / camera.width * 2 - 1
+    py = 1 - (vp.y + np.arange(vp.h) + 0.5) / camera.height * 2
+    rot = np.asarray(camera.view_matrix())[:3, :3].T
+    dz = (py[:, None] * t * rot[2, 1] + px[None, :] * t * camera.width / camera.height * rot[2, 0] - rot[2, 2])
+    norm = np.sqrt((px[None, :] * t * camera.width / camera.height) ** 2 + (py[:, None] * t) ** 2 + 1.0)
+    e = dz / norm
+    hor, zen = np.array(SKY_HORIZON), np.array(SKY_ZENITH)
+    t = np.clip((e + 0.05) / 0.65, 0, 1)
+    up = hor + (zen - hor) * (t * t * (3 - 2 * t))[..., None]
+    rgb = (up * 255 + 0.5).astype(np.uint8)
+    color = img.color.copy()
+    color[bg, :3] = rgb[bg]
+    color[bg, 3] = 255
+    return color
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_sky_matches_whole_image_reference(seed):
+    rng = np.random.default_rng(seed)
+    W, H = 320, 240
+    cam = Camera(position=(0, 0, 100), orientation=tuple(rng.normal(size=4)), fovy=float(rng.uniform(20, 80)),
+                 width=W, height=H)
+    vp = Viewport(0, 0, W, H) if seed % 2 == 0 else Viewport(40, 60, 200, 120)
+    depth = np.where(rng.random((vp.h, vp.w)) < 0.5, 1.0, 0.4).astype(np.float32)
+    color = rng.integers(0, 256, (vp.h, vp.w, 4), dtype=np.uint8)
+    img = Image(color, depth, vp)
+    out = paint_sky(cam, img)
+    assert np.array_equal(out.color, _reference(cam, img))
+    assert np.array_equal(out.color[depth < 1], color[depth < 1])  # geometry untouched
+
+
+def test_no_background_returns_the_image():
+    vp = Viewport(0, 0, 8, 8)
+    img = Image(np.zeros((8, 8, 4), np.uint8), np.zeros((8, 8), np.float32), vp)
+    assert paint_sky(Camera(position=(0, 0, 1), orientation=(0, 0, 0, 1), width=8, height=8), img) is img
