@@ -233,6 +233,7 @@ class RoettgerSystem:
             for (f, _), sels in zip(layers, zip(*vis)):
                 seen_any += f.take(np.logical_or.reduce(sels)).triangles()
         stats.count("fan_triangles", seen_any)
+        stats.triangles = seen_any  # T2's triangles are produced here (see _visualize)
         stats.count("roettger_c", params.c)
         return msgs, params.c
 
@@ -280,6 +281,11 @@ class RoettgerSystem:
         vp = tiles[v]
         layers = gather_layers([self.receivers[c].held for c in self.comp_ranks], self.infos)
         image = self._drawer.draw(camera, vp, layers, cfg.color_by_rank, stats)
+        # A frame's triangles are counted once, by the computation rank that produced them
+        # (``triangles`` per rank is the LOD's load; the run's sum is the scene's count, as in
+        # T1); what this rank drew is ``drawn_triangles``.
+        stats.count("drawn_triangles", stats.triangles)
+        stats.triangles = 0
         if cfg.wall:
             return image, c_used
         return deliver(rc.comm, image, [(0, camera.viewport)], stats, cfg.codec), c_used
@@ -304,9 +310,29 @@ class RoettgerSystem:
         stats.count("reference_lod_ms", (time.perf_counter() - t0) * 1e3)
         return self._drawer.draw(camera, camera.viewport, layers, self.cfg.color_by_rank, FrameStats(-1, 0))
 
+    def panel(self, records: list[dict]) -> dict:
+        """Per-rank figures of one frame for the viewer's panel (``records``: every rank's
+        FrameStats JSON): a table of strings, one row per rank."""
+        rows = []
+        V = len(self.vis_ranks)
+        for r in sorted(records, key=lambda r: r["rank"]):
+            c, t = r["counters"], r["times_ms"]
+            if r["rank"] in self.comp_ranks:
+                sent = ", ".join(_kb(c.get(f"bytes_to_vis_{v}", 0)) for v in range(V))
+                rows.append([str(r["rank"]), "computation", f"{t.get('lod', 0):.1f}", f"{c.get('fans', 0):.0f}",
+                             f"{r['triangles'] / 1e3:.1f}k", f"to vis {sent}"])
+            else:
+                rows.append([str(r["rank"]), "visualization", f"draw {t.get('draw', 0):.1f}", "",
+                             f"drew {c.get('drawn_triangles', 0) / 1e3:.1f}k", f"got {_kb(r['bytes_recv'])}"])
+        return {"title": "T2 per rank", "columns": ["rank", "role", "LOD ms", "fans", "triangles", "bytes"], "rows": rows}
+
     def close(self) -> None:
         if self._drawer is not None:
             self._drawer.release()
+
+
+def _kb(n: float) -> str:
+    return f"{n / 1e3:.1f} kB"
 
 
 def _empty(msg: bytes) -> bool:

@@ -136,7 +136,8 @@ class LayerPortion:
             w = self.d2[t] = self._window(t, halo=1)
             for r, c in self.nodes:
                 r0, c0 = r * k - 1, c * k - 1
-                w.put(max(r0, 0), max(c0, 0), table.window(t, r0, r0 + k + 2, c0, c0 + k + 2))
+                for s in range(r0, r0 + k + 2, 256):  # strips: the read's temporary stays small
+                    w.put(max(s, 0), max(c0, 0), table.window(t, s, min(s + 256, r0 + k + 2), c0, c0 + k + 2))
         self.bytes_read += table.bytes_read
         self._ranges()
 
