@@ -40,7 +40,7 @@ from ..lod.fanstream import FanReceiver, FanSender
 from ..lod.roettger import RoettgerParams, default_c, partition_depth, portion_nodes, portion_owner
 from ..parallel.composite import deliver
 from ..parallel.decompose import parse_wall, sort_first_tiles
-from ..parallel.roles import Role, recv_bytes, send_bytes, split_roles, wait_all
+from ..parallel.roles import Role, recv_bytes, send_bytes, split_roles
 from .frameloop import FrameResult, image_diff
 from .roettger_draw import FanDrawer, gather_layers
 from .roettger_paper import PaperPortion, paper_layout
@@ -176,18 +176,18 @@ class RoettgerSystem:
         stats.count("store_bytes_read", self.bytes_read if self._first else 0)
         self._first = False
         with stats.stage("total"):
-            camera = comm.bcast(camera, root=0)
+            camera = self._camera(camera)
             tiles = _vis_tiles(cfg, len(self.vis_ranks), camera.width, camera.height)
-            msgs, c_used = ({}, None)
+            tile, c_used = None, None
             if rc.role == "computation":
                 msgs, c_used = self._compute(camera, tiles, stats)
-            sizes = comm.alltoall([(len(msgs.get(r, b"")), c_used) for r in range(comm.Get_size())])
-            reqs = send_bytes(comm, {v: np.frombuffer(m, np.uint8) for v, m in msgs.items() if m}, _TAG)
-            tile = None
-            if rc.role == "visualization":
+                heads = [comm.isend((len(msgs.get(v, b"")), c_used), dest=v, tag=_TAG + 1) for v in self.vis_ranks]
+                reqs = send_bytes(comm, {v: np.frombuffer(m, np.uint8) for v, m in msgs.items() if m}, _TAG)
+                with stats.stage("transfer"):
+                    _polite_wait(heads + reqs)
+            else:
+                sizes = {c: _polite_recv(comm, c, _TAG + 1) for c in self.comp_ranks}
                 tile, c_used = self._visualize(cfg, camera, tiles, sizes, stats)
-            with stats.stage("transfer"):
-                wait_all(reqs)
         result = FrameResult(stats, tile)
         if tile is not None:
             if sink is not None:
@@ -195,7 +195,29 @@ class RoettgerSystem:
             if cfg.reference:
                 ref = self._reference_image(camera, c_used, stats).crop(tile.viewport)
                 result.diff = image_diff(tile, ref)
+        self._frame_done()
         return result
+
+    # Waiting. A run often has more ranks than cores (4+1 on 2 cores here); an MPI wait spins
+    # a core, taking it from the ranks that work (the LOD, the draw). So T2 waits politely:
+    # the camera, the message sizes and the end of the frame travel as small point-to-point
+    # messages tested every 0.2 ms (a frame is 100 ms or more), and the run's own collectives
+    # (stats gathers) start when every rank is already there.
+    def _camera(self, camera: Camera | None) -> Camera:
+        """The visualization leader's camera on every rank."""
+        comm = self.comm
+        if comm.Get_rank() == 0:
+            _polite_wait([comm.isend(camera, dest=r, tag=_TAG + 2) for r in range(1, comm.Get_size())])
+            return camera
+        return _polite_recv(comm, 0, _TAG + 2)
+
+    def _frame_done(self) -> None:
+        """Computation ranks wait (politely) until the visualization leader has finished the frame."""
+        comm = self.comm
+        if comm.Get_rank() == 0:
+            _polite_wait([comm.isend(None, dest=c, tag=_TAG + 3) for c in self.comp_ranks])
+        elif self.rc.role == "computation":
+            _polite_recv(comm, 0, _TAG + 3)
 
     def _compute(self, camera: Camera, tiles: list[Viewport], stats: FrameStats) -> tuple[dict, float]:
         cfg = self.cfg
@@ -329,6 +351,25 @@ class RoettgerSystem:
     def close(self) -> None:
         if self._drawer is not None:
             self._drawer.release()
+
+
+def _polite_wait(reqs: list) -> None:
+    """Complete requests, sleeping 0.2 ms between tests instead of spinning."""
+    pending = list(reqs)
+    while pending:
+        pending = [r for r in pending if not r.Test()]
+        if pending:
+            time.sleep(2e-4)
+
+
+def _polite_recv(comm, source: int, tag: int):
+    """A small pickled message from ``source``, received without spinning."""
+    req = comm.irecv(source=source, tag=tag)
+    while True:
+        done, value = req.test()
+        if done:
+            return value
+        time.sleep(2e-4)
 
 
 def _kb(n: float) -> str:
