@@ -350,3 +350,15 @@ def test_a_rank_holds_memory_in_proportion_to_its_portion(stores, monkeypatch):
             assert max(a.nbytes for a in arrays[1:]) <= 0.1 * part.heights.nbytes  # no table or range array of DEM size
             assert len(reads) == len(set(reads)) and len(reads) <= 9 * 16 // C  # each once: the portion's blocks (+ borders)
     assert most[0] <= 2, f"{most[0]} store blocks alive at once"
+
+
+def test_bench_reads_layer_counts_and_pairs_each_frame_with_its_sequential_baseline():
+    from massview.app.bench.roettger import parse_counts, per_frame
+
+    assert parse_counts("1-3,6") == [1, 2, 3, 6] and parse_counts("4") == [4]
+    with pytest.raises(ConfigError, match="--layers"):
+        parse_counts("one")
+    recs = [{"frame": f, "rank": r, "times_ms": {"total": 10.0 * (r + 1) + f, "lod": 5.0 * r},
+             "counters": {"reference_lod_ms": 40.0, "reference_ms": 90.0} if r == 0 else {}} for f in (0, 1) for r in range(3)]
+    fr = per_frame(recs, 1)
+    assert fr[1] == {"par_lod": 10.0, "frame": 31.0, "seq_lod": 40.0, "seq": 90.0}
