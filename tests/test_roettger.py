@@ -314,3 +314,51 @@ def test_children_only_propagation_would_break_the_level_rule(stores):
                 depth = np.maximum(depth, g)
             worst = max(worst, np.abs(np.diff(depth, axis=0)).max(), np.abs(np.diff(depth, axis=1)).max())
     assert worst >= 2
+
+
+def test_a_rank_holds_memory_in_proportion_to_its_portion(stores, monkeypatch):
+    """Per-array accounting (the 16385² peak-RSS figure is `massview bench roettger --sections
+    rss`): every array a computation rank keeps covers only its portion's box (+ the table's
+    one-node halo), each store block is read once, and no more than one is alive at a time
+    (a block cache held a second copy of the portion)."""
+    import weakref
+
+    info = dataclasses.replace(LayerInfo.of(stores["real"]), rows=513, cols=513)
+    grid = info.S**2 * 4
+    alive, reads, most = [0], [], [0]
+    real_get = TerrainStore.get_block
+
+    class Block(np.ndarray):
+        pass
+
+    def get_block(self, level, i, j):
+        b = real_get(self, level, i, j).view(Block)
+        alive[0] += 1
+        weakref.finalize(b, lambda: alive.__setitem__(0, alive[0] - 1))
+        reads.append((level, i, j))
+        most[0] = max(most[0], alive[0])
+        return b
+
+    monkeypatch.setattr(TerrainStore, "get_block", get_block)
+    for C in (4, 16):
+        depth0 = partition_depth(C)
+        for nodes in portion_nodes(depth0, C):
+            reads.clear()
+            part = LayerPortion(info, nodes, depth0)
+            arrays = [part.heights] + [w.a for w in part.d2 if w is not None] + [w.a for w in (*part.zmin.values(), *part.zmax.values())]
+            assert sum(a.nbytes for a in arrays) <= 1.2 * grid / C
+            assert max(a.nbytes for a in arrays[1:]) <= 0.1 * part.heights.nbytes  # no table or range array of DEM size
+            assert len(reads) == len(set(reads)) and len(reads) <= 9 * 16 // C  # each once: the portion's blocks (+ borders)
+    assert most[0] <= 2, f"{most[0]} store blocks alive at once"
+
+
+def test_bench_reads_layer_counts_and_pairs_each_frame_with_its_sequential_baseline():
+    from massview.app.bench.roettger import parse_counts, per_frame
+
+    assert parse_counts("1-3,6") == [1, 2, 3, 6] and parse_counts("4") == [4]
+    with pytest.raises(ConfigError, match="--layers"):
+        parse_counts("one")
+    recs = [{"frame": f, "rank": r, "times_ms": {"total": 10.0 * (r + 1) + f, "lod": 5.0 * r},
+             "counters": {"reference_lod_ms": 40.0, "reference_ms": 90.0} if r == 0 else {}} for f in (0, 1) for r in range(3)]
+    fr = per_frame(recs, 1)
+    assert fr[1] == {"par_lod": 10.0, "frame": 31.0, "seq_lod": 40.0, "seq": 90.0}

@@ -87,8 +87,18 @@ class RoettgerParams:
 # -- node ranges (bounding spheres) -------------------------------------------------------------
 def node_ranges(h: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray]:
     """Min and max height of each node of edge ``d`` over a window of heights (k·d+1, l·d+1),
-    border samples included → two (k, l) float32 arrays."""
+    border samples included → two (k, l) float32 arrays. Works in strips of node rows so that
+    its temporaries stay near 16 MiB whatever the window's size."""
     h = np.asarray(h, np.float32)
+    k = (h.shape[0] - 1) // d
+    step = max(1, (1 << 22) // (d * h.shape[1]))  # node rows per strip (~4 M samples)
+    parts = [_strip_ranges(h[i * d: min(i + step, k) * d + 1], d) for i in range(0, k, step)]
+    if not parts:
+        return np.zeros((0, (h.shape[1] - 1) // d), np.float32), np.zeros((0, (h.shape[1] - 1) // d), np.float32)
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+def _strip_ranges(h: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray]:
     idx_r = np.arange(0, h.shape[0] - 1, d)
     idx_c = np.arange(0, h.shape[1] - 1, d)
     out = []

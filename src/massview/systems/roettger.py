@@ -40,7 +40,7 @@ from ..lod.fanstream import FanReceiver, FanSender
 from ..lod.roettger import RoettgerParams, default_c, partition_depth, portion_nodes, portion_owner
 from ..parallel.composite import deliver
 from ..parallel.decompose import parse_wall, sort_first_tiles
-from ..parallel.roles import Role, recv_bytes, send_bytes, split_roles, wait_all
+from ..parallel.roles import Role, recv_bytes, send_bytes, split_roles
 from .frameloop import FrameResult, image_diff
 from .roettger_draw import FanDrawer, gather_layers
 from .roettger_paper import PaperPortion, paper_layout
@@ -176,18 +176,18 @@ class RoettgerSystem:
         stats.count("store_bytes_read", self.bytes_read if self._first else 0)
         self._first = False
         with stats.stage("total"):
-            camera = comm.bcast(camera, root=0)
+            camera = self._camera(camera)
             tiles = _vis_tiles(cfg, len(self.vis_ranks), camera.width, camera.height)
-            msgs, c_used = ({}, None)
+            tile, c_used = None, None
             if rc.role == "computation":
                 msgs, c_used = self._compute(camera, tiles, stats)
-            sizes = comm.alltoall([(len(msgs.get(r, b"")), c_used) for r in range(comm.Get_size())])
-            reqs = send_bytes(comm, {v: np.frombuffer(m, np.uint8) for v, m in msgs.items() if m}, _TAG)
-            tile = None
-            if rc.role == "visualization":
+                heads = [comm.isend((len(msgs.get(v, b"")), c_used), dest=v, tag=_TAG + 1) for v in self.vis_ranks]
+                reqs = send_bytes(comm, {v: np.frombuffer(m, np.uint8) for v, m in msgs.items() if m}, _TAG)
+                with stats.stage("transfer"):
+                    _polite_wait(heads + reqs)
+            else:
+                sizes = {c: _polite_recv(comm, c, _TAG + 1) for c in self.comp_ranks}
                 tile, c_used = self._visualize(cfg, camera, tiles, sizes, stats)
-            with stats.stage("transfer"):
-                wait_all(reqs)
         result = FrameResult(stats, tile)
         if tile is not None:
             if sink is not None:
@@ -195,7 +195,29 @@ class RoettgerSystem:
             if cfg.reference:
                 ref = self._reference_image(camera, c_used, stats).crop(tile.viewport)
                 result.diff = image_diff(tile, ref)
+        self._frame_done()
         return result
+
+    # Waiting. A run often has more ranks than cores (4+1 on 2 cores here); an MPI wait spins
+    # a core, taking it from the ranks that work (the LOD, the draw). So T2 waits politely:
+    # the camera, the message sizes and the end of the frame travel as small point-to-point
+    # messages tested every 0.2 ms (a frame is 100 ms or more), and the run's own collectives
+    # (stats gathers) start when every rank is already there.
+    def _camera(self, camera: Camera | None) -> Camera:
+        """The visualization leader's camera on every rank."""
+        comm = self.comm
+        if comm.Get_rank() == 0:
+            _polite_wait([comm.isend(camera, dest=r, tag=_TAG + 2) for r in range(1, comm.Get_size())])
+            return camera
+        return _polite_recv(comm, 0, _TAG + 2)
+
+    def _frame_done(self) -> None:
+        """Computation ranks wait (politely) until the visualization leader has finished the frame."""
+        comm = self.comm
+        if comm.Get_rank() == 0:
+            _polite_wait([comm.isend(None, dest=c, tag=_TAG + 3) for c in self.comp_ranks])
+        elif self.rc.role == "computation":
+            _polite_recv(comm, 0, _TAG + 3)
 
     def _compute(self, camera: Camera, tiles: list[Viewport], stats: FrameStats) -> tuple[dict, float]:
         cfg = self.cfg
@@ -233,6 +255,7 @@ class RoettgerSystem:
             for (f, _), sels in zip(layers, zip(*vis)):
                 seen_any += f.take(np.logical_or.reduce(sels)).triangles()
         stats.count("fan_triangles", seen_any)
+        stats.triangles = seen_any  # T2's triangles are produced here (see _visualize)
         stats.count("roettger_c", params.c)
         return msgs, params.c
 
@@ -280,33 +303,81 @@ class RoettgerSystem:
         vp = tiles[v]
         layers = gather_layers([self.receivers[c].held for c in self.comp_ranks], self.infos)
         image = self._drawer.draw(camera, vp, layers, cfg.color_by_rank, stats)
+        # A frame's triangles are counted once, by the computation rank that produced them
+        # (``triangles`` per rank is the LOD's load; the run's sum is the scene's count, as in
+        # T1); what this rank drew is ``drawn_triangles``.
+        stats.count("drawn_triangles", stats.triangles)
+        stats.triangles = 0
         if cfg.wall:
             return image, c_used
         return deliver(rc.comm, image, [(0, camera.viewport)], stats, cfg.codec), c_used
 
     # -- reference ------------------------------------------------------------------------
     def _reference_image(self, camera: Camera, c: float, stats: FrameStats):
-        """The serial image: one rank runs the whole-DEM LOD (all portions) alone; its LOD
-        time is recorded as ``reference_lod_ms`` (the sequential baseline of §4.1)."""
+        """The serial image: one rank runs the whole-DEM LOD (all portions) alone and draws
+        every fan (no culling: the paper's sequential version). Its LOD time is recorded as
+        ``reference_lod_ms`` (the sequential baseline of §4.1), LOD + draw as ``reference_ms``
+        (Figure 6's sequential frame), both measured while the computation ranks sleep."""
         if self._reference is None:
             N = 2**self.depth0
             every = np.stack(np.meshgrid(np.arange(N), np.arange(N), indexing="ij"), -1).reshape(-1, 2)
             self._reference = [LayerPortion(i, every, self.depth0) for i in self.infos]
             self._owner = portion_owner(self.depth0, len(self.comp_ranks))
         params = self.params(camera, c)
-        layers = []
         t0 = time.perf_counter()
-        for p in self._reference:
-            fans, h = p.fans(p.select(camera.position, params))  # Morton order of the whole DEM
+        out = [p.fans(p.select(camera.position, params)) for p in self._reference]  # Morton order of the whole DEM
+        stats.count("reference_lod_ms", (time.perf_counter() - t0) * 1e3)
+        layers = []
+        for p, (fans, h) in zip(self._reference, out):
             shift = p.n - self.depth0
             row, col = fans.centre // p.info.index_dim, fans.centre % p.info.index_dim
             layers.append((fans.lengths, fans.index, h, self._owner[row >> shift, col >> shift]))
-        stats.count("reference_lod_ms", (time.perf_counter() - t0) * 1e3)
-        return self._drawer.draw(camera, camera.viewport, layers, self.cfg.color_by_rank, FrameStats(-1, 0))
+        image = self._drawer.draw(camera, camera.viewport, layers, self.cfg.color_by_rank, FrameStats(-1, 0))
+        stats.count("reference_ms", (time.perf_counter() - t0) * 1e3)
+        return image
+
+    def panel(self, records: list[dict]) -> dict:
+        """Per-rank figures of one frame for the viewer's panel (``records``: every rank's
+        FrameStats JSON): a table of strings, one row per rank."""
+        rows = []
+        V = len(self.vis_ranks)
+        for r in sorted(records, key=lambda r: r["rank"]):
+            c, t = r["counters"], r["times_ms"]
+            if r["rank"] in self.comp_ranks:
+                sent = ", ".join(_kb(c.get(f"bytes_to_vis_{v}", 0)) for v in range(V))
+                rows.append([str(r["rank"]), "computation", f"{t.get('lod', 0):.1f}", f"{c.get('fans', 0):.0f}",
+                             f"{r['triangles'] / 1e3:.1f}k", f"to vis {sent}"])
+            else:
+                rows.append([str(r["rank"]), "visualization", f"draw {t.get('draw', 0):.1f}", "",
+                             f"drew {c.get('drawn_triangles', 0) / 1e3:.1f}k", f"got {_kb(r['bytes_recv'])}"])
+        return {"title": "T2 per rank", "columns": ["rank", "role", "LOD ms", "fans", "triangles", "bytes"], "rows": rows}
 
     def close(self) -> None:
         if self._drawer is not None:
             self._drawer.release()
+
+
+def _polite_wait(reqs: list) -> None:
+    """Complete requests, sleeping 0.2 ms between tests instead of spinning."""
+    pending = list(reqs)
+    while pending:
+        pending = [r for r in pending if not r.Test()]
+        if pending:
+            time.sleep(2e-4)
+
+
+def _polite_recv(comm, source: int, tag: int):
+    """A small pickled message from ``source``, received without spinning."""
+    req = comm.irecv(source=source, tag=tag)
+    while True:
+        done, value = req.test()
+        if done:
+            return value
+        time.sleep(2e-4)
+
+
+def _kb(n: float) -> str:
+    return f"{n / 1e3:.1f} kB"
 
 
 def _empty(msg: bytes) -> bool:

@@ -4,10 +4,11 @@ A portion is a set of quadtree nodes at the partition depth ``depth0`` (a Morton
 :func:`massview.lod.roettger.portion_nodes`). :class:`LayerPortion` reads, windowed from the
 store, only the heights of its nodes (the level-0 M-blocks covering them) and the Röttger
 table of its nodes plus a one-node halo at every depth (to decide the shared edges), never
-the rest. Arrays are indexed globally (sample ``row · S + col``, node ``[r, c]``) but
-allocated lazily (``np.zeros``: untouched pages are never resident), so resident memory
-scales with the portion: about 1/C of the DEM per rank. The serial reference is the portion
-made of every node.
+the rest. Every array covers only the box of the portion's nodes (node tables: plus the
+halo) and is indexed with global coordinates (sample ``row · S + col``; node ``[r, c]``
+through :class:`NodeWindow`), so memory per rank scales with the portion: about 1/C of the
+DEM's bytes (``massview bench roettger --sections rss`` measures it on a 16385² store).
+The serial reference is the portion made of every node.
 
 Per frame: :meth:`LayerPortion.fans` = Röttger's selection under the portion's nodes
 (:func:`select_leaves`) and its fans with heights and bounding spheres.
@@ -24,7 +25,7 @@ from ..data.terrain import TerrainStore
 from ..data.terrain.roettger import RoettgerTable
 from ..lod.roettger import Fans, LodResult, RoettgerParams, emit_fans, node_ranges, select_leaves
 
-__all__ = ["LayerPortion", "LayerInfo", "range_pyramid"]
+__all__ = ["LayerPortion", "LayerInfo", "NodeWindow", "range_pyramid"]
 
 
 @dataclass(frozen=True)
@@ -79,8 +80,40 @@ def range_pyramid(h: np.ndarray, n: int, t0: int, tb: int) -> tuple[dict, dict]:
     return zmin, zmax
 
 
+class NodeWindow:
+    """A (rows, cols) float32 array of depth-``t`` node values covering global node rows
+    ``r0 ..`` and cols ``c0 ..``, indexed with global node coordinates: ``w[r, c]`` (r, c int
+    arrays). A computation rank keeps only its portion's box (plus a one-node halo) of every
+    depth, so its memory scales with the portion, not the DEM."""
+
+    __slots__ = ("a", "r0", "c0")
+
+    def __init__(self, r0: int, r1: int, c0: int, c1: int):
+        self.r0, self.c0 = r0, c0
+        self.a = np.zeros((r1 - r0, c1 - c0), np.float32)
+
+    def __getitem__(self, rc):
+        r, c = rc
+        return self.a[r - self.r0, c - self.c0]
+
+    def put(self, r0: int, c0: int, vals: np.ndarray) -> None:
+        """Write ``vals`` at global node (r0, c0) (clipped to the window)."""
+        a, b = r0 - self.r0, c0 - self.c0
+        h, w = vals.shape
+        ra, ca = max(a, 0), max(b, 0)
+        rb, cb = min(a + h, self.a.shape[0]), min(b + w, self.a.shape[1])
+        if ra < rb and ca < cb:
+            self.a[ra:rb, ca:cb] = vals[ra - a: rb - a, ca - b: cb - b]
+
+
 class LayerPortion:
-    """Heights, table windows and node height ranges of ``nodes`` (depth ``depth0``)."""
+    """Heights, table windows and node height ranges of ``nodes`` (depth ``depth0``).
+
+    Memory (float32): the heights of the nodes' bounding box ((P·k+1)² for k×k nodes of P
+    samples; 1/C of the DEM when C is a power of 4), the table over the same box plus a
+    one-node halo at every depth (< 1/3 of the heights), node ranges down to depth n-4
+    (1/256 of it); pages of the box outside the nodes are never written, so never resident.
+    Store blocks are read one at a time (each once) and copied in."""
 
     def __init__(self, info: LayerInfo, nodes: np.ndarray, depth0: int):
         n = info.n
@@ -91,56 +124,62 @@ class LayerPortion:
         store = TerrainStore(info.path)
         table = RoettgerTable(store)
         self.bytes_read = 0
-        P = 2 ** (n - depth0)  # heights of the portion's bounding box only (1/C of the DEM at C = 4^k)
-        self.r0, self.c0 = int(self.nodes[:, 0].min()) * P, int(self.nodes[:, 1].min()) * P
-        rows = (int(self.nodes[:, 0].max()) + 1) * P + 1 - self.r0
-        cols = (int(self.nodes[:, 1].max()) + 1) * P + 1 - self.c0
-        self.heights = np.zeros((rows, cols), np.float32)
+        self.P = P = 2 ** (n - depth0)
+        self.nr0, self.nc0 = int(self.nodes[:, 0].min()), int(self.nodes[:, 1].min())
+        self.nr1, self.nc1 = int(self.nodes[:, 0].max()) + 1, int(self.nodes[:, 1].max()) + 1
+        self.r0, self.c0 = self.nr0 * P, self.nc0 * P
+        self.heights = np.zeros(((self.nr1 - self.nr0) * P + 1, (self.nc1 - self.nc0) * P + 1), np.float32)
         self._read_heights(store)
         self.d2: list = [None] * (n - 1)
         for t in range(depth0, n - 1):
-            self.d2[t] = np.zeros((2**t, 2**t), np.float32)
             k = 2 ** (t - depth0)
+            w = self.d2[t] = self._window(t, halo=1)
             for r, c in self.nodes:
                 r0, c0 = r * k - 1, c * k - 1
-                w = table.window(t, r0, r0 + k + 2, c0, c0 + k + 2)
-                self.d2[t][max(r0, 0): max(r0, 0) + w.shape[0], max(c0, 0): max(c0, 0) + w.shape[1]] = w
+                for s in range(r0, r0 + k + 2, 256):  # strips: the read's temporary stays small
+                    w.put(max(s, 0), max(c0, 0), table.window(t, s, min(s + 256, r0 + k + 2), c0, c0 + k + 2))
         self.bytes_read += table.bytes_read
         self._ranges()
 
+    def _window(self, t: int, halo: int) -> NodeWindow:
+        """The node box of depth ``t`` under the portion's nodes, ``halo`` nodes wider (clipped)."""
+        k, N = 2 ** (t - self.depth0), 2**t
+        return NodeWindow(max(self.nr0 * k - halo, 0), min(self.nr1 * k + halo, N), max(self.nc0 * k - halo, 0),
+                          min(self.nc1 * k + halo, N))
+
     def _read_heights(self, store: TerrainStore) -> None:
-        M, P = store.layout.M, 2 ** (self.n - self.depth0)
-        span = M - 1
-        cache: dict = {}
-        for r, c in self.nodes:
-            r0, c0 = int(r) * P, int(c) * P
-            for bi in range(r0 // span, max((r0 + P - 1) // span, r0 // span) + 1):
-                for bj in range(c0 // span, max((c0 + P - 1) // span, c0 // span) + 1):
-                    if (bi, bj) not in cache:
-                        cache[(bi, bj)] = store.get_block(0, bi, bj)
-                        self.bytes_read += cache[(bi, bj)].nbytes
-                    b = cache[(bi, bj)]
-                    a0, a1 = max(r0, bi * span), min(r0 + P, bi * span + span) + 1
-                    e0, e1 = max(c0, bj * span), min(c0 + P, bj * span + span) + 1
-                    self.heights[a0 - self.r0:a1 - self.r0, e0 - self.c0:e1 - self.c0] = b[a0 - bi * span: a1 - bi * span, e0 - bj * span: e1 - bj * span]
-            if len(cache) > 64:
-                cache.clear()
+        """Copy the level-0 blocks overlapping the nodes (each read once, none kept)."""
+        span, P = store.layout.M - 1, self.P
+        nb = store.layout.blocks(0)
+        nr, nc = self.nodes[:, 0] * P, self.nodes[:, 1] * P  # node origins (samples)
+        for bi in range(self.r0 // span, min((self.r0 + self.heights.shape[0] - 2) // span + 1, nb)):
+            for bj in range(self.c0 // span, min((self.c0 + self.heights.shape[1] - 2) // span + 1, nb)):
+                y0, x0 = bi * span, bj * span
+                hit = (nr < y0 + span) & (nr + P > y0) & (nc < x0 + span) & (nc + P > x0)  # more than a border line
+                if not hit.any():
+                    continue
+                b = store.get_block(0, bi, bj)
+                self.bytes_read += b.nbytes
+                for r0, c0 in zip(nr[hit], nc[hit]):
+                    a0, a1 = max(r0, y0), min(r0 + P, y0 + span) + 1
+                    e0, e1 = max(c0, x0), min(c0 + P, x0 + span) + 1
+                    self.heights[a0 - self.r0:a1 - self.r0, e0 - self.c0:e1 - self.c0] = b[a0 - y0: a1 - y0, e0 - x0: e1 - x0]
 
     def _ranges(self) -> None:
         """Node min/max heights from depth ``tb`` = max(n-4, depth0) up to depth0 (finer
         leaves use their depth-tb ancestor's range: still a bounding range)."""
         n, t0 = self.n, self.depth0
         self.tb = tb = max(n - 4, t0)
-        self.zmin = {t: np.zeros((2**t, 2**t), np.float32) for t in range(t0, tb + 1)}
-        self.zmax = {t: np.zeros((2**t, 2**t), np.float32) for t in range(t0, tb + 1)}
-        P = 2 ** (n - t0)
+        self.zmin = {t: self._window(t, halo=0) for t in range(t0, tb + 1)}
+        self.zmax = {t: self._window(t, halo=0) for t in range(t0, tb + 1)}
+        P = self.P
         for r, c in self.nodes:
             a, b = r * P - self.r0, c * P - self.c0
             lo, hi = range_pyramid(self.heights[a: a + P + 1, b: b + P + 1], n - t0, 0, tb - t0)
             for t in range(t0, tb + 1):
                 m = 2 ** (t - t0)
-                self.zmin[t][r * m: r * m + m, c * m: c * m + m] = lo[t - t0]
-                self.zmax[t][r * m: r * m + m, c * m: c * m + m] = hi[t - t0]
+                self.zmin[t].put(r * m, c * m, lo[t - t0])
+                self.zmax[t].put(r * m, c * m, hi[t - t0])
 
     def zrange(self, t: np.ndarray, r: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         lo, hi = np.empty(len(t), np.float32), np.empty(len(t), np.float32)

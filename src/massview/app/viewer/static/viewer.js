@@ -63,6 +63,13 @@ function showStats(s) {
   $("imb").textContent = s.imbalance.toFixed(3);
   $("bytes").textContent = (s.bytes_per_frame / 1e6).toFixed(2) + " MB";
   if (s.m2) showReliefboards(s.m2);
+  if (s.panel) showPanel(s.panel);
+}
+
+function showPanel(p) {  // a system's own per-rank table (T2): {title, columns, rows of strings}
+  const t = $("sysrows"); t.hidden = false;
+  const cells = (tag, xs) => "<tr>" + xs.map((x) => `<${tag}>${String(x).replace(/[<>&]/g, "")}</${tag}>`).join("") + "</tr>";
+  t.innerHTML = `<caption>${p.title.replace(/[<>&]/g, "")}</caption>` + cells("th", p.columns) + p.rows.map((r) => cells("td", r)).join("");
 }
 
 function showReliefboards(m) {  // M2: requests in flight and the angle-error histogram
