@@ -50,7 +50,14 @@ def plant(tmp_path_factory):
 
 @pytest.mark.mpi
 def test_occlusion_culling_keeps_the_image_and_draws_fewer_triangles(tmp_path, plant):
-    on, recs = dmmr(tmp_path, 3, "--path", "walkthrough", scene=plant)
+    on, recs = dmmr(tmp_path, 3, "--path", "walkthrough", "--id-check", scene=plant, frames=4)
+    clients = [r for r in recs if r["rank"] > 0]
+    assert sorted((r["frame"], r["rank"]) for r in clients) == [(f, c) for f in range(4) for c in (1, 2)]
+    for r in clients:  # inside the MPI job, every frame, every client: ID-buffer visible ⊆ drawn
+        missed = set(r["idbuffer_ids"]) - set(r["drawn_ids"])
+        assert not missed and r["counters"]["idbuffer_missed"] == 0, (r["frame"], r["rank"], sorted(missed))
+        assert len(r["idbuffer_ids"]) == r["counters"]["idbuffer_visible"]
+    assert all(sum(len(r["idbuffer_ids"]) for r in clients if r["frame"] == f) > 0 for f in range(4))
     assert on["max_abs_diff"] == 0 and on["diff_fraction"] == 0.0  # equal to the reference: no culling, one rank
     server = [r for r in recs if r["rank"] == 0]
     reference_triangles = np.mean([r["counters"]["triangles_in_frustum"] for r in server])  # what the reference draws
@@ -60,6 +67,17 @@ def test_occlusion_culling_keeps_the_image_and_draws_fewer_triangles(tmp_path, p
     assert max(r["counters"].get("queries_issued", 0) for r in clients) > 1
     for r in clients:  # batched: one wait per frame however many queries (none when all are marked)
         assert r["counters"].get("query_waits", 0) == (1 if r["counters"].get("queries_issued", 0) else 0)
+
+
+@pytest.mark.mpi
+def test_id_check_reports_objects_a_lossy_query_threshold_culls(tmp_path):
+    """The check can fail: with --query-threshold 100 boxes showing fewer pixels are culled,
+    and the clients' ID buffers find some of those objects visible."""
+    _, recs = dmmr(tmp_path, 3, "--id-check", "--query-threshold", "100", frames=2)
+    clients = [r for r in recs if r["rank"] > 0]
+    missed = [len(set(r["idbuffer_ids"]) - set(r["drawn_ids"])) for r in clients]
+    assert [r["counters"]["idbuffer_missed"] for r in clients] == missed
+    assert min(missed) > 0
 
 
 @pytest.mark.mpi

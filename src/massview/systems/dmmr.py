@@ -183,7 +183,7 @@ class DmmrSystem:
             with v.stats.stage("send"):
                 link.send_image(payload)
             v.stats.bytes_sent += len(payload)
-            records.append(v.stats.to_json())
+            records.append({**v.stats.to_json(), **v.ids})
             if f == nframes - 1:
                 client.release_render()
 
