@@ -92,7 +92,7 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
                     "imbalance": (max(tri) / mean) if mean > 0 else 1.0, "bytes_per_frame": sum(r["bytes_sent"] for r in recs),
                     "decomposition": fcfg.decomposition, "compositor": fcfg.compositor, "tau": fcfg.tau,
                     "color_by_rank": fcfg.color_by_rank, "position": state.position(), "rejected": state.rejected,
-                    "clients": server.clients})
+                    "clients": server.clients, **({"system": system.panel(recs)} if hasattr(system, "panel") else {})})
                 if server.clients == 0:
                     time.sleep(0.05)  # nobody watching: keep the ranks idle-ish, stay responsive
             frame += 1

@@ -51,6 +51,7 @@ from ..render.geometry_cache import packed_loader
 from ..render.meshes import rank_tint
 from .dmmr_client import ClientTask, DmmrClient, SceneDrawer
 from .dmmr_links import ROLES, LocalLink, MpiLink
+from .dmmr_panel import panel_rows
 from .dmmr_scene import open_scene
 from .frameloop import image_diff
 
@@ -301,10 +302,17 @@ class DmmrSystem:
             cst.bytes_sent += len(payload)
             if role == "client":
                 return FrameResult(cst, None)
+            self._panel_clients = [{**cst.to_json(), "rank": 1}]
         full = self._assemble(camera, self._clients, link, fr[1])
         fr[1].times_ms["total"] = (time.perf_counter() - t0) * 1e3
         st, diff = self._finish(frame, camera, cfg, fr, full, sink)
         return FrameResult(st, full, diff)
+
+    def panel(self, records: list[dict]) -> dict[str, str]:
+        """The viewer panel's M1 rows for one frame's gathered records (rank 0 first)."""
+        server = next((r for r in records if r["rank"] == 0), {})
+        clients = sorted((r for r in records if r["rank"] > 0), key=lambda r: r["rank"]) or getattr(self, "_panel_clients", [])
+        return panel_rows(server, clients)
 
     # -- the one-rank reference ---------------------------------------------------------
     def render_reference(self, camera: Camera, vis: np.ndarray | None = None, lv: np.ndarray | None = None) -> Image:

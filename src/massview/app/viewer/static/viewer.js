@@ -63,6 +63,12 @@ function showStats(s) {
   $("imb").textContent = s.imbalance.toFixed(3);
   $("bytes").textContent = (s.bytes_per_frame / 1e6).toFixed(2) + " MB";
   if (s.m2) showReliefboards(s.m2);
+  if (s.system) showSystemRows(s.system);
+}
+
+function showSystemRows(rows) {  // a system's own figures ({label: text}, e.g. M1's), one line each
+  const box = $("sysrows"); box.hidden = false; box.replaceChildren();
+  for (const [k, v] of Object.entries(rows)) { const d = document.createElement("div"); d.textContent = k + ": " + v; box.append(d); }
 }
 
 function showReliefboards(m) {  // M2: requests in flight and the angle-error histogram
