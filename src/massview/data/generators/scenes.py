@@ -368,9 +368,9 @@ def generate_scene(kind: str, out, copies: int = 1, size: float = 1.0, seed: int
     shapes (node count and hierarchy unchanged). Returns the store attributes."""
     if copies < 1:
         raise ConfigError(f"--copies must be at least 1, got {copies}")
-    nodes, extent = scene_nodes(kind, size, seed)
     if not (math.isfinite(detail) and detail > 0):
         raise ConfigError(f"--detail must be a positive number, got {detail}")
+    nodes, extent = scene_nodes(kind, size, seed)
     params = {"generator": kind, "copies": int(copies), "size": float(size), "seed": int(seed), "simplifier": backend}
     if detail != 1.0:
         params["detail"] = float(detail)
