@@ -3,10 +3,8 @@ clients), headless Chromium; the panel shows the system's figures."""
 
 import os
 import re
-import signal
 import subprocess
 import sys
-import time
 
 import pytest
 
