@@ -209,6 +209,8 @@ def _tables(args, results: dict) -> None:
                 scene = _scene(args, kind, k)
                 print(_describe(scene), flush=True)
                 cases[k] = _job(args, scene, n, "table", "--record-ids")
+            if not cases:
+                continue
             key = f"{'plants' if kind == 'plant' else 'cities'}_{n}"
             name = {"plants_2": "Table 1", "plants_4": "Table 2", "cities_4": "Table 3"}.get(key, "table")
             _table(f"{name}-like: {kind} copies on {n} clients, {args.size}, {args.frames} frames of {args.path}", cases, PAPER.get(key, {}))
