@@ -50,7 +50,14 @@ def plant(tmp_path_factory):
 
 @pytest.mark.mpi
 def test_occlusion_culling_keeps_the_image_and_draws_fewer_triangles(tmp_path, plant):
-    on, recs = dmmr(tmp_path, 3, "--path", "walkthrough", scene=plant)
+    on, recs = dmmr(tmp_path, 3, "--path", "walkthrough", "--id-check", scene=plant, frames=4)
+    clients = [r for r in recs if r["rank"] > 0]
+    assert sorted((r["frame"], r["rank"]) for r in clients) == [(f, c) for f in range(4) for c in (1, 2)]
+    for r in clients:  # inside the MPI job, every frame, every client: ID-buffer visible ⊆ drawn
+        missed = set(r["idbuffer_ids"]) - set(r["drawn_ids"])
+        assert not missed and r["counters"]["idbuffer_missed"] == 0, (r["frame"], r["rank"], sorted(missed))
+        assert len(r["idbuffer_ids"]) == r["counters"]["idbuffer_visible"]
+    assert all(sum(len(r["idbuffer_ids"]) for r in clients if r["frame"] == f) > 0 for f in range(4))
     assert on["max_abs_diff"] == 0 and on["diff_fraction"] == 0.0  # equal to the reference: no culling, one rank
     server = [r for r in recs if r["rank"] == 0]
     reference_triangles = np.mean([r["counters"]["triangles_in_frustum"] for r in server])  # what the reference draws
@@ -60,6 +67,17 @@ def test_occlusion_culling_keeps_the_image_and_draws_fewer_triangles(tmp_path, p
     assert max(r["counters"].get("queries_issued", 0) for r in clients) > 1
     for r in clients:  # batched: one wait per frame however many queries (none when all are marked)
         assert r["counters"].get("query_waits", 0) == (1 if r["counters"].get("queries_issued", 0) else 0)
+
+
+@pytest.mark.mpi
+def test_id_check_reports_objects_a_lossy_query_threshold_culls(tmp_path):
+    """The check can fail: with --query-threshold 100 boxes showing fewer pixels are culled,
+    and the clients' ID buffers find some of those objects visible."""
+    _, recs = dmmr(tmp_path, 3, "--id-check", "--query-threshold", "100", frames=2)
+    clients = [r for r in recs if r["rank"] > 0]
+    missed = [len(set(r["idbuffer_ids"]) - set(r["drawn_ids"])) for r in clients]
+    assert [r["counters"]["idbuffer_missed"] for r in clients] == missed
+    assert min(missed) > 0
 
 
 @pytest.mark.mpi
@@ -140,3 +158,47 @@ def test_frame_at_a_time_path_for_the_viewer_matches_the_reference():
             assert res.stats.counters["objects_in_frustum"] > 0
     finally:
         sys_.close()
+
+
+def test_async_loading_draws_what_is_resident_then_converges_and_fills_the_viewer_panel():
+    """--loading async (the viewer's default): the first frame defers every mesh to the
+    background loaders and draws nothing missing; a static camera then fills in until
+    nothing is deferred and the image equals the reference. The panel rows carry M1's figures."""
+    import time
+
+    from massview.parallel.runtime import self_comm
+
+    cfg = RenderConfig(width=240, height=180, system="dmmr", reference=True, gpu_mb=64, client_cache_mb=32, loading="async")
+    sys_ = DmmrSystem("builtin:objects?n=200&seed=2", cfg)
+    try:
+        comm = self_comm()
+        cam = load_path("turn", *sys_.bounds).cameras(1, 240, 180)[0]
+        res = sys_.render_frame(comm, cfg, cam, 0)
+        c0 = sys_._panel_clients[0]["counters"]
+        assert c0["deferred"] > 0 and c0["objects_drawn"] < res.stats.counters["objects_sent"]
+        assert res.diff[0] > 0  # something is still loading
+        for f in range(1, 400):  # bounded by frames, not time: the loaders finish long before
+            res = sys_.render_frame(comm, cfg, cam, f)
+            if sys_._panel_clients[0]["counters"]["deferred"] == 0:
+                break
+            time.sleep(0.01)
+        assert sys_._panel_clients[0]["counters"]["deferred"] == 0 and res.diff[0] == 0
+        rows = dict(sys_.panel([{**res.stats.to_json(), "rank": 0}])["rows"])
+        assert rows["M1 objects in frustum / sent"] == f"{res.stats.counters['objects_in_frustum']} / {res.stats.counters['objects_sent']}"
+        for label in ("occlusion queries / culled", "cache GPU hits/RAM hits/disk loads", "deferred (loading) / drawn coarser",
+                      "bytes uploaded / sent", "ms divide · visibility · render · assemble"):
+            assert label in rows
+    finally:
+        sys_.close()
+
+
+def test_generator_detail_scales_triangles_and_keeps_the_nodes():
+    """bench dmmr scales a copy's triangles to the machine with --detail; the nodes (the
+    paper's 20 000 a plant, 8 levels of hierarchy) do not depend on it."""
+    from massview.data.generators.scenes import _shape_parts, generate_scene
+
+    for key in (("pipe", 0.2, 3.0), ("tank", 4.0, 1.1), ("elbow", 0.2, 0.6), ("dome", 3.0)):
+        tris = [sum(len(part[0][1]) for part in _shape_parts(key, d)) for d in (1.0, 0.5)]
+        assert tris[1] <= 0.5 * tris[0], key
+    with pytest.raises(ConfigError, match="--detail"):
+        generate_scene("plant", "/nonexistent/never-written.zarr", detail=0)

@@ -22,3 +22,8 @@ def add_dmmr_args(p: argparse.ArgumentParser) -> None:
                    help="dmmr: divide frame i, cull i-1, render i-2 concurrently (default on); off = synchronous")
     g.add_argument("--client-cache-mb", type=int, default=None, help="dmmr: client RAM cache, MiB (default: the scene's object bytes / clients)")
     g.add_argument("--stage-delay", default=None, help=argparse.SUPPRESS)
+    g.add_argument("--record-ids", action="store_true", default=None,
+                   help="dmmr: each client's stats record lists the object ids it drew (drawn_ids)")
+    g.add_argument("--id-check", action="store_true", default=None,
+                   help="dmmr: clients also render an ID buffer of every object in their sub-frustum and record the ids it "
+                        "shows (idbuffer_ids) and how many of them were not drawn (counter idbuffer_missed): the occlusion-culling check")

@@ -70,6 +70,8 @@ class RenderConfig:
     stage_pipeline: str = "on"  # dmmr: divide i / visibility i-1 / render i-2 concurrently, or "off"
     client_cache_mb: int | None = None  # dmmr: client RAM cache (default: scene object bytes / clients)
     stage_delay: str | None = None  # testing aid: "divide:MS,visibility:MS,render:MS" sleeps per stage
+    record_ids: bool = False  # dmmr: each client record lists the object ids it drew ("drawn_ids")
+    id_check: bool = False  # dmmr: clients also render an ID buffer of their sub-frustum ("idbuffer_ids", "idbuffer_missed")
 
     def __post_init__(self) -> None:
         if self.frames < 1:

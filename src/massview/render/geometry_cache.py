@@ -13,8 +13,10 @@ GPU buffers ← RAM ← disk, least recently used out at both upper levels, budg
 (the paper's "load geometry to render"): meshes already on the GPU are reused (a static
 camera uploads nothing on its second frame), the others come from RAM, and RAM misses are
 all requested at once (the cache's worker threads read them in parallel) and awaited. The
-frame waits for its geometry, so what is drawn is exactly the visible list. Counters per call:
-hits and loads per level, bytes uploaded and read from disk.
+frame waits for its geometry, so what is drawn is exactly the visible list. With
+``wait=False`` (``--loading async``) only what RAM already holds is uploaded; the rest is
+requested from the workers and left loading (``deferred``): the caller draws what is resident.
+Counters per call: hits and loads per level, bytes uploaded and read from disk.
 """
 
 from __future__ import annotations
@@ -33,7 +35,8 @@ __all__ = ["CacheCounts", "GeometryCache", "packed_loader"]
 @dataclass(frozen=True)
 class CacheCounts:
     """One ``ensure`` call: meshes found on the GPU, found in RAM, read from disk; bytes
-    uploaded to the GPU and read from disk; evictions at both levels."""
+    uploaded to the GPU and read from disk; evictions at both levels; meshes left loading in
+    the background (``wait=False`` only)."""
 
     gpu_hits: int
     ram_hits: int
@@ -42,6 +45,7 @@ class CacheCounts:
     bytes_from_disk: int
     gpu_evictions: int
     ram_evictions: int
+    deferred: int = 0
 
     def to_counters(self, prefix: str = "") -> dict:
         return {prefix + k: v for k, v in self.__dict__.items()}
@@ -63,8 +67,9 @@ class GeometryCache:
     def __init__(self, pool: MeshPool, ram: BlockCache, timeout: float = 120.0):
         self.pool, self.ram, self.timeout = pool, ram, timeout
 
-    def ensure(self, keys) -> CacheCounts:
-        """Make every ``(geometry, level)`` of ``keys`` resident in the GPU pool."""
+    def ensure(self, keys, wait: bool = True, priority: float = 1.0) -> CacheCounts:
+        """Make every ``(geometry, level)`` of ``keys`` resident in the GPU pool; with
+        ``wait=False`` only those in RAM, requesting the others at ``priority`` (higher first)."""
         keys = list(dict.fromkeys((int(g), int(lv)) for g, lv in keys))
         keep = set(keys)
         pool, ram = self.pool, self.ram
@@ -76,10 +81,12 @@ class GeometryCache:
         held = {k: v for k, v in held.items() if v is not None}
         for k in missing:
             if k not in held:
-                ram.request(k, float("inf"))  # all at once: the workers read them in parallel
+                ram.request(k, float("inf") if wait else priority)  # all at once: the workers read them in parallel
         uploaded = 0
         for k in missing:
             packed = held.get(k)
+            if packed is None and not wait:
+                continue
             if packed is None:
                 packed = ram.get_blocking(k, self.timeout)
             if not pool.upload(k, packed, keep):
@@ -87,7 +94,8 @@ class GeometryCache:
                                   f"{len(keys)} meshes); raise --gpu-mb")
             uploaded += int(packed.nbytes) - 16
         return CacheCounts(len(keys) - len(missing), len(held), ram.counters["loads"] - loads0, uploaded,
-                           ram.counters["bytes_loaded"] - disk0, pool.evictions - gpu_ev0, ram.counters["evictions"] - ram_ev0)
+                           ram.counters["bytes_loaded"] - disk0, pool.evictions - gpu_ev0, ram.counters["evictions"] - ram_ev0,
+                           0 if wait else len(missing) - len(held))
 
     def stored_bytes(self, key) -> bytes:
         """The bytes the GPU pool holds for ``key`` (vertices then indices), read back."""

@@ -18,7 +18,9 @@ in front of the near plane are clipped and must not be queried
 (:func:`massview.lod.visibility.boxes_reach_near` sorts them out first).
 
 :class:`IdBuffer` is the test oracle: it draws objects with their ids as colours and returns
-the ids that own at least one pixel of a viewport.
+the ids that own at least one pixel of a viewport. :class:`SceneIdBuffer` does the same over
+a scene's GL mesh pool (the meshes and levels a client renders), so the running M1 system can
+check its own culling (``--id-check``).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ import numpy as np
 from ..core.camera import Camera, Viewport
 from .context import load_shader
 
-__all__ = ["QueryResult", "OcclusionQuerier", "IdBuffer", "box_vertices"]
+__all__ = ["QueryResult", "OcclusionQuerier", "IdBuffer", "SceneIdBuffer", "box_vertices"]
 
 # 12 triangles over the 8 corners; corner c has x = hi if c & 1, y = hi if c & 2, z = hi if c & 4
 _BOX_TRIANGLES = np.array([
@@ -208,3 +210,67 @@ class IdBuffer:
     def release(self) -> None:
         for o in (self._vao, self._ibo, self._vbo, self.prog):
             o.release()
+
+
+_ID_INSTANCE = np.dtype([("m", "<f4", 16), ("id", "<f4")])
+
+
+class SceneIdBuffer:
+    """The ID-buffer oracle over a :class:`~massview.render.scene.MeshPool`: objects drawn
+    at the levels a frame renders, with their world matrices, camera-relative as
+    :class:`~massview.render.scene.SceneRenderer` draws them, depth test ``<`` in id order."""
+
+    def __init__(self, ctx: moderngl.Context, pool):
+        self.ctx, self.pool = ctx, pool
+        self.prog = ctx.program(vertex_shader=load_shader("scene_id.vert.glsl"), fragment_shader=load_shader("scene_id.frag.glsl"))
+
+    def visible(self, camera: Camera, vp: Viewport, ids: np.ndarray, geometry: np.ndarray, level: np.ndarray,
+                model: np.ndarray) -> np.ndarray:
+        """Sorted ``ids`` ((k,) int, < 2^24 − 1) whose mesh ``(geometry, level)`` (resident in the
+        pool) with world matrix ``model`` ((k, 4, 4) float64) owns a pixel of ``vp``."""
+        order = np.argsort(np.asarray(ids, np.int64), kind="stable")
+        ids, geometry, level, model = np.asarray(ids)[order], np.asarray(geometry)[order], np.asarray(level)[order], np.asarray(model)[order]
+        k, p = len(ids), self.pool
+        if k == 0 or vp.empty:
+            return np.zeros(0, np.int64)
+        if not p.resident[geometry, level].all():
+            raise RuntimeError("SceneIdBuffer: every mesh must be resident in the GL pool")
+        eye = np.asarray(camera.position, np.float64)
+        rel = np.array(model, np.float64)
+        rel[:, :3, 3] -= eye
+        inst = np.empty(k, _ID_INSTANCE)
+        inst["m"] = rel.transpose(0, 2, 1).reshape(k, 16)
+        inst["id"] = ids + 1
+        cmds = np.stack([p.index_count[geometry, level], np.ones(k), p.first_index[geometry, level],
+                         p.base_vertex[geometry, level], np.arange(k)], 1).astype(np.uint32)
+        shift = np.eye(4)
+        shift[:3, 3] = eye
+        return self._draw_read(camera, vp, inst, cmds, camera.view_projection() @ shift)
+
+    def _draw_read(self, camera, vp, inst, cmds, vp_matrix) -> np.ndarray:
+        ctx = self.ctx
+        ib, cb = ctx.buffer(inst.tobytes()), ctx.buffer(cmds.tobytes())
+        vao = ctx.vertex_array(self.prog, [(self.pool.buffer, "3f 12x", "in_pos"), (ib, "4f 4f 4f 4f 1f/i", "in_m0", "in_m1", "in_m2", "in_m3", "in_id")],
+                               index_buffer=self.pool.buffer, index_element_size=4)
+        color = ctx.renderbuffer((camera.width, camera.height), 4, dtype="f1")
+        depth = ctx.depth_renderbuffer((camera.width, camera.height))
+        fbo = ctx.framebuffer(color_attachments=[color], depth_attachment=depth)
+        try:
+            fbo.use()
+            ctx.scissor = None
+            fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            ctx.enable(moderngl.DEPTH_TEST)
+            ctx.disable(moderngl.CULL_FACE)
+            ctx.depth_func = "<"
+            self.prog["u_vp"].write(np.ascontiguousarray(vp_matrix.T, dtype="f4").tobytes())
+            vao.render_indirect(cb, mode=moderngl.TRIANGLES, count=len(cmds))
+            raw = fbo.read(viewport=_scissor(camera, vp), components=4, dtype="f1")
+        finally:
+            for o in (fbo, color, depth, vao, ib, cb):
+                o.release()
+        px = np.frombuffer(raw, np.uint8).reshape(-1, 4).astype(np.int64)
+        found = px[:, 0] | (px[:, 1] << 8) | (px[:, 2] << 16)
+        return np.unique(found[found > 0]) - 1
+
+    def release(self) -> None:
+        self.prog.release()

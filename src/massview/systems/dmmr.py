@@ -51,6 +51,7 @@ from ..render.geometry_cache import packed_loader
 from ..render.meshes import rank_tint
 from .dmmr_client import ClientTask, DmmrClient, SceneDrawer
 from .dmmr_links import ROLES, LocalLink, MpiLink
+from .dmmr_panel import panel_rows
 from .dmmr_scene import open_scene
 from .frameloop import image_diff
 
@@ -183,7 +184,7 @@ class DmmrSystem:
             with v.stats.stage("send"):
                 link.send_image(payload)
             v.stats.bytes_sent += len(payload)
-            records.append(v.stats.to_json())
+            records.append({**v.stats.to_json(), **v.ids})
             if f == nframes - 1:
                 client.release_render()
 
@@ -301,10 +302,19 @@ class DmmrSystem:
             cst.bytes_sent += len(payload)
             if role == "client":
                 return FrameResult(cst, None)
+            self._panel_clients = [{**cst.to_json(), "rank": 1}]
         full = self._assemble(camera, self._clients, link, fr[1])
         fr[1].times_ms["total"] = (time.perf_counter() - t0) * 1e3
         st, diff = self._finish(frame, camera, cfg, fr, full, sink)
         return FrameResult(st, full, diff)
+
+    def panel(self, records: list[dict]) -> dict:
+        """The viewer panel's M1 table for one frame's gathered records (rank 0 first): the
+        viewer's generic ``{title, columns, rows}`` form, one row per figure (values per client)."""
+        server = next((r for r in records if r["rank"] == 0), {})
+        clients = sorted((r for r in records if r["rank"] > 0), key=lambda r: r["rank"]) or getattr(self, "_panel_clients", [])
+        rows = panel_rows(server, clients)
+        return {"title": "M1 (dmmr), per client", "columns": ["figure", "value"], "rows": [[k, v] for k, v in rows.items()]}
 
     # -- the one-rank reference ---------------------------------------------------------
     def render_reference(self, camera: Camera, vis: np.ndarray | None = None, lv: np.ndarray | None = None) -> Image:

@@ -36,7 +36,7 @@ from ..lod.visibility import VisibilityState, boxes_reach_near
 from ..parallel.codec import encode_image
 from ..render.context import create_context
 from ..render.geometry_cache import GeometryCache, packed_loader
-from ..render.queries import OcclusionQuerier
+from ..render.queries import OcclusionQuerier, SceneIdBuffer
 from ..render.scene import MeshPool, SceneRenderer
 from ..render.view import ViewRenderer
 
@@ -62,6 +62,7 @@ class Visible:
     task: ClientTask
     keep: np.ndarray
     stats: FrameStats = field(repr=False, default=None)
+    ids: dict = field(repr=False, default_factory=dict)  # --record-ids / --id-check: lists for the record
 
 
 def normal_matrices(model: np.ndarray) -> np.ndarray:
@@ -124,6 +125,7 @@ class DmmrClient:
         self.state = VisibilityState(len(self.box_lo), cfg.visible_frames)
         self._vis: tuple[SceneDrawer, OcclusionQuerier] | None = None
         self._ren: SceneDrawer | None = None
+        self._ids: SceneIdBuffer | None = None
 
     def _vis_gl(self):
         if self._vis is None:
@@ -146,8 +148,8 @@ class DmmrClient:
             pos = np.searchsorted(items, plan.depth_pass)
             lv = task.levels[pos] if self.cfg.occluder_lod == "exact" else self.coarsest[plan.depth_pass]
             with stats.stage("vis_load"):
-                c = drawer.ensure(plan.depth_pass, lv)
-            res = querier.test(cam, task.viewport, drawer.draw_fn(cam, plan.depth_pass, lv),
+                occ, lv, c, _ = self._resident(drawer, plan.depth_pass, lv, exact=True)
+            res = querier.test(cam, task.viewport, drawer.draw_fn(cam, occ, lv),
                                self.box_lo[plan.query], self.box_hi[plan.query], self.cfg.query_threshold)
             visible = self.state.finish(plan, res.passed)
         stats.times_ms["vis_issue"] = res.issue_ms
@@ -166,12 +168,17 @@ class DmmrClient:
             self._ren = SceneDrawer(self.sk, self.ram, self.cfg.gpu_mb << 20, self.cfg.egl_device)
         d, task = self._ren, vis.task
         obj, lv = task.items[vis.keep], task.levels[vis.keep]
-        stats.count("objects_drawn", len(obj))
         with d.ctx:
             t0 = time.perf_counter()
-            c = d.ensure(obj, lv)
+            obj, lv, c, coarser = self._resident(d, obj, lv, exact=False)
             stats.times_ms["load"] = (time.perf_counter() - t0) * 1e3
             img = d.view.render(task.camera, task.viewport, d.draw_fn(task.camera, obj, lv, tint), stats)
+            if self.cfg.id_check:
+                vis.ids["idbuffer_ids"] = self._id_check(d, task, obj, stats)
+        stats.count("objects_drawn", len(obj))
+        stats.count("drawn_coarser", coarser)
+        if self.cfg.record_ids or self.cfg.id_check:
+            vis.ids["drawn_ids"] = obj.tolist()
         for k, v in c.to_counters().items():
             stats.count(k, v)
         stats.count("ram_resident_bytes", self.ram.resident_bytes)
@@ -179,6 +186,41 @@ class DmmrClient:
         with stats.stage("encode"):
             payload = encode_image(img, self.cfg.codec)
         return img, payload
+
+    def _resident(self, d: SceneDrawer, obj: np.ndarray, lv: np.ndarray, exact: bool):
+        """What to draw of objects ``obj`` at levels ``lv``: (objects, levels, CacheCounts,
+        drawn at a coarser level). ``--loading complete``: all of them, the frame waits for its
+        loads. ``async``: the resident ones; the others are requested in the background (their
+        coarsest level first) and meanwhile drawn at the finest coarser resident level — or,
+        with ``exact`` (occluders: a coarser mesh may hide what the exact one shows), left out."""
+        if self.cfg.loading == "complete" or len(obj) == 0:
+            return obj, lv, d.ensure(obj, lv), 0
+        g = d.geometry[obj]
+        gone = ~d.pool.resident[g, lv]
+        first = np.stack([g[gone], self.coarsest[obj[gone]]], 1).tolist()  # coarsest first: something to show soon
+        c = d.cache.ensure([*map(tuple, first), *zip(g.tolist(), np.asarray(lv).tolist())], wait=False)
+        res = d.pool.resident[g, lv]
+        lv, coarser = np.array(lv, np.int64), 0
+        if not exact and not res.all():
+            miss = np.flatnonzero(~res)
+            rows = d.pool.resident[g[miss]] & (np.arange(d.pool.resident.shape[1])[None] > lv[miss][:, None])
+            has = rows.any(1)
+            lv[miss[has]] = rows.argmax(1)[has]
+            res[miss[has]] = True
+            coarser = int(has.sum())
+        return obj[res], lv[res], c, coarser
+
+    def _id_check(self, d: SceneDrawer, task: ClientTask, drawn: np.ndarray, stats: FrameStats) -> list[int]:
+        """``--id-check``: an ID-buffer render of every object in the sub-frustum at the frame's
+        levels (loading them all); counts the objects it shows that were not drawn."""
+        with stats.stage("id_check"):
+            d.ensure(task.items, task.levels)
+            if self._ids is None:
+                self._ids = SceneIdBuffer(d.ctx, d.pool)
+            truth = self._ids.visible(task.camera, task.viewport, task.items, d.geometry[task.items], task.levels, d.model[task.items])
+        stats.count("idbuffer_visible", len(truth))
+        stats.count("idbuffer_missed", int(len(np.setdiff1d(truth, drawn))))
+        return truth.tolist()
 
     def release_visibility(self) -> None:
         """Free GPU 1's context (call on the thread that used it)."""
@@ -192,6 +234,10 @@ class DmmrClient:
     def release_render(self) -> None:
         """Free GPU 2's context (call on the thread that used it)."""
         if self._ren is not None:
+            if self._ids is not None:
+                with self._ren.ctx:
+                    self._ids.release()
+                self._ids = None
             self._ren.release()
             self._ren = None
 

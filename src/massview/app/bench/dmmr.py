@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .dmmr_path import PAPER
+
 __all__ = ["add_arguments", "run"]
 
 
@@ -40,62 +42,116 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plant-clients", default="2,4", help="client counts for the plant tables (default 2,4)")
     p.add_argument("--cities", default="16,25,36", help="city copies for Table 3 (default 16,25,36)")
     p.add_argument("--city-clients", default="4")
-    p.add_argument("--plant-size", type=float, default=1.0, help="size of one plant copy (generate scene --size)")
-    p.add_argument("--city-size", type=float, default=1.0, help="size of one city copy")
-    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--plant-size", type=float, default=1.0, help="size of one plant copy (generate scene --size; 1: 21 584 nodes)")
+    p.add_argument("--city-size", type=float, default=1.0, help="size of one city copy (1: 1100 nodes)")
+    p.add_argument("--plant-detail", type=float, default=0.5,
+                   help="tessellation of a plant copy (generate scene --detail; 0.5: 2.5 M triangles a copy, the paper's 12 M scaled to llvmpipe)")
+    p.add_argument("--city-detail", type=float, default=0.5, help="tessellation of a city copy (0.5: 1.36 M triangles a copy; the paper's 4.8 M)")
+    p.add_argument("--frames", type=int, default=300, help="frames of the walkthrough for Tables 1-3 (the paper: 300)")
+    p.add_argument("--compare-frames", type=int, default=None, help="frames for the comparisons (default: --frames)")
+    p.add_argument("--path", default="serpentine", help="serpentine (a sweep over every copy, default) or any --path of render")
     p.add_argument("--size", default="1280x1024")
     p.add_argument("--gpu-mb", type=int, default=512)
-    p.add_argument("--parts", default="tables,occlusion,split,pipeline,speedup")
+    p.add_argument("--items", "--parts", dest="parts", default="tables,occlusion,split,pipeline,speedup",
+                   help="what to run: tables (1-3), occlusion, split, pipeline, speedup (comma-separated)")
 
 
-def _scene(args, kind: str, copies: int, size: float) -> Path:
+def _scene(args, kind: str, copies: int) -> Path:
     from ...data.generators.scenes import generate_scene
 
-    out = Path(args.workdir) / f"{kind}_x{copies}_s{size:g}.zarr"
+    size, detail = (args.plant_size, args.plant_detail) if kind == "plant" else (args.city_size, args.city_detail)
+    out = Path(args.workdir) / f"{kind}_x{copies}_s{size:g}_d{detail:g}.zarr"
     if not (out / "zarr.json").exists() or not json.loads((out / "zarr.json").read_text()).get("attributes", {}).get("complete"):
         print(f"generating {out} ...", flush=True)
-        generate_scene(kind, out, copies=copies, size=size, seed=1)
+        generate_scene(kind, out, copies=copies, size=size, seed=1, detail=detail)
     return out
 
 
-def _job(args, scene: Path, clients: int, tag: str, *extra: str) -> dict | None:
+def _path_for(args, scene: Path) -> str:
+    """The serpentine sweep over the scene's copies (written beside the runs), or ``--path``."""
+    if args.path != "serpentine":
+        return args.path
+    from ...data.scene import SceneStore
+    from .dmmr_path import serpentine_path
+
+    s = SceneStore(scene)
+    lo, hi = s.bounds
+    out = Path(args.workdir) / "runs" / f"{scene.stem}_path.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return str(serpentine_path(out, lo, hi, int(s.attrs.get("copies", 1)), s.attrs.get("extent_per_copy", hi[:2] - lo[:2])))
+
+
+def _copies_seen(scene: Path, recs: list[dict]) -> tuple[int, int, int]:
+    """(copies, copies drawn on some frame, fewest frames any copy was drawn on)."""
+    from ...data.scene import SceneStore
+    from .dmmr_path import copy_of_objects
+
+    s = SceneStore(scene)
+    n = int(s.attrs.get("copies", 1))
+    cp = copy_of_objects(s.skeleton.center, s.bounds[0], n, s.attrs.get("extent_per_copy", (1e30, 1e30)))
+    frames = np.zeros(n, np.int64)
+    for f in sorted({r["frame"] for r in recs}):
+        ids = [i for r in recs if r["frame"] == f and r["rank"] > 0 for i in r.get("drawn_ids", [])]
+        frames[np.unique(cp[np.asarray(ids, np.int64)])] += 1
+    return n, int((frames > 0).sum()), int(frames.min())
+
+
+def _job(args, scene: Path, clients: int, tag: str, *extra: str, frames: int | None = None, ranks: int | None = None) -> dict | None:
+    """One ``massview render --system dmmr`` job on ``clients`` clients (+ the server), or on
+    ``ranks`` ranks (1: the server and one client in one process); its digest."""
+    import time
+
     from ...core.stats import read_stats
     from ...parallel.runtime import relaunch
 
     out = Path(args.workdir) / "runs" / f"{scene.stem}_c{clients}_{tag}"
-    argv = ["render", str(scene), "--system", "dmmr", "--path", "walkthrough", "--frames", str(args.frames),
+    argv = ["render", str(scene), "--system", "dmmr", "--path", _path_for(args, scene), "--frames", str(frames or args.frames),
             "--size", args.size, "--gpu-mb", str(args.gpu_mb), "--out", str(out), "-q", *extra]
-    if relaunch(argv, clients + 1) != 0:
+    t0 = time.perf_counter()
+    if relaunch(argv, ranks or clients + 1) != 0:
         print(f"  {tag}: render failed", flush=True)
         return None
-    return _digest(read_stats(out / "stats.jsonl"))
+    recs = read_stats(out / "stats.jsonl")
+    d = _digest(recs)
+    d["wall_s"] = time.perf_counter() - t0
+    if "--record-ids" in extra:
+        d["copies"], d["copies_seen"], d["min_frames_per_copy"] = _copies_seen(scene, recs)
+    print(f"  {scene.name} on {clients} client(s), {tag}: {frames or args.frames} frames in {d['wall_s']:.0f} s"
+          + (f"; copies drawn: {d['copies_seen']} of {d['copies']} (each on at least {d['min_frames_per_copy']} frames)"
+             if "copies" in d else ""), flush=True)
+    return d
 
 
 def _digest(recs: list[dict]) -> dict:
+    """Means over the frames: the server's period and modules, each client's modules."""
     server = [r for r in recs if r["rank"] == 0]
     clients = sorted({r["rank"] for r in recs if r["rank"] > 0})
     steady = server[2:] if len(server) > 4 else server
 
-    def cmean(rank, *keys):
-        return float(np.mean([sum(r["times_ms"].get(k, 0.0) for k in keys) for r in recs if r["rank"] == rank]))
+    def cmean(rank, *keys, counter=False):
+        rs = [r for r in recs if r["rank"] == rank]
+        return float(np.mean([sum((r["counters"] if counter else r["times_ms"]).get(k, 0.0) for k in keys) for r in rs]))
 
     per_client = {
         "enable_queries": [cmean(c, "vis_load", "vis_issue") for c in clients],
         "retrieve": [cmean(c, "vis_retrieve") for c in clients],
         "load": [cmean(c, "load") for c in clients],
         "render": [cmean(c, "draw", "readback") for c in clients],
-        "send": [cmean(c, "encode", "send") for c in clients],
+        "to_server": [cmean(c, "encode", "send") for c in clients],
+        "queries": [cmean(c, "queries_issued", counter=True) for c in clients],
+        "culled": [cmean(c, "culled_by_occlusion", counter=True) for c in clients],
+        "drawn": [cmean(c, "objects_drawn", counter=True) for c in clients],
         "triangles": [float(np.mean([r["triangles"] for r in recs if r["rank"] == c])) for c in clients],
     }
     return {
         "frame_ms": float(np.mean([r["times_ms"]["total"] for r in steady])),
-        "divide_ms": float(np.mean([r["times_ms"].get("divide", 0) for r in server])),
-        "send_ms": float(np.mean([r["times_ms"].get("send", 0) for r in server])),
-        "assemble_ms": float(np.mean([r["times_ms"].get("assemble", 0) for r in server])),
+        "divide": float(np.mean([r["times_ms"].get("divide", 0) for r in server])),
+        "send": float(np.mean([r["times_ms"].get("send", 0) for r in server])),
+        "assemble": float(np.mean([r["times_ms"].get("assemble", 0) for r in server])),
         "latency_ms": float(np.mean([r["counters"]["latency_ms"] for r in steady])),
         "latency_frames": int(max(r["counters"]["frames_in_flight"] for r in server)),
         "in_frustum": float(np.mean([r["counters"]["objects_in_frustum"] for r in server])),
-        "triangles": float(sum(np.mean([r["triangles"] for r in recs if r["rank"] == c]) for c in clients)),
+        "triangles": float(sum(per_client["triangles"])),
         "clients": per_client,
     }
 
@@ -104,21 +160,34 @@ def _fmt(v) -> str:
     return "/".join(f"{x:.1f}" for x in v)
 
 
-def _table(title: str, cases: dict) -> None:
-    print(f"\n{title}")
-    rows = [("frame time ms (period)", lambda d: f"{d['frame_ms']:.0f}"), ("latency ms / frames", lambda d: f"{d['latency_ms']:.0f} / {d['latency_frames']}"),
-            ("server: frustum division ms", lambda d: f"{d['divide_ms']:.2f}"), ("server: send to clients ms", lambda d: f"{d['send_ms']:.2f}"),
-            ("server: receive & assemble ms", lambda d: f"{d['assemble_ms']:.2f}"),
-            ("GPU1: enable occlusion queries ms", lambda d: _fmt(d["clients"]["enable_queries"])),
-            ("GPU1: retrieve query results ms", lambda d: _fmt(d["clients"]["retrieve"])),
-            ("GPU2: load geometry to render ms", lambda d: _fmt(d["clients"]["load"])),
-            ("GPU2: render (draw + read back) ms", lambda d: _fmt(d["clients"]["render"])),
-            ("GPU2: send to server ms", lambda d: _fmt(d["clients"]["send"])),
-            ("objects in frustum", lambda d: f"{d['in_frustum']:.0f}"), ("triangles drawn / frame", lambda d: f"{d['triangles'] / 1e6:.2f} M")]
-    names = list(cases)
-    print(" | ".join(["module"] + names))
-    for label, fn in rows:
-        print(" | ".join([label] + [fn(cases[n]) if cases[n] else "-" for n in names]))
+_ROWS = [("frame time (period)", "frame"), ("server: frustum division", "divide"), ("server: send to clients", "send"),
+         ("server: receive & assemble (decompress+paste)", "assemble"), ("GPU1: enable occlusion queries", "enable_queries"),
+         ("GPU1: retrieve query results", "retrieve"), ("GPU2: load geometry to render", "load"),
+         ("GPU2: render (draw + read back)", "render"), ("GPU2: send to server (compress + send)", "to_server")]
+
+
+def _table(title: str, cases: dict, paper: dict) -> None:
+    """Our means (ms) with the paper's figure for the same case in brackets."""
+    print(f"\n{title}  — ours [paper], ms")
+    print(" | ".join(["module"] + [f"{k} copies" for k in cases]))
+    for label, key in _ROWS:
+        cells = []
+        for k, d in cases.items():
+            if d is None:
+                cells.append("-")
+                continue
+            ours = d["frame_ms"] if key == "frame" else d[key] if key in d else d["clients"][key]
+            theirs = paper.get(k, {}).get(key)
+            text = _fmt(ours) if isinstance(ours, list) else f"{ours:.1f}"
+            ref = "" if theirs is None else f" [{_fmt(theirs) if isinstance(theirs, list) else theirs}]"
+            cells.append(text + ref)
+        print(" | ".join([label] + cells))
+    for label, fn in (("latency ms / frames in flight", lambda d: f"{d['latency_ms']:.0f} / {d['latency_frames']}"),
+                      ("objects in frustum", lambda d: f"{d['in_frustum']:.0f}"),
+                      ("queries / culled / drawn per client", lambda d: " ; ".join(_fmt(d["clients"][k]) for k in ("queries", "culled", "drawn"))),
+                      ("triangles drawn / frame", lambda d: f"{d['triangles'] / 1e6:.2f} M"),
+                      ("copies drawn (fewest frames a copy)", lambda d: f"{d.get('copies_seen', '?')}/{d.get('copies', '?')} ({d.get('min_frames_per_copy', '?')})")):
+        print(" | ".join([label] + [fn(d) if d else "-" for d in cases.values()]))
 
 
 def _describe(scene: Path) -> str:
@@ -131,62 +200,75 @@ def _describe(scene: Path) -> str:
             f"{int(sk.triangles[:, 0].sum()) // copies:,} triangles a copy, {int(s.groups.depth.max()) + 1} levels of hierarchy")
 
 
+def _tables(args, results: dict) -> None:
+    pcl = [int(v) for v in args.plant_clients.split(",") if v]
+    for kind, counts, clients in (("plant", args.plants, pcl), ("city", args.cities, [int(v) for v in args.city_clients.split(",") if v])):
+        for n in clients:
+            cases = {}
+            for k in (int(v) for v in counts.split(",") if v):
+                scene = _scene(args, kind, k)
+                print(_describe(scene), flush=True)
+                cases[k] = _job(args, scene, n, "table", "--record-ids")
+            if not cases:
+                continue
+            key = f"{'plants' if kind == 'plant' else 'cities'}_{n}"
+            name = {"plants_2": "Table 1", "plants_4": "Table 2", "cities_4": "Table 3"}.get(key, "table")
+            _table(f"{name}-like: {kind} copies on {n} clients, {args.size}, {args.frames} frames of {args.path}", cases, PAPER.get(key, {}))
+            results[key] = cases
+
+
 def run(args) -> int:
+    import time
+
+    t0 = time.perf_counter()
     parts = set(args.parts.split(","))
     plants = [int(v) for v in args.plants.split(",") if v]
-    pcl = [int(v) for v in args.plant_clients.split(",") if v]
-    results = {}
+    n = [int(v) for v in args.plant_clients.split(",") if v][-1]
+    results: dict = {}
     if "tables" in parts:
-        for n in pcl:
-            cases = {}
-            for k in plants:
-                scene = _scene(args, "plant", k, args.plant_size)
-                print(_describe(scene), flush=True)
-                cases[f"{k} plants"] = _job(args, scene, n, "table")
-            _table(f"Table {1 if n == 2 else 2}-like: plants on {n} clients, {args.size}, {args.frames} frames of walkthrough", cases)
-            results[f"plants_{n}_clients"] = cases
-        for n in (int(v) for v in args.city_clients.split(",") if v):
-            cases = {}
-            for k in (int(v) for v in args.cities.split(",") if v):
-                scene = _scene(args, "city", k, args.city_size)
-                print(_describe(scene), flush=True)
-                cases[f"{k} cities"] = _job(args, scene, n, "table")
-            _table(f"Table 3-like: cities on {n} clients", cases)
-            results[f"cities_{n}_clients"] = cases
-    scene, n = _scene(args, "plant", plants[0], args.plant_size), pcl[-1]
-    base = _job(args, scene, n, "table")
-    results["comparisons"] = _comparisons(args, parts, scene, n, base)
-    (Path(args.workdir) / "results.json").write_text(json.dumps(results, indent=1, default=float))
-    print(f"\nwrote {Path(args.workdir) / 'results.json'} (figures taken on a shared CPU: compare the ratios)")
+        _tables(args, results)
+    scene = _scene(args, "plant", plants[0])
+    if parts & {"occlusion", "split", "pipeline", "speedup"}:
+        base = _job(args, scene, n, "compare", frames=args.compare_frames)
+        results["comparisons"] = _comparisons(args, parts, scene, n, base)
+    out = Path(args.workdir) / "results.json"
+    out.write_text(json.dumps({str(k): v for k, v in results.items()}, indent=1, default=float))
+    print(f"\nwrote {out} in {time.perf_counter() - t0:.0f} s (figures taken on a shared CPU: compare the ratios)")
     return 0
 
 
 def _comparisons(args, parts: set, scene: Path, n: int, base: dict | None) -> dict:
-    out = {}
+    out: dict = {}
     if base is None:
         return out
-    print(f"\ncomparisons on {scene.name}, {n} clients")
-    if "occlusion" in parts and (off := _job(args, scene, n, "occl_off", "--occlusion", "off")):
+    fr = args.compare_frames
+    print(f"\ncomparisons on {scene.name}, {n} clients, {fr or args.frames} frames (ratios against the run with the defaults)")
+    if "occlusion" in parts and (off := _job(args, scene, n, "occl_off", "--occlusion", "off", frames=fr)):
         out["occlusion_off_over_on"] = {"triangles": off["triangles"] / max(base["triangles"], 1), "frame_time": off["frame_ms"] / base["frame_ms"]}
-        print(f"  occlusion culling off ÷ on: triangles {out['occlusion_off_over_on']['triangles']:.2f}×, frame time {out['occlusion_off_over_on']['frame_time']:.2f}×")
-    if "split" in parts and (grid := _job(args, scene, n, "grid", "--decomposition", "sort-first:grid")):
-        def imb(d):
-            r = np.asarray(d["clients"]["render"])
+        print(f"  occlusion culling off ÷ on: triangles {off['triangles'] / 1e6:.2f} M ÷ {base['triangles'] / 1e6:.2f} M = "
+              f"{out['occlusion_off_over_on']['triangles']:.2f}×, frame time {off['frame_ms']:.0f} ÷ {base['frame_ms']:.0f} ms = "
+              f"{out['occlusion_off_over_on']['frame_time']:.2f}×")
+    if "split" in parts and (grid := _job(args, scene, n, "grid", "--decomposition", "sort-first:grid", frames=fr)):
+        def imb(d, key="render"):
+            r = np.asarray(d["clients"][key])
             return float(r.max() / max(r.mean(), 1e-9))
-        out["render_imbalance"] = {"algorithm1": imb(base), "equal_tiles": imb(grid)}
-        print(f"  max ÷ mean client render time: Algorithm 1 {imb(base):.2f}, equal screen tiles {imb(grid):.2f}")
-    if "pipeline" in parts and (sync := _job(args, scene, n, "sync", "--stage-pipeline", "off")):
+        out["render_imbalance"] = {"algorithm1": imb(base), "equal_tiles": imb(grid),
+                                   "triangles_algorithm1": imb(base, "triangles"), "triangles_equal_tiles": imb(grid, "triangles")}
+        print(f"  max ÷ mean client render time: Algorithm 1 {imb(base):.2f}, equal screen tiles {imb(grid):.2f} "
+              f"(triangles: {imb(base, 'triangles'):.2f} vs {imb(grid, 'triangles'):.2f}); frame time {base['frame_ms']:.0f} vs {grid['frame_ms']:.0f} ms")
+    if "pipeline" in parts and (sync := _job(args, scene, n, "sync", "--stage-pipeline", "off", frames=fr)):
         out["pipeline"] = {"throughput_ratio": sync["frame_ms"] / base["frame_ms"], "latency_frames": [base["latency_frames"], sync["latency_frames"]],
                            "latency_ms": [base["latency_ms"], sync["latency_ms"]]}
-        print(f"  pipelined ÷ synchronous throughput {out['pipeline']['throughput_ratio']:.2f}×; latency {base['latency_frames']} vs "
-              f"{sync['latency_frames']} frames, {base['latency_ms']:.0f} vs {sync['latency_ms']:.0f} ms")
-    if "speedup" in parts and (one := _job(args, scene, 1, "one")):
-        out["speedup_vs_one_client"] = one["frame_ms"] / base["frame_ms"]
-        print(f"  speed-up of {n} clients over one client alone: {out['speedup_vs_one_client']:.2f}× (frame time {one['frame_ms']:.0f} vs {base['frame_ms']:.0f} ms)")
+        print(f"  pipelined ÷ synchronous throughput {out['pipeline']['throughput_ratio']:.2f}× ({base['frame_ms']:.0f} vs {sync['frame_ms']:.0f} ms a frame); "
+              f"latency {base['latency_frames']} vs {sync['latency_frames']} frames, {base['latency_ms']:.0f} vs {sync['latency_ms']:.0f} ms")
+    if "speedup" in parts and (one := _job(args, scene, 1, "one_rank", frames=fr, ranks=1)):
+        out["speedup_vs_one_rank"] = one["frame_ms"] / base["frame_ms"]
+        print(f"  speed-up of {n} clients over one rank alone (server and client in one process, same culling, LOD, caches): "
+              f"{out['speedup_vs_one_rank']:.2f}× (frame time {one['frame_ms']:.0f} vs {base['frame_ms']:.0f} ms) [paper: ~6× on 3 plants]")
     return out
 
 
-if __name__ == "__main__":  # until the bench registry wires it: python -m massview.app.bench.dmmr
+if __name__ == "__main__":  # python -m massview.app.bench.dmmr
     ap = argparse.ArgumentParser(prog="massview bench dmmr")
     add_arguments(ap)
     raise SystemExit(run(ap.parse_args()))

@@ -266,37 +266,41 @@ def _facade(w: float, h: float) -> list:
     return parts
 
 
-def _shape_parts(key: tuple) -> list:
-    """[(Part, colour or None (= the node's))] of a shape key, in the shape's own frame."""
+def _shape_parts(key: tuple, detail: float = 1.0) -> list:
+    """[(Part, colour or None (= the node's))] of a shape key, in the shape's own frame;
+    ``detail`` scales the tessellation counts of curved shapes (triangles ≈ detail² × at 1)."""
+    def n(c: int, least: int = 3) -> int:
+        return max(least, round(c * detail))
+
     k = key[0]
     if k == "box":
         return [(shapes.box((0, 0, 0), key[1:4]), None)]
     if k == "ibeam":
         return [(shapes.ibeam(key[1], 0.3, 0.2, 0.03, 0.02), None)]
     if k == "pipe":
-        return [(shapes.tube(key[2], key[1], 24, 8), None)]
+        return [(shapes.tube(key[2], key[1], n(24), n(8, 1)), None)]
     if k == "elbow":
-        return [(_elbow(key[1], key[2]), None)]
+        return [(_elbow(key[1], key[2], seg=n(24), sweep=n(12, 2)), None)]
     if k == "flange":
-        return [(shapes.tube(0.08, key[1] * 1.5, 24, 1), None)]
+        return [(shapes.tube(0.08, key[1] * 1.5, n(24), 1), None)]
     if k == "tank":
-        return [(shapes.tank(key[1], key[2], 64, 32), None)]
+        return [(shapes.tank(key[1], key[2], n(64), n(32, 2)), None)]
     if k == "facade":
         return _facade(key[1], key[2])
     if k == "dome":
         r = key[1]
-        return [(shapes.tube(r * 0.3, r, 96, 8), None), (shapes.orient(shapes.dome(r, 96, 48), (0, 0, 1), (0, 0, r * 0.3)), None)]
+        return [(shapes.tube(r * 0.3, r, n(96), n(8, 1)), None), (shapes.orient(shapes.dome(r, n(96), n(48, 2)), (0, 0, 1), (0, 0, r * 0.3)), None)]
     if k == "minaret":
         h = key[1]
-        return [(shapes.tube(h, 0.6, 48, 32), None), (shapes.orient(shapes.tube(0.15, 0.9, 48, 2), (0, 0, 1), (0, 0, h * 0.7)), None),
-                (shapes.orient(shapes.dome(0.7, 48, 24), (0, 0, 1), (0, 0, h)), (235, 228, 215))]
+        return [(shapes.tube(h, 0.6, n(48), n(32, 1)), None), (shapes.orient(shapes.tube(0.15, 0.9, n(48), 2), (0, 0, 1), (0, 0, h * 0.7)), None),
+                (shapes.orient(shapes.dome(0.7, n(48), n(24, 2)), (0, 0, 1), (0, 0, h)), (235, 228, 215))]
     if k == "chhatri":
         r = key[1]
-        cols = [(shapes.orient(shapes.tube(1.5, 0.08, 12, 2), (0, 0, 1), (x * r * 0.8, y * r * 0.8, 0)), None) for x in (-1, 1) for y in (-1, 1)]
-        return cols + [(shapes.box((-r, -r, 1.5), (r, r, 1.7)), None), (shapes.orient(shapes.dome(r * 0.8, 64, 32), (0, 0, 1), (0, 0, 1.7)), None)]
+        cols = [(shapes.orient(shapes.tube(1.5, 0.08, n(12), 2), (0, 0, 1), (x * r * 0.8, y * r * 0.8, 0)), None) for x in (-1, 1) for y in (-1, 1)]
+        return cols + [(shapes.box((-r, -r, 1.5), (r, r, 1.7)), None), (shapes.orient(shapes.dome(r * 0.8, n(64), n(32, 2)), (0, 0, 1), (0, 0, 1.7)), None)]
     if k == "column":
         h = key[1]
-        return [(shapes.box((-0.3, -0.3, 0), (0.3, 0.3, 0.3)), None), (shapes.orient(shapes.tube(h - 0.6, 0.2, 32, 16), (0, 0, 1), (0, 0, 0.3)), None),
+        return [(shapes.box((-0.3, -0.3, 0), (0.3, 0.3, 0.3)), None), (shapes.orient(shapes.tube(h - 0.6, 0.2, n(32), n(16, 1)), (0, 0, 1), (0, 0, 0.3)), None),
                 (shapes.box((-0.3, -0.3, h - 0.3), (0.3, 0.3, h)), None)]
     if k == "conifer":
         v = key[1]
@@ -320,11 +324,11 @@ def _shape_parts(key: tuple) -> list:
 
 
 @lru_cache(maxsize=4096)
-def shape_levels(key: tuple, backend: str = "fast-simplification") -> tuple[tuple[Mesh, ...], tuple[float, ...], tuple[np.ndarray, ...], bool]:
+def shape_levels(key: tuple, backend: str = "fast-simplification", detail: float = 1.0) -> tuple[tuple[Mesh, ...], tuple[float, ...], tuple[np.ndarray, ...], bool]:
     """LOD levels of a shape in its own frame (colours are placeholders), their errors, per
     level a boolean mask (v,) of vertices keeping the node's colour, and whether it is closed.
     Cached: a copy has a few hundred distinct shapes."""
-    parts = _shape_parts(key)
+    parts = _shape_parts(key, detail)
     p, t, n = shapes.merge([pt for pt, _ in parts])
     fixed = np.concatenate([np.tile(np.array(c if c else (0, 0, 0), np.uint8), (len(pt[0]), 1)) for pt, c in parts])
     own = np.concatenate([np.full(len(pt[0]), c is None) for pt, c in parts])
@@ -334,9 +338,9 @@ def shape_levels(key: tuple, backend: str = "fast-simplification") -> tuple[tupl
     return tuple(levels), tuple(errors), tuple(lv.colors[:, 3] == 0 for lv in levels), is_closed(mesh.indices, mesh.positions)
 
 
-def place_levels(node: Node, offset: np.ndarray, backend: str = "fast-simplification") -> tuple[list[Mesh], list[float], bool]:
+def place_levels(node: Node, offset: np.ndarray, backend: str = "fast-simplification", detail: float = 1.0) -> tuple[list[Mesh], list[float], bool]:
     """The node's LOD levels in world coordinates (copy ``offset`` added), coloured."""
-    levels, errors, own, closed = shape_levels(node.shape, backend)
+    levels, errors, own, closed = shape_levels(node.shape, backend, detail)
     m = np.asarray(node.placement, float).reshape(3, 4)
     R, t = m[:, :3], m[:, 3] + offset
     color = np.array([*node.color, 255], np.uint8)
@@ -358,13 +362,18 @@ def copy_offsets(copies: int, extent: tuple[float, float]) -> np.ndarray:
 
 
 def generate_scene(kind: str, out, copies: int = 1, size: float = 1.0, seed: int = 1, overwrite: bool = False,
-                   progress=None, backend: str = "fast-simplification") -> dict:
+                   progress=None, backend: str = "fast-simplification", detail: float = 1.0) -> dict:
     """Write scene ``kind`` with ``copies`` replicas to the store ``out``; resumes an
-    interrupted run with the same arguments. Returns the store attributes."""
+    interrupted run with the same arguments. ``detail`` scales the tessellation of curved
+    shapes (node count and hierarchy unchanged). Returns the store attributes."""
     if copies < 1:
         raise ConfigError(f"--copies must be at least 1, got {copies}")
+    if not (math.isfinite(detail) and detail > 0):
+        raise ConfigError(f"--detail must be a positive number, got {detail}")
     nodes, extent = scene_nodes(kind, size, seed)
     params = {"generator": kind, "copies": int(copies), "size": float(size), "seed": int(seed), "simplifier": backend}
+    if detail != 1.0:
+        params["detail"] = float(detail)
     w = SceneWriter(out, params, {"source": f"generate scene {kind}", "units": "m"}, path_depth=PATH_DEPTH[kind], overwrite=overwrite)
     offsets = copy_offsets(copies, extent)
     prog = progress or (lambda *a: None)
@@ -376,7 +385,7 @@ def generate_scene(kind: str, out, copies: int = 1, size: float = 1.0, seed: int
         for c in range(copies):
             if j * copies + c < skip:
                 continue
-            levels, errors, closed = place_levels(node, offsets[c], backend)
+            levels, errors, closed = place_levels(node, offsets[c], backend, detail)
             gid = w.add_geometry(levels, errors, closed)
             w.add_object(gid, (c, *node.path))
             w.step()

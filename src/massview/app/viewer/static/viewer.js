@@ -66,7 +66,7 @@ function showStats(s) {
   if (s.panel) showPanel(s.panel);
 }
 
-function showPanel(p) {  // a system's own per-rank table (T2): {title, columns, rows of strings}
+function showPanel(p) {  // a system's own table (T2 per rank, M1 per figure): {title, columns, rows of strings}
   const t = $("sysrows"); t.hidden = false;
   const cells = (tag, xs) => "<tr>" + xs.map((x) => `<${tag}>${String(x).replace(/[<>&]/g, "")}</${tag}>`).join("") + "</tr>";
   t.innerHTML = `<caption>${p.title.replace(/[<>&]/g, "")}</caption>` + cells("th", p.columns) + p.rows.map((r) => cells("td", r)).join("");
