@@ -1,0 +1,191 @@
+"""Draw throughput (``massview bench terrain STORE --draw``): K-patch path vs a plain mesh vs VTK.
+
+Two cases on one rank, in one GL context:
+
+* **full resolution**: a view of the whole terrain with τ → 0, so every patch is at level 0
+  (all 2·(S−1)² triangles);
+* **demo LOD**: the demo's view (``flyover`` at mid-path, 1280×720, τ = 1).
+
+For each case the same triangles are drawn (every path draws the front's own triangles, in
+the front's order) by
+
+* ``K-patch`` — :class:`~massview.render.terrain.TerrainRenderer` as the system draws
+  (deferred shading, one multi-draw-indirect call of the patch commands);
+* ``K-patch forward`` — the same with the forward per-fragment shading it replaced (the old
+  path, kept as the reference);
+* ``plain mesh`` — :class:`~massview.render.terrain.PlainMeshRenderer`: one VBO of the finest
+  grid, one index buffer, one ``glDrawElements`` (per-vertex normal and colour);
+* ``VTK`` — pyvista/VTK (``vtk_draw.py``) offscreen through EGL, in a child process, same
+  cameras and image size, same triangles as one PolyData.
+
+Timing: ``reps`` draws per path, interleaved, each ``clear + draw + glFinish`` (readback
+apart); printed are the median wall time, the process CPU time (all llvmpipe threads; less
+sensitive to other load on a shared machine), Mtri/s = triangles ÷ median wall time, and
+ratios to the plain mesh and to VTK measured in the same run. Readback (colour + depth of the
+whole image) is timed separately.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ...core.camera import Camera, look_at_quaternion
+from ...core.config import RenderConfig, parse_size
+from ...core.paths import load_path
+from ...core.stats import FrameStats
+
+__all__ = ["run_draw"]
+
+
+def _cases(sysm, size):
+    """(name, camera, τ) of the two cases."""
+    lo, hi = sysm.bounds
+    c = (lo + hi) / 2
+    ext = float(np.hypot(*(hi - lo)[:2]))
+    eye = (c[0], c[1] - 0.3 * ext, hi[2] + 1.2 * ext)
+    w, h = size
+    full = Camera(eye, look_at_quaternion(eye, c), 45.0, ext * 0.05, ext * 4, w, h)
+    demo = load_path("flyover", lo, hi).camera(0.5, 1280, 720)
+    return [("full resolution", full, 1e-9), ("demo LOD", demo, 1.0)]
+
+
+def _time(fb, ctx, fn, reps_out: list, tris_out: list) -> None:
+    fb.begin()
+    ctx.finish()
+    t0, c0 = time.perf_counter(), time.process_time()
+    tris = fn()
+    ctx.finish()
+    reps_out.append((time.perf_counter() - t0, time.process_time() - c0))
+    tris_out.append(tris)
+
+
+def _vtk(points, normals, tris, cam: Camera, reps: int, console) -> dict | None:
+    with tempfile.TemporaryDirectory() as tmp:
+        mesh, cams = Path(tmp) / "mesh.npz", Path(tmp) / "cams.json"
+        np.savez(mesh, points=points, normals=normals, triangles=tris)
+        cams.write_text(json.dumps([cam.to_json()]))
+        proc = subprocess.run([sys.executable, "-m", "massview.app.bench.vtk_draw", str(mesh), str(cams), str(reps)],
+                              capture_output=True, text=True)
+    if proc.returncode != 0:
+        console.print(f"[yellow]VTK child failed ({proc.returncode}): {proc.stderr.strip()[-600:]}[/]")
+        return None
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _grid(st):
+    """Finest heights (rows, cols) float32 and colour (or None), assembled from level-0 blocks."""
+    lay, M = st.layout, st.layout.M
+    full = np.empty((lay.S, lay.S), np.float32)
+    color = np.empty((lay.S, lay.S, 3), np.uint8) if st.has_color else None
+    for i in range(lay.blocks(0)):
+        for j in range(lay.blocks(0)):
+            sl = np.s_[i * (M - 1): i * (M - 1) + M, j * (M - 1): j * (M - 1) + M]
+            full[sl] = st.get_block(0, i, j)
+            if color is not None:
+                color[sl] = st.get_color(0, i, j)
+    return full, color
+
+
+def _world(st, heights, tris):
+    """(points, normals) float32 (N, 3) of the grid vertices ``tris`` uses, and ``tris``
+    renumbered into them (what VTK gets)."""
+    from ...render.terrain import pack_block
+
+    used, inv = np.unique(tris.ravel(), return_inverse=True)
+    cols = heights.shape[1]
+    r, c = used // cols, used % cols
+    dx, dy = st.spacing
+    pts = np.stack([c * dx, -(r * dy), heights.ravel()[used] * st.vertical_scale], 1).astype(np.float32)
+    nrm = pack_block(heights, None, dx, dy, st.vertical_scale)["n"][used].astype(np.float32)
+    nz = np.sqrt(np.maximum(1.0 - (nrm ** 2).sum(1), 0.0))
+    return pts, np.column_stack([nrm, nz]).astype(np.float32), inv.reshape(-1, 3).astype(np.int64)
+
+
+def _case(sysm, st, heights, color, name, cam, tau, reps, vtk: bool, console) -> list[tuple]:
+    """Rows (case, path, triangles, wall ms, cpu ms) of one case, plus readback."""
+    from ...parallel.runtime import self_comm
+    from ...render.framebuffer import Framebuffer
+    from ...render.terrain import PlainMeshRenderer
+
+    comm = self_comm()
+    cfg = RenderConfig(width=cam.width, height=cam.height, tau=tau, loading="complete")
+    sysm.prepare_frame(comm, cam, cfg, FrameStats(0, 0))
+    front = sysm.front
+    ctx, _, terrain, _ = sysm.renderers()
+    levels = np.bincount(front.level)
+    tris = terrain.front_triangles(front, heights.shape[1])
+    plain = PlainMeshRenderer(ctx, heights, color, st.spacing, st.vertical_scale, triangles=tris)
+    fb = Framebuffer(ctx, cam.width, cam.height)
+    mvp = cam.view_projection()
+    deferred = terrain.deferred
+
+    def kpatch(d):
+        def fn():
+            terrain.deferred = d
+            return terrain.draw(front, mvp, eye=cam.position)
+        return fn
+
+    paths = {"K-patch": kpatch(True), "K-patch forward": kpatch(False), "plain mesh": lambda: plain.draw(mvp)}
+    times: dict[str, list] = {k: [] for k in paths}
+    counts: dict[str, list] = {k: [] for k in paths}
+    for k, fn in paths.items():  # warm-up (shader variants, buffer residency)
+        _time(fb, ctx, fn, [], [])
+    for _ in range(reps):
+        for k, fn in paths.items():
+            _time(fb, ctx, fn, times[k], counts[k])
+    terrain.deferred = deferred
+    rb = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fb.read(cam.viewport)
+        rb.append(time.perf_counter() - t0)
+    rows = [(name, k, counts[k][0], np.median([t[0] for t in v]) * 1e3, np.median([t[1] for t in v]) * 1e3) for k, v in times.items()]
+    plain.release()
+    fb.release()
+    if vtk:
+        pts, nrm, vt = _world(st, heights, tris)
+        res = _vtk(pts, nrm, vt, cam, reps, console)
+        del pts, nrm, vt
+        if res is not None:
+            rows.append((name, f"VTK ({res['renderer']})", res["triangles"], np.median(res["wall_s"]) * 1e3, np.median(res["cpu_s"]) * 1e3))
+    console.print(f"{name}: {cam.width}x{cam.height}, τ = {tau:g}, {len(front)} patches (per level {levels.tolist()}), "
+                  f"readback (colour + depth) {np.median(rb) * 1e3:.1f} ms")
+    return rows
+
+
+def run_draw(args, console, table_cls) -> None:
+    """The draw-throughput table (module docstring)."""
+    from ...data.terrain import TerrainStore
+    from ...systems.terrain import TerrainSystem
+
+    st = TerrainStore(args.store)
+    lay = st.layout
+    if 2 * (lay.rows - 1) * (lay.cols - 1) > args.max_plain:
+        console.print(f"[yellow]draw throughput skipped: the finest level exceeds --max-plain {args.max_plain} triangles[/]")
+        return
+    heights, color = _grid(st)
+    heights, color = heights[: lay.rows, : lay.cols], (color[: lay.rows, : lay.cols] if color is not None else None)
+    budget = 2 * sum(lay.blocks(lv) ** 2 for lv in range(lay.levels)) * lay.M * lay.M * 14
+    sysm = TerrainSystem(args.store, loading="complete", gpu_bytes=budget, cache_bytes=budget)
+    t = table_cls(title=f"draw throughput, one rank, one GL context ({args.draw_reps} draws per path, median; CPU = all threads)")
+    for c in ("case", "path", "triangles", "wall ms", "CPU ms", "Mtri/s", "÷ plain mesh", "÷ VTK"):
+        t.add_column(c, justify="right")
+    try:
+        for name, cam, tau in _cases(sysm, parse_size(args.size)):
+            rows = _case(sysm, st, heights, color, name, cam, tau, args.draw_reps, not args.no_vtk, console)
+            rate = {r[1]: r[2] / r[3] / 1e3 for r in rows}
+            vtk = next((v for k, v in rate.items() if k.startswith("VTK")), None)
+            for case, path, tris, wall, cpu in rows:
+                r = rate[path]
+                t.add_row(case, path, f"{tris / 1e6:.2f} M", f"{wall:.0f}", f"{cpu:.0f}", f"{r:.2f}", f"{r / rate['plain mesh']:.2f}",
+                          f"{r / vtk:.2f}" if vtk else "—")
+    finally:
+        sysm.close()
+    console.print(t)
