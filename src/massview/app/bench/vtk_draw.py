@@ -8,8 +8,8 @@ massview) at each camera of CAMERAS.json (``Camera.to_json`` records: same posit
 direction, fovy, clip planes and image size as massview's), ``REPS`` times after one warm-up
 render (which uploads the buffers). VTK settings: no multisampling (massview draws one sample
 per pixel), default light kit, the given point normals (Gouraud-interpolated, like the plain
-mesh). Prints one JSON line: ``{"renderer", "triangles", "wall_s": [...], "cpu_s": [...]}``,
-one entry per render (``Render()`` + ``glFinish``).
+mesh). Prints one JSON line: ``{"renderer", "triangles", "wall_s", "cpu_s", "main_s"}`` (lists: wall,
+process CPU and calling-thread CPU seconds, one entry per ``Render()`` + ``glFinish``).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def main(argv: list[str]) -> int:
     pl.ren_win.SetMultiSamples(0)
     pl.add_mesh(poly, color=(0.7, 0.67, 0.6), smooth_shading=True)
     rw, vc = pl.ren_win, pl.renderer.GetActiveCamera()
-    walls, cpus = [], []
+    walls, cpus, mains = [], [], []
     for cam in cams:
         vc.SetPosition(*cam.position)
         vc.SetFocalPoint(*(np.asarray(cam.position) + cam.forward))
@@ -48,14 +48,15 @@ def main(argv: list[str]) -> int:
         rw.Render()
         rw.WaitForCompletion()  # warm-up: buffer upload, shader compilation
         for _ in range(reps):
-            t0, c0 = time.perf_counter(), time.process_time()
+            t0, c0, m0 = time.perf_counter(), time.process_time(), time.thread_time()
             rw.Render()
             rw.WaitForCompletion()
             walls.append(time.perf_counter() - t0)
             cpus.append(time.process_time() - c0)
+            mains.append(time.thread_time() - m0)
     caps = rw.ReportCapabilities()
     renderer = next((ln.split(":", 1)[1].strip() for ln in caps.splitlines() if "OpenGL renderer string" in ln), "?")
-    print(json.dumps({"renderer": renderer, "triangles": int(len(tris)), "wall_s": walls, "cpu_s": cpus}))
+    print(json.dumps({"renderer": renderer, "triangles": int(len(tris)), "wall_s": walls, "cpu_s": cpus, "main_s": mains}))
     return 0
 
 
