@@ -3,8 +3,9 @@
 * golden: SHA-256 of colour and depth of renders made with the code before the draw changes
   (tests/data/terrain_golden_hashes.json, recorded on the llvmpipe named in the file; checked
   when this machine's renderer is that one);
-* side by side: the deferred path (default) equals the forward path it replaced, bit for bit,
-  on full frames, scissored sort-first viewports, tile targets, tints and every colour mode;
+* side by side: the new path (deferred shading, whole blocks in one command; the default)
+  equals the path it replaced (forward shading, a command per patch), bit for bit, on full
+  frames, scissored sort-first viewports, tile targets, tints and colour modes;
 * the bench's plain mesh draws exactly the front's triangles.
 """
 
@@ -60,23 +61,25 @@ def test_renders_match_pre_change_golden(small_store):
     assert not bad, f"frames differ from the pre-change renders: {bad}"
 
 
-def _render(sysm, cam, cfg, deferred, vp=None, tint=(0, 0, 0, 0)):
+def _render(sysm, cam, cfg, new, vp=None, tint=(0, 0, 0, 0)):
+    """``new``: deferred shading and whole-block draws (the default); else the path before."""
     _, _, terrain, _ = sysm.renderers()
-    terrain.deferred = deferred
+    terrain.deferred = terrain.merge = new
     img = sysm.render(Task(0, vp or cam.viewport), cam, cfg, FrameStats(0, 0), tint=tint)
     return img.color.copy(), img.depth.copy()
 
 
 @pytest.mark.parametrize("colormap", ["auto", "none"])
-def test_deferred_equals_forward(small_store, colormap):
-    sysm = TerrainSystem(small_store, loading="complete")
+def test_new_draw_path_equals_old(small_store, colormap):
+    sysm = TerrainSystem(small_store, loading="complete", gpu_bytes=64 << 20)
     try:
         lo, hi = sysm.bounds
         cams = [load_path("flyover", lo, hi).camera(0.3, 320, 240), load_path("zoom", lo, hi).camera(0.9, 256, 200),
                 load_path("orbit", lo, hi).camera(0.6, 300, 220)]
-        checked = 0
+        _, _, terrain, _ = sysm.renderers()
+        checked, merged = 0, 0
         for cam in cams:
-            for tau in (1.0, 0.25):
+            for tau in (1.0, 0.05):
                 cfg = RenderConfig(width=cam.width, height=cam.height, tau=tau, loading="complete", colormap=colormap)
                 sysm.prepare_frame(self_comm(), cam, cfg, FrameStats(0, 0))
                 quarter = Viewport(cam.width // 4, cam.height // 3, cam.width // 2, cam.height // 2)
@@ -84,11 +87,13 @@ def test_deferred_equals_forward(small_store, colormap):
                 for vp, c, tint in ((None, cfg, (0, 0, 0, 0)), (quarter, cfg, (0.8, 0.1, 0.1, 0.4)), (quarter, tiled, (0, 0, 0, 0))):
                     a = _render(sysm, cam, c, False, vp, tint)
                     b = _render(sysm, cam, c, True, vp, tint)
+                    merged += terrain.draws < len(sysm.front)
                     assert (a[0] != 255).any() and (a[1] < 1).any(), "the view shows terrain"
                     for x, y, what in ((a[0], b[0], "colour"), (a[1], b[1], "depth")):
                         assert np.array_equal(x, y), f"{what} differs in {np.count_nonzero(x != y)} values ({cam}, τ {tau}, vp {vp})"
                     checked += 1
         assert checked == 18
+        assert merged >= 3, "some views draw whole blocks with one command"
     finally:
         sysm.close()
 

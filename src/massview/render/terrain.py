@@ -27,37 +27,10 @@ from ..lod.kpatch import lookup_blocks, refine_uniform
 from .colormaps import Shading
 from .context import load_shader
 from .terrain_gbuffer import GBuffers
+from .terrain_plain import VERTEX_BYTES, PlainMeshRenderer, pack_block  # noqa: F401  (re-exported)
 
 __all__ = ["VERTEX_BYTES", "pack_block", "pack_payload", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
 
-VERTEX_DTYPE = np.dtype([("h", "<f4"), ("n", "<f2", 2), ("c", "u1", 4)])
-VERTEX_BYTES = VERTEX_DTYPE.itemsize
-_LIGHT = np.array([-0.45, 0.35, 0.82])
-_LIGHT = (_LIGHT / np.linalg.norm(_LIGHT)).astype("f4")
-
-
-def pack_block(h: np.ndarray, color: np.ndarray | None, dx: float, dy: float, vscale: float,
-               slopes: np.ndarray | None = None) -> np.ndarray:
-    """(M·M,) interleaved vertices of a block; ``dx, dy`` are world metres between its samples.
-    Normals from ``slopes`` (M, M, 2: ∂h/∂x east, ∂h/∂y north, the store's seamless shading
-    maps) when given, else from central differences of the block (world frame: y = −row)."""
-    if slopes is not None:
-        gx, gy = (np.asarray(slopes[..., c], np.float32) * vscale for c in (0, 1))
-        nx, ny = -gx, -gy
-    else:
-        gy, gx = np.gradient(h.astype(np.float32) * vscale, dy, dx)
-        nx, ny = -gx, gy  # d/dy_world = −d/drow
-    inv = 1.0 / np.sqrt(nx * nx + ny * ny + 1.0)
-    out = np.empty(h.size, VERTEX_DTYPE)
-    out["h"] = h.ravel()
-    out["n"][:, 0] = (nx * inv).ravel()
-    out["n"][:, 1] = (ny * inv).ravel()
-    if color is None:
-        out["c"] = (180, 170, 150, 255)
-    else:
-        out["c"][:, :3] = color.reshape(-1, 3)
-        out["c"][:, 3] = 255
-    return out
 
 
 def pack_payload(heights: np.ndarray, shade: np.ndarray, ortho: np.ndarray | None) -> np.ndarray:
@@ -159,11 +132,13 @@ class TerrainRenderer:
     """Draws fronts from ``pool`` with per-pixel shading. ``base`` is the lowest scaled height
     (exaggeration pivots on it), ``world_size`` the terrain's horizontal diagonal (haze scale).
     ``deferred`` (default) shades in a second, per-pixel pass (:mod:`.terrain_gbuffer`);
-    ``False`` keeps the forward path, the reference it reproduces bit for bit."""
+    ``False`` keeps the forward path, the reference it reproduces bit for bit. ``merge``
+    (default) draws every block the front covers whole with one command (:meth:`_commands`);
+    ``False`` keeps one command per patch."""
 
     def __init__(self, ctx: moderngl.Context, pool: BlockPool, k: int, spacing, vscale: float, extent: tuple[int, int],
-                 base: float = 0.0, world_size: float = 1.0, deferred: bool = True):
-        self.ctx, self.pool, self.k, self.deferred = ctx, pool, k, bool(deferred)
+                 base: float = 0.0, world_size: float = 1.0, deferred: bool = True, merge: bool = True):
+        self.ctx, self.pool, self.k, self.deferred, self.merge = ctx, pool, k, bool(deferred), bool(merge)
         self.vscale, self.base, self.world_size = float(vscale), float(base), float(world_size)
         self.prog = _program(ctx, "terrain.vert.glsl", "terrain.frag.glsl")
         self._gprog = _program(ctx, "terrain.vert.glsl", "terrain_gbuffer.frag.glsl")
@@ -189,10 +164,14 @@ class TerrainRenderer:
         self.set_shading(Shading())
         self._patterns: dict[tuple, int] = {}
         self._pattern_data: list[np.ndarray] = []
+        self._merged: dict[bytes, int] = {}  # whole-block patterns: sorted (pattern, anchor) keys -> id
+        self._merged_data: list[np.ndarray] = []
+        self._merged_first = np.zeros(0, np.int64)
         self._ibo = None
         self.vao = self._gvao = None
         self._indirect = None
         self.tris_per_patch = 4**k
+        self.draws = 0  # commands in the last draw
 
     def set_pages(self, table: np.ndarray) -> None:
         """Which blocks the fragment stage may read (:meth:`BlockPool.page_table`)."""
@@ -265,7 +244,10 @@ class TerrainRenderer:
             self._ibo.release()
             self.vao.release()
             self._gvao.release()
-        self._ibo = self.ctx.buffer(np.concatenate(self._pattern_data).tobytes() if self._pattern_data else np.zeros(3, np.uint32).tobytes())
+        data = self._pattern_data + self._merged_data
+        self._ibo = self.ctx.buffer(np.concatenate(data).tobytes() if data else np.zeros(3, np.uint32).tobytes())
+        sizes = np.array([len(d) for d in self._merged_data], np.int64)
+        self._merged_first = len(self._pattern_data) * 3 * self.tris_per_patch + np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
         attrs = [(self.pool.vbo, "f", "in_h"), (self.pool.inst, "4i/i", "in_slot")]
         self.vao = self.ctx.vertex_array(self.prog, attrs, index_buffer=self._ibo, index_element_size=4)
         self._gvao = self.ctx.vertex_array(self._gprog, attrs, index_buffer=self._ibo, index_element_size=4)
@@ -310,15 +292,7 @@ class TerrainRenderer:
         n = len(front)
         if n == 0:
             return 0
-        M = self.pool.M
-        slots, pids, row, col = self._placement(front)
-        per = 3 * self.tris_per_patch
-        cmds = np.empty((n, 5), np.uint32)
-        cmds[:, 0] = per
-        cmds[:, 1] = 1
-        cmds[:, 2] = pids * per
-        cmds[:, 3] = slots * M * M + row * M + col
-        cmds[:, 4] = slots
+        cmds = self._commands(front)
         data = cmds.tobytes()
         if self._indirect is None or self._indirect.size < len(data):
             if self._indirect is not None:
@@ -333,10 +307,65 @@ class TerrainRenderer:
         self._pages.use(2)
         self._ramp.use(3)
         if self.deferred:
-            self._draw_deferred(n)
+            self._draw_deferred(len(cmds))
         else:
-            self.vao.render_indirect(self._indirect, mode=moderngl.TRIANGLES, count=n)
+            self.vao.render_indirect(self._indirect, mode=moderngl.TRIANGLES, count=len(cmds))
+        self.draws = len(cmds)
         return n * self.tris_per_patch
+
+    def _commands(self, front) -> np.ndarray:
+        """(draws, 5) uint32 ``DrawElementsIndirectCommand`` rows for ``front``: one per patch in
+        front order, then one per block the front covers whole at its level (all its
+        2(M−1)²/4^k patches: e.g. every block at full resolution), drawn by one merged pattern.
+        llvmpipe's per-draw cost (state, buffer mapping, a pipeline flush per draw) is then paid
+        per block instead of per patch."""
+        M, tpp = self.pool.M, self.tris_per_patch
+        slots, pids, row, col = self._placement(front)
+        base = (row * M + col).astype(np.int64)
+        full = 2 * (M - 1) ** 2 // tpp
+        whole = np.bincount(slots)[slots] == full if self.merge else np.zeros(len(front), bool)
+        part = ~whole
+        cmds = np.empty((int(part.sum()), 5), np.uint32)
+        cmds[:, 0] = 3 * tpp
+        cmds[:, 1] = 1
+        cmds[:, 2] = pids[part] * 3 * tpp
+        cmds[:, 3] = slots[part] * M * M + base[part]
+        cmds[:, 4] = slots[part]
+        if whole.any():
+            cmds = np.concatenate([cmds, self._block_commands(slots[whole], pids[whole], base[whole], full)])
+        return cmds
+
+    def _block_commands(self, slots, pids, base, full: int) -> np.ndarray:
+        """One command per whole block; its merged pattern (the block's patches sorted by
+        (pattern, anchor)) is made once per distinct patch set (a few: the bintree's split
+        directions) and kept in the index buffer after the patch patterns."""
+        M, per = self.pool.M, 3 * self.tris_per_patch
+        order = np.argsort(slots, kind="stable")
+        keys = np.sort((pids[order] * M * M + base[order]).reshape(-1, full), axis=1)
+        bslots = slots[order][::full]
+        uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+        if len(self._merged) + len(uniq) > 64:  # bound the index buffer: start over
+            self._merged.clear()
+            self._merged_data.clear()
+        mids, changed = np.empty(len(uniq), np.int64), False
+        for i, k in enumerate(uniq):
+            mid = self._merged.get(k.tobytes())
+            if mid is None:
+                pat, anchor = np.divmod(k, M * M)
+                idx = (np.stack([self._pattern_data[q] for q in pat]).astype(np.int64) + anchor[:, None]).astype(np.uint32)
+                mid = self._merged[k.tobytes()] = len(self._merged_data)
+                self._merged_data.append(idx.ravel())
+                changed = True
+            mids[i] = mid
+        if changed:
+            self._rebuild()
+        cmds = np.empty((len(bslots), 5), np.uint32)
+        cmds[:, 0] = full * per
+        cmds[:, 1] = 1
+        cmds[:, 2] = self._merged_first[mids[inv.ravel()]]
+        cmds[:, 3] = bslots * M * M
+        cmds[:, 4] = bslots
+        return cmds
 
     def _draw_deferred(self, n: int) -> None:
         """Pass 1 into the bound target's G-buffer (its depth test), pass 2 shades the pixels
@@ -360,43 +389,3 @@ class TerrainRenderer:
                   self._pages, self._ramp):
             if o is not None:
                 o.release()
-
-
-class PlainMeshRenderer:
-    """The baseline without LOD: the finest level as one static indexed mesh (what a user
-    would draw without a terrain system), with per-vertex lighting; shares the block packing.
-    ``triangles``: (T, 3) uint32 indices into the row-major grid of ``heights`` (e.g. a LOD
-    front's triangles, for equal-triangle throughput); default: the whole grid, row by row."""
-
-    def __init__(self, ctx: moderngl.Context, heights: np.ndarray, color: np.ndarray | None, spacing, vscale: float,
-                 triangles: np.ndarray | None = None):
-        rows, cols = heights.shape
-        self.ctx = ctx
-        verts = pack_block(heights, color, spacing[0], spacing[1], vscale)
-        self.vbo = ctx.buffer(verts.tobytes())
-        self.inst = ctx.buffer(np.array([0, 0, 1, 0], np.int32).tobytes())
-        if triangles is None:
-            r, c = np.meshgrid(np.arange(rows - 1, dtype=np.uint32), np.arange(cols - 1, dtype=np.uint32), indexing="ij")
-            a = (r * cols + c).ravel()
-            idx = np.stack([a, a + cols, a + 1, a + 1, a + cols, a + cols + 1], 1).ravel()
-        else:
-            idx = np.ascontiguousarray(triangles, np.uint32).ravel()
-        self.triangles = len(idx) // 3
-        self.ibo = ctx.buffer(idx.tobytes())
-        prog = self.prog = _program(ctx, "terrain_plain.vert.glsl", "terrain_plain.frag.glsl")
-        prog["u_M"].value = cols  # one grid row = one "block" row
-        prog["u_scale"].value = (float(spacing[0]), float(spacing[1]), float(vscale))
-        prog["u_light"].value = tuple(_LIGHT)
-        prog["u_extent"].value = (float(cols - 1), float(rows - 1))
-        self.vao = ctx.vertex_array(self.prog, [(self.vbo, "f 2f2 4f1", "in_h", "in_n", "in_color"), (self.inst, "4i/i", "in_slot")],
-                                    index_buffer=self.ibo, index_element_size=4)
-
-    def draw(self, mvp: np.ndarray) -> int:
-        self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, dtype="f4").tobytes())
-        self.prog["u_tint"].value = (0.0, 0.0, 0.0, 0.0)
-        self.vao.render(moderngl.TRIANGLES)
-        return self.triangles
-
-    def release(self) -> None:
-        for o in (self.vao, self.ibo, self.vbo, self.inst, self.prog):
-            o.release()

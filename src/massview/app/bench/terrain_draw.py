@@ -10,9 +10,10 @@ For each case the same triangles are drawn (every path draws the front's own tri
 the front's order) by
 
 * ``K-patch`` — :class:`~massview.render.terrain.TerrainRenderer` as the system draws
-  (deferred shading, one multi-draw-indirect call of the patch commands);
-* ``K-patch forward`` — the same with the forward per-fragment shading it replaced (the old
-  path, kept as the reference);
+  (deferred shading, one multi-draw-indirect call: a command per whole block, else per patch);
+* ``K-patch, a draw per patch`` — the same without merging whole blocks into one command;
+* ``K-patch before`` — forward per-fragment shading and a draw per patch: the path before
+  issue 20 (kept selectable as the reference the new one reproduces bit for bit);
 * ``plain mesh`` — :class:`~massview.render.terrain.PlainMeshRenderer`: one VBO of the finest
   grid, one index buffer, one ``glDrawElements`` (per-vertex normal and colour);
 * ``VTK`` — pyvista/VTK (``vtk_draw.py``) offscreen through EGL, in a child process, same
@@ -128,23 +129,26 @@ def _case(sysm, st, heights, color, name, cam, tau, reps, vtk: bool, console) ->
     plain = PlainMeshRenderer(ctx, heights, color, st.spacing, st.vertical_scale, triangles=tris)
     fb = Framebuffer(ctx, cam.width, cam.height)
     mvp = cam.view_projection()
-    deferred = terrain.deferred
+    deferred, merge = terrain.deferred, terrain.merge
 
-    def kpatch(d):
+    def kpatch(d, m):
         def fn():
-            terrain.deferred = d
+            terrain.deferred, terrain.merge = d, m
             return terrain.draw(front, mvp, eye=cam.position)
         return fn
 
-    paths = {"K-patch": kpatch(True), "K-patch forward": kpatch(False), "plain mesh": lambda: plain.draw(mvp)}
+    paths = {"K-patch": kpatch(True, True), "K-patch, a draw per patch": kpatch(True, False),
+             "K-patch before (forward, a draw per patch)": kpatch(False, False), "plain mesh": lambda: plain.draw(mvp)}
     times: dict[str, list] = {k: [] for k in paths}
     counts: dict[str, list] = {k: [] for k in paths}
-    for k, fn in paths.items():  # warm-up (shader variants, buffer residency)
+    draws = {}
+    for k, fn in paths.items():  # warm-up (shader variants, buffer residency, merged patterns)
         _time(fb, ctx, fn, [], [])
+        draws[k] = terrain.draws
     for _ in range(reps):
         for k, fn in paths.items():
             _time(fb, ctx, fn, times[k], counts[k])
-    terrain.deferred = deferred
+    terrain.deferred, terrain.merge = deferred, merge
     rb = []
     for _ in range(reps):
         t0 = time.perf_counter()
@@ -161,6 +165,7 @@ def _case(sysm, st, heights, color, name, cam, tau, reps, vtk: bool, console) ->
             rows.append((name, f"VTK ({res['renderer']})", res["triangles"],
                          *(np.median(res[k]) * 1e3 for k in ("wall_s", "cpu_s", "main_s"))))
     console.print(f"{name}: {cam.width}x{cam.height}, τ = {tau:g}, {len(front)} patches (per level {levels.tolist()}), "
+                  f"draw commands {draws['K-patch']} merged / {draws['K-patch, a draw per patch']} per patch, "
                   f"readback (colour + depth) {np.median(rb) * 1e3:.1f} ms")
     return rows
 
