@@ -71,13 +71,12 @@ def _time(fb, ctx, fn, reps_out: list, tris_out: list) -> None:
     tris_out.append(tris)
 
 
-def _vtk(points, normals, tris, cam: Camera, reps: int, console) -> dict | None:
-    with tempfile.TemporaryDirectory() as tmp:
-        mesh, cams = Path(tmp) / "mesh.npz", Path(tmp) / "cams.json"
-        np.savez(mesh, points=points, normals=normals, triangles=tris)
-        cams.write_text(json.dumps([cam.to_json()]))
-        proc = subprocess.run([sys.executable, "-m", "massview.app.bench.vtk_draw", str(mesh), str(cams), str(reps)],
-                              capture_output=True, text=True)
+def _vtk(mesh: Path, cam: Camera, reps: int, console) -> dict | None:
+    cams = mesh.with_suffix(".json")
+    cams.write_text(json.dumps([cam.to_json()]))
+    proc = subprocess.run([sys.executable, "-m", "massview.app.bench.vtk_draw", str(mesh), str(cams), str(reps)],
+                          capture_output=True, text=True)
+    mesh.unlink()
     if proc.returncode != 0:
         console.print(f"[yellow]VTK child failed ({proc.returncode}): {proc.stderr.strip()[-600:]}[/]")
         return None
@@ -113,8 +112,10 @@ def _world(st, heights, tris):
     return pts, np.column_stack([nrm, nz]).astype(np.float32), inv.reshape(-1, 3).astype(np.int64)
 
 
-def _case(sysm, st, heights, color, name, cam, tau, reps, vtk: bool, console) -> list[tuple]:
-    """Rows (case, path, triangles, wall ms, cpu ms) of one case, plus readback."""
+def _case(sysm, st, heights, color, name, cam, tau, reps, mesh: Path | None, console) -> list[tuple]:
+    """Rows (case, path, triangles, wall ms, CPU ms, main-thread ms) of one case; prints the
+    front and readback. ``mesh``: where to save the triangles for the VTK child (run later,
+    when this process has freed its GL memory)."""
     from ...parallel.runtime import self_comm
     from ...render.framebuffer import Framebuffer
     from ...render.terrain import PlainMeshRenderer
@@ -126,6 +127,10 @@ def _case(sysm, st, heights, color, name, cam, tau, reps, vtk: bool, console) ->
     ctx, _, terrain, _ = sysm.renderers()
     levels = np.bincount(front.level)
     tris = terrain.front_triangles(front, heights.shape[1])
+    if mesh is not None:
+        pts, nrm, vt = _world(st, heights, tris)
+        np.savez(mesh, points=pts, normals=nrm, triangles=vt)
+        del pts, nrm, vt
     plain = PlainMeshRenderer(ctx, heights, color, st.spacing, st.vertical_scale, triangles=tris)
     fb = Framebuffer(ctx, cam.width, cam.height)
     mvp = cam.view_projection()
@@ -157,13 +162,6 @@ def _case(sysm, st, heights, color, name, cam, tau, reps, vtk: bool, console) ->
     rows = [(name, k, counts[k][0], *(np.median([t[i] for t in v]) * 1e3 for i in range(3))) for k, v in times.items()]
     plain.release()
     fb.release()
-    if vtk:
-        pts, nrm, vt = _world(st, heights, tris)
-        res = _vtk(pts, nrm, vt, cam, reps, console)
-        del pts, nrm, vt
-        if res is not None:
-            rows.append((name, f"VTK ({res['renderer']})", res["triangles"],
-                         *(np.median(res[k]) * 1e3 for k in ("wall_s", "cpu_s", "main_s"))))
     console.print(f"{name}: {cam.width}x{cam.height}, τ = {tau:g}, {len(front)} patches (per level {levels.tolist()}), "
                   f"draw commands {draws['K-patch']} merged / {draws['K-patch, a draw per patch']} per patch, "
                   f"readback (colour + depth) {np.median(rb) * 1e3:.1f} ms")
@@ -180,17 +178,29 @@ def run_draw(args, console, table_cls) -> None:
     if 2 * (lay.rows - 1) * (lay.cols - 1) > args.max_plain:
         console.print(f"[yellow]draw throughput skipped: the finest level exceeds --max-plain {args.max_plain} triangles[/]")
         return
-    heights, color = _grid(st)
-    heights, color = heights[: lay.rows, : lay.cols], (color[: lay.rows, : lay.cols] if color is not None else None)
-    budget = 2 * sum(lay.blocks(lv) ** 2 for lv in range(lay.levels)) * lay.M * lay.M * 14
+    heights, color = _grid(st)  # the padded S × S grid: patches index it (padding included)
+    budget = int(1.1 * sum(lay.blocks(lv) ** 2 for lv in range(lay.levels)) * lay.M * lay.M * 14)
     sysm = TerrainSystem(args.store, loading="complete", gpu_bytes=budget, cache_bytes=budget)
+    tmp = tempfile.TemporaryDirectory()
     t = table_cls(title=f"draw throughput, one rank, one GL context ({args.draw_reps} draws per path, median; CPU = all threads)")
     for c in ("case", "path", "triangles", "wall ms", "CPU ms", "main-thread ms", "Mtri/s", "÷ plain mesh", "÷ VTK",
               "main-thread Mtri/s", "÷ plain", "÷ VTK "):
         t.add_column(c, justify="right")
+    results = []
     try:
-        for name, cam, tau in _cases(sysm, parse_size(args.size)):
-            rows = _case(sysm, st, heights, color, name, cam, tau, args.draw_reps, not args.no_vtk, console)
+        for n, (name, cam, tau) in enumerate(_cases(sysm, parse_size(args.size))):
+            mesh = None if args.no_vtk else Path(tmp.name) / f"case{n}.npz"
+            results.append((_case(sysm, st, heights, color, name, cam, tau, args.draw_reps, mesh, console), mesh, cam))
+    finally:
+        sysm.close()
+        sysm.renderers()[0].release()
+    del heights, color
+    try:
+        for rows, mesh, cam in results:
+            res = _vtk(mesh, cam, args.draw_reps, console) if mesh is not None else None
+            if res is not None:
+                rows.append((rows[0][0], f"VTK ({res['renderer']})", res["triangles"],
+                             *(np.median(res[k]) * 1e3 for k in ("wall_s", "cpu_s", "main_s"))))
             rate = {r[1]: r[2] / r[3] / 1e3 for r in rows}
             mrate = {r[1]: r[2] / r[5] / 1e3 for r in rows}
             vtk = next((k for k in rate if k.startswith("VTK")), None)
@@ -200,5 +210,5 @@ def run_draw(args, console, table_cls) -> None:
                           f"{r / rate['plain mesh']:.2f}", f"{r / rate[vtk]:.2f}" if vtk else "—",
                           f"{m:.2f}", f"{m / mrate['plain mesh']:.2f}", f"{m / mrate[vtk]:.2f}" if vtk else "—")
     finally:
-        sysm.close()
+        tmp.cleanup()
     console.print(t)
