@@ -8,6 +8,10 @@ A :class:`Framebuffer` of size W×H renders either
 
 ``read(vp)`` returns an :class:`Image` of the pixels of ``vp`` with rows flipped from GL's
 bottom-left origin to the project's top-left origin. Depth is window depth in [0, 1], float32.
+Readback goes into a staging array preallocated per framebuffer (``glReadPixels`` straight into
+numpy memory, no intermediate ``bytes``), then one flipping copy per plane into the Image's own
+arrays. (Pixel-pack buffers would make the read asynchronous on a GPU; on llvmpipe the read is
+a memcpy from the tiles either way, and the frame waits for it at ``glFinish`` already.)
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ class Framebuffer:
         self._color = ctx.renderbuffer((self.width, self.height), 4, dtype="f1")
         self._depth = ctx.depth_texture((self.width, self.height))
         self.fbo = ctx.framebuffer(color_attachments=[self._color], depth_attachment=self._depth)
+        self._stage = np.empty(self.width * self.height * 8, np.uint8)  # readback staging: colour then depth
 
     @property
     def nbytes(self) -> int:
@@ -57,10 +62,12 @@ class Framebuffer:
         target covers when it is a tile-sized target."""
         self.ctx.scissor = None
         rect = self.gl_rect(vp, origin)
-        color = np.frombuffer(self.fbo.read(viewport=rect, components=4, dtype="f1"), np.uint8)
-        depth = np.frombuffer(self.fbo.read(viewport=rect, components=1, attachment=-1, dtype="f4"), np.float32)
-        color = color.reshape(vp.h, vp.w, 4)[::-1].copy()
-        depth = depth.reshape(vp.h, vp.w)[::-1].copy()
+        n = vp.w * vp.h
+        color, depth = self._stage[:4 * n], self._stage[4 * n:8 * n]
+        self.fbo.read_into(color, viewport=rect, components=4, dtype="f1")
+        self.fbo.read_into(depth, viewport=rect, components=1, attachment=-1, dtype="f4")
+        color = color.reshape(vp.h, vp.w, 4)[::-1].copy()  # the one copy: flip into the Image's own arrays
+        depth = depth.view(np.float32).reshape(vp.h, vp.w)[::-1].copy()
         return Image(color, depth, vp)
 
     def release(self) -> None:

@@ -10,9 +10,14 @@
   generated once by uniform refinement and shared by all blocks; a patch is drawn with
   ``baseVertex`` = its block slot and anchor sample, ``baseInstance`` = the slot.
 * :meth:`TerrainRenderer.draw` issues the whole front as one
-  ``glMultiDrawElementsIndirect``. Shading is per pixel and independent of the geometric LOD:
-  a page table (one texel per block of every level: its slot, or -1) lets the fragment stage
-  read the shading pyramid at the level matching the pixel footprint (terrain.frag.glsl).
+  ``glMultiDrawElementsIndirect``: a command per patch, except that a block the front covers
+  whole at its level is one command of a merged pattern (at full resolution: 256 commands
+  instead of 131 072 on a 4097² DEM; llvmpipe pays state, mapping and a pipeline flush per
+  command). Shading is per pixel and independent of the geometric LOD: a page table (one
+  texel per block of every level: its slot, or -1) lets the fragment stage read the shading
+  pyramid at the level matching the pixel footprint (terrain_shading.glsl). It is deferred
+  (:mod:`.terrain_gbuffer`): the geometry pass writes the shading's inputs, one full-screen
+  pass shades each pixel once, bit-identical to forward shading (kept: ``deferred=False``).
 """
 
 from __future__ import annotations
@@ -26,37 +31,11 @@ from ..core.errors import ConfigError
 from ..lod.kpatch import lookup_blocks, refine_uniform
 from .colormaps import Shading
 from .context import load_shader
+from .terrain_gbuffer import GBuffers
+from .terrain_plain import VERTEX_BYTES, PlainMeshRenderer, pack_block  # noqa: F401  (re-exported)
 
 __all__ = ["VERTEX_BYTES", "pack_block", "pack_payload", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
 
-VERTEX_DTYPE = np.dtype([("h", "<f4"), ("n", "<f2", 2), ("c", "u1", 4)])
-VERTEX_BYTES = VERTEX_DTYPE.itemsize
-_LIGHT = np.array([-0.45, 0.35, 0.82])
-_LIGHT = (_LIGHT / np.linalg.norm(_LIGHT)).astype("f4")
-
-
-def pack_block(h: np.ndarray, color: np.ndarray | None, dx: float, dy: float, vscale: float,
-               slopes: np.ndarray | None = None) -> np.ndarray:
-    """(M·M,) interleaved vertices of a block; ``dx, dy`` are world metres between its samples.
-    Normals from ``slopes`` (M, M, 2: ∂h/∂x east, ∂h/∂y north, the store's seamless shading
-    maps) when given, else from central differences of the block (world frame: y = −row)."""
-    if slopes is not None:
-        gx, gy = (np.asarray(slopes[..., c], np.float32) * vscale for c in (0, 1))
-        nx, ny = -gx, -gy
-    else:
-        gy, gx = np.gradient(h.astype(np.float32) * vscale, dy, dx)
-        nx, ny = -gx, gy  # d/dy_world = −d/drow
-    inv = 1.0 / np.sqrt(nx * nx + ny * ny + 1.0)
-    out = np.empty(h.size, VERTEX_DTYPE)
-    out["h"] = h.ravel()
-    out["n"][:, 0] = (nx * inv).ravel()
-    out["n"][:, 1] = (ny * inv).ravel()
-    if color is None:
-        out["c"] = (180, 170, 150, 255)
-    else:
-        out["c"][:, :3] = color.reshape(-1, 3)
-        out["c"][:, 3] = 255
-    return out
 
 
 def pack_payload(heights: np.ndarray, shade: np.ndarray, ortho: np.ndarray | None) -> np.ndarray:
@@ -70,6 +49,8 @@ def pack_payload(heights: np.ndarray, shade: np.ndarray, ortho: np.ndarray | Non
 
 def _program(ctx: moderngl.Context, vert: str, frag: str) -> moderngl.Program:
     fs = load_shader(frag)
+    if "vec4 terrain_color(" in fs:
+        fs += load_shader("terrain_shading.glsl")
     if "sky_color" in fs:
         fs += load_shader("sky.glsl")
     return ctx.program(vertex_shader=load_shader(vert), fragment_shader=fs)
@@ -154,22 +135,30 @@ class BlockPool:
 
 class TerrainRenderer:
     """Draws fronts from ``pool`` with per-pixel shading. ``base`` is the lowest scaled height
-    (exaggeration pivots on it), ``world_size`` the terrain's horizontal diagonal (haze scale)."""
+    (exaggeration pivots on it), ``world_size`` the terrain's horizontal diagonal (haze scale).
+    ``deferred`` (default) shades in a second, per-pixel pass (:mod:`.terrain_gbuffer`);
+    ``False`` keeps the forward path, the reference it reproduces bit for bit. ``merge``
+    (default) draws every block the front covers whole with one command (:meth:`_commands`);
+    ``False`` keeps one command per patch."""
 
     def __init__(self, ctx: moderngl.Context, pool: BlockPool, k: int, spacing, vscale: float, extent: tuple[int, int],
-                 base: float = 0.0, world_size: float = 1.0):
-        self.ctx, self.pool, self.k = ctx, pool, k
+                 base: float = 0.0, world_size: float = 1.0, deferred: bool = True, merge: bool = True):
+        self.ctx, self.pool, self.k, self.deferred, self.merge = ctx, pool, k, bool(deferred), bool(merge)
         self.vscale, self.base, self.world_size = float(vscale), float(base), float(world_size)
-        prog = self.prog = _program(ctx, "terrain.vert.glsl", "terrain.frag.glsl")
-        prog["u_M"].value = pool.M
-        prog["u_scale"].value = (float(spacing[0]), float(spacing[1]), float(vscale))
-        prog["u_extent"].value = (float(extent[1] - 1), float(extent[0] - 1))
+        self.prog = _program(ctx, "terrain.vert.glsl", "terrain.frag.glsl")
+        self._gprog = _program(ctx, "terrain.vert.glsl", "terrain_gbuffer.frag.glsl")
+        self._sprog = _program(ctx, "fullscreen.vert.glsl", "terrain_shade.frag.glsl")
+        self._shade_vao = ctx.vertex_array(self._sprog, [])
+        self._gbuffers = GBuffers(ctx)
+        self._uniform("u_M", pool.M)
+        self._uniform("u_scale", (float(spacing[0]), float(spacing[1]), float(vscale)))
+        self._uniform("u_extent", (float(extent[1] - 1), float(extent[0] - 1)))
         top = len(pool.slot_of) - 1
-        prog["u_top"].value = top
+        self._uniform("u_top", top)
         rows = np.cumsum([0] + [g.shape[0] for g in pool.slot_of])[:-1]
-        prog["u_pagerow"].value = tuple(int(v) for v in rows) + (0,) * (16 - len(rows))
-        for name, unit in (("u_shade", 0), ("u_ortho", 1), ("u_pages", 2), ("u_ramp", 3)):
-            prog[name].value = unit
+        self._uniform("u_pagerow", tuple(int(v) for v in rows) + (0,) * (16 - len(rows)))
+        for name, unit in (("u_shade", 0), ("u_ortho", 1), ("u_pages", 2), ("u_ramp", 3), ("u_g0", 4), ("u_g1", 5), ("u_g2", 6)):
+            self._uniform(name, unit)
         nb0 = pool.slot_of[0].shape[0]
         self._pages = ctx.texture((nb0, sum(g.shape[0] for g in pool.slot_of)), 1, dtype="i4")
         self._pages.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -180,10 +169,14 @@ class TerrainRenderer:
         self.set_shading(Shading())
         self._patterns: dict[tuple, int] = {}
         self._pattern_data: list[np.ndarray] = []
+        self._merged: dict[bytes, int] = {}  # whole-block patterns: sorted (pattern, anchor) keys -> id
+        self._merged_data: list[np.ndarray] = []
+        self._merged_first = np.zeros(0, np.int64)
         self._ibo = None
-        self.vao = None
+        self.vao = self._gvao = None
         self._indirect = None
         self.tris_per_patch = 4**k
+        self.draws = 0  # commands in the last draw
 
     def set_pages(self, table: np.ndarray) -> None:
         """Which blocks the fragment stage may read (:meth:`BlockPool.page_table`)."""
@@ -195,16 +188,26 @@ class TerrainRenderer:
         if getattr(self, "shading", None) == sh:
             return
         self.shading = sh
-        p = self.prog
-        p["u_exag"].value = (self.base, float(sh.exaggeration))
-        p["u_slope_scale"].value = self.vscale * float(sh.exaggeration)
-        p["u_sun"].value = sh.sun_vector()
-        p["u_light"].value = (0.30, 0.95)
-        p["u_mode"].value = 1 if sh.colormap == "ortho" and self.pool.has_ortho else (2 if sh.colormap in ("none", "ortho") else 0)
-        p["u_haze"].value = 0.35 * float(sh.haze) / max(self.world_size, 1e-9)  # haze 1: 30 % at the diagonal
+        u = self._uniform
+        u("u_exag", (self.base, float(sh.exaggeration)))
+        u("u_slope_scale", self.vscale * float(sh.exaggeration))
+        u("u_sun", sh.sun_vector())
+        u("u_light", (0.30, 0.95))
+        u("u_mode", 1 if sh.colormap == "ortho" and self.pool.has_ortho else (2 if sh.colormap in ("none", "ortho") else 0))
+        u("u_haze", 0.35 * float(sh.haze) / max(self.world_size, 1e-9))  # haze 1: 30 % at the diagonal
         self._ramp.write(ramp(sh.colormap).tobytes())
-        p["u_sky_horizon"].value = SKY_HORIZON
-        p["u_sky_zenith"].value = SKY_ZENITH
+        u("u_sky_horizon", SKY_HORIZON)
+        u("u_sky_zenith", SKY_ZENITH)
+
+    def _uniform(self, name: str, value) -> None:
+        """Set a uniform in every program that has it (forward, G-buffer, shading pass);
+        bytes are written raw (matrices)."""
+        for p in (self.prog, self._gprog, self._sprog):
+            if name in p:
+                if isinstance(value, bytes):
+                    p[name].write(value)
+                else:
+                    p[name].value = value
 
     def world_vertices(self, key: tuple[int, int, int]) -> np.ndarray:
         """(M·M, 3) float32 world positions the vertex stage gives the samples of resident block
@@ -245,20 +248,19 @@ class TerrainRenderer:
         if self._ibo is not None:
             self._ibo.release()
             self.vao.release()
-        self._ibo = self.ctx.buffer(np.concatenate(self._pattern_data).tobytes() if self._pattern_data else np.zeros(3, np.uint32).tobytes())
-        self.vao = self.ctx.vertex_array(
-            self.prog,
-            [(self.pool.vbo, "f", "in_h"), (self.pool.inst, "4i/i", "in_slot")],
-            index_buffer=self._ibo, index_element_size=4)
+            self._gvao.release()
+        data = self._pattern_data + self._merged_data
+        self._ibo = self.ctx.buffer(np.concatenate(data).tobytes() if data else np.zeros(3, np.uint32).tobytes())
+        sizes = np.array([len(d) for d in self._merged_data], np.int64)
+        self._merged_first = len(self._pattern_data) * 3 * self.tris_per_patch + np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        attrs = [(self.pool.vbo, "f", "in_h"), (self.pool.inst, "4i/i", "in_slot")]
+        self.vao = self.ctx.vertex_array(self.prog, attrs, index_buffer=self._ibo, index_element_size=4)
+        self._gvao = self.ctx.vertex_array(self._gprog, attrs, index_buffer=self._ibo, index_element_size=4)
 
-    def draw(self, front, mvp: np.ndarray, tint=(0.0, 0.0, 0.0, 0.0), eye=(0.0, 0.0, 0.0)) -> int:
-        """Draw every patch of ``front`` (all blocks must be resident); returns triangles. The sky
-        behind is painted on the final image (:func:`massview.render.colormaps.paint_sky`)."""
-        n = len(front)
-        if n == 0:
-            return 0
+    def _placement(self, front):
+        """Per patch: its block's GL slot, index-pattern id, and its anchor's (row, col) inside
+        the block (in the block's samples)."""
         M = self.pool.M
-
         slots = lookup_blocks(self.pool.slot_of, front.level, front.bi, front.bj)
         if (slots < 0).any():
             raise RuntimeError("a patch's block is not resident in the GL pool (the LOD must only select resident blocks)")
@@ -268,66 +270,127 @@ class TerrainRenderer:
         miny = np.minimum(np.minimum(front.ay, front.ly), front.ry)
         offs = np.stack([front.ax - minx, front.ay - miny, front.lx - minx, front.ly - miny, front.rx - minx, front.ry - miny], 1) // step[:, None]
         pids = self._pattern_ids(offs)
-        col = (minx - front.bj * span) // step
-        row = (miny - front.bi * span) // step
+        return slots, pids, (miny - front.bi * span) // step, (minx - front.bj * span) // step
+
+    def front_triangles(self, front, cols: int, chunk: int = 8192) -> np.ndarray:
+        """(T, 3) uint32 indices into the row-major finest grid (``cols`` samples per row) of
+        the triangles :meth:`draw` draws for ``front``, in its order (baselines that draw the
+        same triangles as one plain mesh)."""
+        M = self.pool.M
+        _, pids, row, col = self._placement(front)
+        pat = np.stack(self._pattern_data).astype(np.int64)
+        step = 2 ** front.level.astype(np.int64)
+        oy, ox = front.bi * (M - 1) * step, front.bj * (M - 1) * step
+        out = np.empty((len(front) * self.tris_per_patch * 3,), np.uint32)
         per = 3 * self.tris_per_patch
-        cmds = np.empty((n, 5), np.uint32)
-        cmds[:, 0] = per
-        cmds[:, 1] = 1
-        cmds[:, 2] = pids * per
-        cmds[:, 3] = slots * M * M + row * M + col
-        cmds[:, 4] = slots
+        for a in range(0, len(front), chunk):
+            b = min(a + chunk, len(front))
+            local = pat[pids[a:b]] + (row[a:b] * M + col[a:b])[:, None]
+            r, c = local // M, local % M
+            g = (oy[a:b, None] + r * step[a:b, None]) * cols + ox[a:b, None] + c * step[a:b, None]
+            out[a * per:b * per] = g.ravel()
+        return out.reshape(-1, 3)
+
+    def draw(self, front, mvp: np.ndarray, tint=(0.0, 0.0, 0.0, 0.0), eye=(0.0, 0.0, 0.0)) -> int:
+        """Draw every patch of ``front`` (all blocks must be resident); returns triangles. The sky
+        behind is painted on the final image (:func:`massview.render.colormaps.paint_sky`)."""
+        n = len(front)
+        if n == 0:
+            return 0
+        cmds = self._commands(front)
         data = cmds.tobytes()
         if self._indirect is None or self._indirect.size < len(data):
             if self._indirect is not None:
                 self._indirect.release()
             self._indirect = self.ctx.buffer(reserve=max(len(data), 1 << 16) * 2)
         self._indirect.write(data)
-        self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, dtype="f4").tobytes())
-        self.prog["u_tint"].value = tuple(tint)
-        self.prog["u_eye"].value = tuple(float(v) for v in eye)
+        self._uniform("u_mvp", np.ascontiguousarray(mvp.T, dtype="f4").tobytes())
+        self._uniform("u_tint", tuple(tint))
+        self._uniform("u_eye", tuple(float(v) for v in eye))
         self.pool.shade.use(0)
         self.pool.ortho.use(1)
         self._pages.use(2)
         self._ramp.use(3)
-        self.vao.render_indirect(self._indirect, mode=moderngl.TRIANGLES, count=n)
+        if self.deferred:
+            self._draw_deferred(len(cmds))
+        else:
+            self.vao.render_indirect(self._indirect, mode=moderngl.TRIANGLES, count=len(cmds))
+        self.draws = len(cmds)
         return n * self.tris_per_patch
 
+    def _commands(self, front) -> np.ndarray:
+        """(draws, 5) uint32 ``DrawElementsIndirectCommand`` rows for ``front``: one per patch in
+        front order, then one per block the front covers whole at its level (all its
+        2(M−1)²/4^k patches: e.g. every block at full resolution), drawn by one merged pattern.
+        llvmpipe's per-draw cost (state, buffer mapping, a pipeline flush per draw) is then paid
+        per block instead of per patch."""
+        M, tpp = self.pool.M, self.tris_per_patch
+        slots, pids, row, col = self._placement(front)
+        base = (row * M + col).astype(np.int64)
+        full = 2 * (M - 1) ** 2 // tpp
+        whole = np.bincount(slots)[slots] == full if self.merge else np.zeros(len(front), bool)
+        part = ~whole
+        cmds = np.empty((int(part.sum()), 5), np.uint32)
+        cmds[:, 0] = 3 * tpp
+        cmds[:, 1] = 1
+        cmds[:, 2] = pids[part] * 3 * tpp
+        cmds[:, 3] = slots[part] * M * M + base[part]
+        cmds[:, 4] = slots[part]
+        if whole.any():
+            cmds = np.concatenate([cmds, self._block_commands(slots[whole], pids[whole], base[whole], full)])
+        return cmds
+
+    def _block_commands(self, slots, pids, base, full: int) -> np.ndarray:
+        """One command per whole block; its merged pattern (the block's patches sorted by
+        (pattern, anchor)) is made once per distinct patch set (a few: the bintree's split
+        directions) and kept in the index buffer after the patch patterns."""
+        M, per = self.pool.M, 3 * self.tris_per_patch
+        order = np.argsort(slots, kind="stable")
+        keys = np.sort((pids[order] * M * M + base[order]).reshape(-1, full), axis=1)
+        bslots = slots[order][::full]
+        uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+        if len(self._merged) + len(uniq) > 64:  # bound the index buffer: start over
+            self._merged.clear()
+            self._merged_data.clear()
+        mids, changed = np.empty(len(uniq), np.int64), False
+        for i, k in enumerate(uniq):
+            mid = self._merged.get(k.tobytes())
+            if mid is None:
+                pat, anchor = np.divmod(k, M * M)
+                idx = (np.stack([self._pattern_data[q] for q in pat]).astype(np.int64) + anchor[:, None]).astype(np.uint32)
+                mid = self._merged[k.tobytes()] = len(self._merged_data)
+                self._merged_data.append(idx.ravel())
+                changed = True
+            mids[i] = mid
+        if changed:
+            self._rebuild()
+        cmds = np.empty((len(bslots), 5), np.uint32)
+        cmds[:, 0] = full * per
+        cmds[:, 1] = 1
+        cmds[:, 2] = self._merged_first[mids[inv.ravel()]]
+        cmds[:, 3] = bslots * M * M
+        cmds[:, 4] = bslots
+        return cmds
+
+    def _draw_deferred(self, n: int) -> None:
+        """Pass 1 into the bound target's G-buffer (its depth test), pass 2 shades the pixels
+        pass 1 wrote into the target's colour (:mod:`.terrain_gbuffer`)."""
+        ctx = self.ctx
+        target = ctx.fbo
+        self._uniform("u_serial", self._gbuffers.next_serial())
+        gfbo = self._gbuffers.for_target(target)
+        gfbo.use()
+        self._gvao.render_indirect(self._indirect, mode=moderngl.TRIANGLES, count=n)
+        target.use()
+        for unit, tex in enumerate(self._gbuffers.textures(gfbo), start=4):
+            tex.use(unit)
+        ctx.disable(moderngl.DEPTH_TEST)
+        self._shade_vao.render(moderngl.TRIANGLES, vertices=3)
+        ctx.enable(moderngl.DEPTH_TEST)
+
     def release(self) -> None:
-        for o in (self.vao, self._ibo, self._indirect, self.prog, self._pages, self._ramp):
+        self._gbuffers.release()
+        for o in (self.vao, self._gvao, self._ibo, self._indirect, self._shade_vao, self.prog, self._gprog, self._sprog,
+                  self._pages, self._ramp):
             if o is not None:
                 o.release()
-
-
-class PlainMeshRenderer:
-    """The baseline without LOD: the finest level as one static indexed mesh (what a user
-    would draw without a terrain system), with per-vertex lighting; shares the block packing."""
-
-    def __init__(self, ctx: moderngl.Context, heights: np.ndarray, color: np.ndarray | None, spacing, vscale: float):
-        rows, cols = heights.shape
-        self.ctx = ctx
-        self.triangles = 2 * (rows - 1) * (cols - 1)
-        verts = pack_block(heights, color, spacing[0], spacing[1], vscale)
-        self.vbo = ctx.buffer(verts.tobytes())
-        self.inst = ctx.buffer(np.array([0, 0, 1, 0], np.int32).tobytes())
-        r, c = np.meshgrid(np.arange(rows - 1, dtype=np.uint32), np.arange(cols - 1, dtype=np.uint32), indexing="ij")
-        a = (r * cols + c).ravel()
-        idx = np.stack([a, a + cols, a + 1, a + 1, a + cols, a + cols + 1], 1).ravel()
-        self.ibo = ctx.buffer(idx.tobytes())
-        prog = self.prog = _program(ctx, "terrain_plain.vert.glsl", "terrain_plain.frag.glsl")
-        prog["u_M"].value = cols  # one grid row = one "block" row
-        prog["u_scale"].value = (float(spacing[0]), float(spacing[1]), float(vscale))
-        prog["u_light"].value = tuple(_LIGHT)
-        prog["u_extent"].value = (float(cols - 1), float(rows - 1))
-        self.vao = ctx.vertex_array(self.prog, [(self.vbo, "f 2f2 4f1", "in_h", "in_n", "in_color"), (self.inst, "4i/i", "in_slot")],
-                                    index_buffer=self.ibo, index_element_size=4)
-
-    def draw(self, mvp: np.ndarray) -> int:
-        self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, dtype="f4").tobytes())
-        self.prog["u_tint"].value = (0.0, 0.0, 0.0, 0.0)
-        self.vao.render(moderngl.TRIANGLES)
-        return self.triangles
-
-    def release(self) -> None:
-        for o in (self.vao, self.ibo, self.vbo, self.inst, self.prog):
-            o.release()

@@ -8,6 +8,9 @@ rendered as a real MPI job through :func:`massview.render` (``ranks=N``); printe
 
 Part 2: LOD selection time against front size (τ = 1, 0.5, 0.25 on three paths).
 
+``--draw``: only the draw throughput (Mtri/s) of the K-patch path, a plain mesh and
+pyvista/VTK on the same triangles, at full resolution and at the demo's LOD (terrain_draw.py).
+
 Part 3 (one rank, one process, same GL context, same cameras and image size): the K-patch
 LOD (LOD selection + draw) against drawing the store's finest level as one plain indexed
 mesh. Printed: triangles and frame time of each and their ratios. The plain mesh must fit in
@@ -39,6 +42,9 @@ def add_arguments(p) -> None:
     p.add_argument("--tau", type=float, default=1.0)
     p.add_argument("--max-plain", type=int, default=40_000_000, help="largest plain mesh to draw as the baseline (triangles)")
     p.add_argument("--skip-parallel", action="store_true", help="only the one-rank LOD vs plain-mesh comparison")
+    p.add_argument("--draw", action="store_true", help="only the draw throughput: K-patch vs plain mesh vs VTK (terrain_draw.py)")
+    p.add_argument("--draw-reps", type=int, default=5, help="draws per path in --draw")
+    p.add_argument("--no-vtk", action="store_true", help="--draw without the pyvista/VTK child")
 
 
 DECOMPS = ["sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd",
@@ -154,6 +160,11 @@ def run(args) -> int:
     from rich.table import Table
 
     console = Console(width=None if Console().is_terminal else 150)
+    if args.draw:
+        from .terrain_draw import run_draw
+
+        run_draw(args, console, Table)
+        return 0
     if not args.skip_parallel:
         _parallel(args, console, Table)
     _lod_timing(args, console, Table)

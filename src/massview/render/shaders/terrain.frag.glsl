@@ -5,67 +5,14 @@
 // falls back to its coarser ancestor. Lighting: a sun (GDAL azimuth/altitude) plus a sky
 // hemisphere term, so slopes facing away from the sun keep their relief; aerial perspective
 // blends towards the sky colour with distance. Padding samples (beyond the input) are discarded.
-uniform vec4 u_tint;
 uniform vec2 u_extent;        // last valid col, last valid row (finest samples)
-uniform sampler2DArray u_shade;
-uniform sampler2DArray u_ortho;
-uniform isampler2D u_pages;   // slot of block (level, i, j) at (j, row0[level] + i), -1 if absent
-uniform sampler2D u_ramp;     // 256 × 1 colour ramp over the height range
-uniform int u_M;
-uniform int u_top;            // top pyramid level L
-uniform int u_pagerow[16];
-uniform int u_mode;           // 0 ramp, 1 orthophoto, 2 grey
-uniform float u_slope_scale;  // vertical scale × exaggeration
-uniform vec3 u_sun;           // unit vector towards the sun
-uniform vec2 u_light;         // sky (ambient) and sun weights
-uniform vec3 u_eye;
-uniform float u_haze;         // extinction per world unit
 in vec2 v_grid;
 in vec3 v_world;
 out vec4 f_color;
 
-vec3 sky_color(vec3 dir);
-
-// shading maps (slope x, slope y, height fraction) and orthophoto colour at level lv or the
-// first resident level above it
-void fetch(int lv, vec2 g, out vec3 shade, out vec3 rgb) {
-    for (; lv <= u_top; ++lv) {
-        int span = (u_M - 1) << lv;
-        int nb = 1 << (u_top - lv);
-        ivec2 b = clamp(ivec2(floor(g / float(span))), ivec2(0), ivec2(nb - 1));
-        int slot = texelFetch(u_pages, ivec2(b.x, u_pagerow[lv] + b.y), 0).r;
-        if (slot >= 0) {
-            vec3 uvw = vec3(((g - vec2(b * span)) / float(1 << lv) + 0.5) / float(u_M), float(slot));
-            shade = texture(u_shade, uvw).rgb;
-            rgb = u_mode == 1 ? texture(u_ortho, uvw).rgb : vec3(0.0);
-            return;
-        }
-    }
-    shade = vec3(0.0, 0.0, 0.5);
-    rgb = vec3(0.5);
-}
+vec4 terrain_color(vec2 grid, vec2 gx, vec2 gy, vec3 world);
 
 void main() {
     if (v_grid.x > u_extent.x || v_grid.y > u_extent.y) discard;
-    vec2 gx = dFdx(v_grid), gy = dFdy(v_grid);
-    float lod = clamp(log2(max(max(length(gx), length(gy)), 1e-6)), 0.0, float(u_top));
-    int l0 = int(floor(lod));
-    vec3 s, rgb;
-    fetch(l0, v_grid, s, rgb);
-    float fr = lod - float(l0);
-    if (fr > 0.0 && l0 < u_top) {
-        vec3 s1, rgb1;
-        fetch(l0 + 1, v_grid, s1, rgb1);
-        s = mix(s, s1, fr);
-        rgb = mix(rgb, rgb1, fr);
-    }
-    vec3 n = normalize(vec3(-u_slope_scale * s.x, -u_slope_scale * s.y, 1.0));
-    vec3 base = u_mode == 0 ? texture(u_ramp, vec2(clamp(s.z, 0.0, 1.0) * (255.0 / 256.0) + 0.5 / 256.0, 0.5)).rgb
-              : (u_mode == 1 ? rgb : vec3(0.82));
-    float light = u_light.x * (0.5 + 0.5 * n.z) + u_light.y * max(dot(n, u_sun), 0.0);
-    vec3 c = base * light;
-    vec3 view = v_world - u_eye;
-    float fog = 1.0 - exp(-u_haze * length(view));
-    c = mix(c, sky_color(view), fog);
-    f_color = vec4(mix(c, u_tint.rgb, u_tint.a), 1.0);
+    f_color = terrain_color(v_grid, dFdx(v_grid), dFdy(v_grid), v_world);
 }
