@@ -39,12 +39,11 @@ import numpy as np
 from ...core.errors import IngestError
 from .colors import write_shading
 from .layout import TerrainLayout
-from .deviation import DeviationAccumulator, coarse_lattice
-from .meta import DiamondAccumulator, block_errors_from, saturate, vertex_deltas
+from .metadata import Metadata, compute_metadata, write_metadata
 from .sources import RasterSource
 from .store import TerrainStore, create_store
 
-__all__ = ["prepare_terrain", "PrepareResult", "fill_nodata"]
+__all__ = ["prepare_terrain", "PrepareResult", "fill_nodata", "compute_metadata", "write_metadata", "Metadata"]
 
 Progress = Callable[[str, int, int], None]  # (phase, advance, phase_total)
 _FILL_MARGIN = 32
@@ -231,85 +230,3 @@ def _decimate(quad: np.ndarray) -> np.ndarray:
     return np.concatenate([top, bottom[1:]], 0)[::2, ::2]
 
 
-@dataclass
-class Metadata:
-    minmax: list[np.ndarray]
-    block_error: list[np.ndarray]
-    sq: list[np.ndarray]
-    dg: list[np.ndarray]
-    zmin: list[np.ndarray]
-    zmax: list[np.ndarray]
-    zlo: float
-    zhi: float
-
-
-def compute_metadata(store: TerrainStore, prog: Progress, write_color: bool = False, ortho: RasterSource | None = None,
-                     vertical_scale: float = 1.0) -> Metadata:
-    """Read every block once and derive all metadata (also what ``verify`` recomputes)."""
-    lay = store.layout
-    acc = DiamondAccumulator(lay)  # square z-ranges (level 0)
-    dev = DeviationAccumulator(lay, coarse_lattice(store))  # exact K-patch errors (level 0)
-    minmax, dmax = [], []
-    total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
-    for lv in range(lay.levels):
-        nb = lay.blocks(lv)
-        mm = np.zeros((nb, nb, 2), np.float32)
-        dm = np.zeros((nb, nb), np.float32)
-        for i in range(nb):
-            row = store.get_block_row(lv, i)
-            for j in range(nb):
-                b = row[j]
-                mm[i, j] = b.min(), b.max()
-                d = vertex_deltas(b)
-                dm[i, j] = max(float(x.max()) if x.size else 0.0 for x in d)
-                if lv == 0:
-                    acc.add_block(lv, i, j, b, d)
-                    dev.add_block(i, j, b)
-            prog("metadata", nb, total)
-        minmax.append(mm)
-        dmax.append(dm)
-    _, _, zmin, zmax = acc.finish()
-    sq, dg = saturate(dev.sq, dev.dg)
-    zlo, zhi = float(minmax[0][..., 0].min()), float(minmax[0][..., 1].max())  # the data's range (level 0)
-    if write_color:
-        _write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
-    return Metadata(minmax, block_errors_from(dmax), sq, dg, zmin, zmax, zlo, zhi)
-
-
-def _write_colors(store: TerrainStore, lay: TerrainLayout, zlo: float, zhi: float, ortho, vscale: float, prog: Progress) -> None:
-    import zarr
-
-    g = zarr.open_group(str(store.path), mode="r+")
-    total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
-    for lv in range(lay.levels):
-        nb = lay.blocks(lv)
-        dst = g[f"color/{lv}"]
-        for i in range(nb):
-            dst[i] = np.stack([_ortho_block(ortho, lay, lv, i, j) for j in range(nb)])
-            prog("colour", nb, total)
-
-
-def _ortho_block(ortho, lay: TerrainLayout, lv: int, i: int, j: int) -> np.ndarray:
-    """Orthophoto pixels for a block, resampled (nearest) from an image covering the DEM extent."""
-    M = lay.M
-    step = 2**lv
-    rows = (i * (M - 1) + np.arange(M)) * step
-    cols = (j * (M - 1) + np.arange(M)) * step
-    fy, fx = ortho.rows / lay.rows, ortho.cols / lay.cols
-    ry = np.clip((np.minimum(rows, lay.rows - 1) * fy).astype(int), 0, ortho.rows - 1)
-    rx = np.clip((np.minimum(cols, lay.cols - 1) * fx).astype(int), 0, ortho.cols - 1)
-    r0, r1, c0, c1 = ry.min(), ry.max() + 1, rx.min(), rx.max() + 1
-    rgb = ortho.read_rgb(r0, r1, c0, c1)
-    return rgb[np.ix_(ry - r0, rx - c0)]
-
-
-def write_metadata(g, lay: TerrainLayout, meta: Metadata) -> None:
-    for lv in range(lay.levels):
-        for name, arr in ((f"blocks/{lv}/minmax", meta.minmax[lv]), (f"blocks/{lv}/error", meta.block_error[lv])):
-            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True)[...] = arr
-    for j in range(lay.J):
-        g.create_array(f"lod/square_error/{j}", shape=meta.sq[j].shape, dtype="float32", chunks=meta.sq[j].shape, overwrite=True)[...] = meta.sq[j]
-        g.create_array(f"lod/edge_error/{j}", shape=meta.dg[j].shape, dtype="float32", chunks=meta.dg[j].shape, overwrite=True)[...] = meta.dg[j]
-    for j in range(lay.J + 1):
-        for name, arr in ((f"lod/zmin/{j}", meta.zmin[j]), (f"lod/zmax/{j}", meta.zmax[j])):
-            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True)[...] = arr
