@@ -138,7 +138,9 @@ def _first_valid_row(src: RasterSource, r: int, step: int = 256) -> np.ndarray:
 
 def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17, vertical_scale: float = 1.0,
                     color: str | None = "computed", ortho: RasterSource | None = None, overwrite: bool = False,
-                    progress: Progress | None = None) -> PrepareResult:
+                    progress: Progress | None = None, workers: int | None = None) -> PrepareResult:
+    """Build the store at ``out`` from ``src`` (see the module docstring); ``workers`` threads
+    (None/0: every core this process may use) share the work, with identical output."""
     t0 = time.perf_counter()
     lay = TerrainLayout(src.rows, src.cols, block, K)
     if not (math.isfinite(vertical_scale) and vertical_scale > 0):
@@ -160,9 +162,9 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
 
     # 3. metadata and colour --------------------------------------------------------------
     store = TerrainStore(out, require_complete=False)
-    meta = compute_metadata(store, prog, write_color=ortho is not None, ortho=ortho, vertical_scale=vertical_scale)
+    meta = compute_metadata(store, prog, write_color=ortho is not None, ortho=ortho, vertical_scale=vertical_scale, workers=workers)
     write_metadata(g, lay, meta)
-    write_shading(store, g, meta.zlo, meta.zhi, prog)
+    write_shading(store, g, meta.zlo, meta.zhi, prog, workers)
     from .roettger import DEFAULT_C_MIN, compute_table, write_table  # T2's per-node table (Röttger d2)
 
     write_table(g, compute_table(store, DEFAULT_C_MIN, prog), DEFAULT_C_MIN)

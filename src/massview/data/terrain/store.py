@@ -43,9 +43,12 @@ FORMAT_VERSION = 2
 
 
 def _compressor(typesize: int = 4):
+    """Blosc zstd level 1 + byte shuffle: lossless like the level 3 of format 2's first stores
+    (the decoded arrays are the same), 1.7× (heights) to 4.6× (shading) faster to write for
+    2–3 % more bytes (measured on the synthetic DEM, issue 20)."""
     from zarr.codecs import BloscCodec
 
-    return BloscCodec(cname="zstd", clevel=3, shuffle="shuffle" if typesize > 1 else "noshuffle", typesize=typesize)
+    return BloscCodec(cname="zstd", clevel=1, shuffle="shuffle" if typesize > 1 else "noshuffle", typesize=typesize)
 
 
 def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, overwrite: bool = False):
