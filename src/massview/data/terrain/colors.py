@@ -106,7 +106,7 @@ def _shade0_row(prev: np.ndarray | None, cur: np.ndarray, nxt: np.ndarray | None
         sx, sy = horn_slopes(s, dx, dy)
         t = (s[1:-1, 1:-1] - zlo) / rng
         out[:, c0:c1] = np.stack([sx, sy, t], axis=-1)
-        dst[i, j0:j1] = _cut(out[:, c0:c1], j1 - j0, M)
+        dst.write(i, j0, _cut(out[:, c0:c1], j1 - j0, M))
     return out
 
 
@@ -126,7 +126,7 @@ def _tent_row(rows: list, nbp: int, i: int, dst) -> np.ndarray:
         g = _padded(above, mid, below, c0, c1).astype(np.float32)
         o0, o1 = j0 * (M - 1), j1 * (M - 1) + 1
         out[:, o0:o1] = tent_decimate(g)
-        dst[i, j0:j1] = _cut(out[:, o0:o1], j1 - j0, M)
+        dst.write(i, j0, _cut(out[:, o0:o1], j1 - j0, M))
     return out
 
 
@@ -137,6 +137,7 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
     here; each finished row (float16, as stored) feeds the coarser levels in memory — block
     row i of level l is made as soon as rows 2i-1 .. 2i+2 of level l-1 exist — so no level is
     read back. Every output sample is the same float32 expression as on the whole grid."""
+    from .store import ChunkWriter
     from .workers import resolve_workers, run_ordered
 
     lay = store.layout
@@ -146,6 +147,7 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
     nb0 = lay.blocks(0)
     cache: list[dict] = [{} for _ in range(lay.levels)]
     made = [0] * lay.levels  # block rows made per level
+    writers = [ChunkWriter(g, f"shade/{lv}") for lv in range(lay.levels)]
 
     def heights():
         rows = {}
@@ -155,7 +157,7 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
             if i >= 1:
                 k = i - 1
                 yield (lambda k=k, p=rows.get(k - 1), c=rows[k], n=rows.get(k + 1):
-                       (k, _shade0_row(p, c, n, dx, dy, zlo, rng, g["shade/0"], k)))
+                       (k, _shade0_row(p, c, n, dx, dy, zlo, rng, writers[0], k)))
                 rows.pop(k - 1, None)
 
     def done(res) -> None:
@@ -174,7 +176,7 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
             need = min(2 * i + 2, nbp - 1)
             if made[lv - 1] <= need:
                 return
-            cache[lv][i] = _tent_row(below, nbp, i, g[f"shade/{lv}"])
+            cache[lv][i] = _tent_row(below, nbp, i, writers[lv])
             for k in [k for k in below if k < 2 * i + 1]:
                 del below[k]
             made[lv] += 1

@@ -41,7 +41,8 @@ from .colors import write_shading
 from .layout import TerrainLayout
 from .metadata import Metadata, compute_metadata, write_metadata
 from .sources import RasterSource
-from .store import TerrainStore, create_store
+from .store import ChunkWriter, TerrainStore, create_store
+from .workers import resolve_workers, run_ordered
 
 __all__ = ["prepare_terrain", "PrepareResult", "fill_nodata", "compute_metadata", "write_metadata", "Metadata"]
 
@@ -151,14 +152,15 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
              "nodata": {"value": None if src.nodata is None else float(src.nodata), "filled": 0},
              "source": src.name, "source_dtype": str(src.dtype), "color": None}
     g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite)
+    workers = resolve_workers(workers)
     prog = progress or (lambda phase, adv, total: None)
     try:
-        filled = _level0(g, src, lay, block, resumed, prog)
+        filled = _level0(g, src, lay, block, resumed, prog, workers)
     except IngestError:
         if not resumed:  # created by this run, nothing of value in it: leave no store behind
             shutil.rmtree(out, ignore_errors=True)
         raise
-    _coarser_levels(g, lay, prog)
+    _coarser_levels(g, lay, prog, workers)
 
     # 3. metadata and colour --------------------------------------------------------------
     store = TerrainStore(out, require_complete=False)
@@ -181,48 +183,76 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     return res
 
 
-def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress) -> int:
+def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress, workers: int = 1) -> int:
     """Phase 1; returns the number of filled samples (all runs). Raises IngestError when no
-    input sample is valid."""
+    input sample is valid. Strips are read and filled in order here (each needs the row above
+    it); worker threads compress and write them, and a block row is flagged done, in order,
+    only once its chunks are on disk."""
     nb0 = lay.blocks(0)
     done0 = g["blocks/0/done"]
     flags = np.asarray(done0[...])
     heights0 = g["heights/0"]
-    prev_row = None
-    filled = int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0
-    for bi in range(nb0):
-        if flags[bi].all():  # done in an earlier run: rebuild its last row from the stored blocks
-            last = np.asarray(heights0[bi, :, -1, :])  # (nb0, M); neighbours share their border sample
-            prev_row = np.concatenate([last[:, :-1].ravel(), last[-1, -1:]])
-            prog("level 0", nb0, nb0 * nb0)
-            continue
-        strip, nfill = _read_strip(src, lay, bi, prev_row)
-        heights0[bi] = np.stack([strip[:, bj * (block - 1): bj * (block - 1) + block] for bj in range(nb0)])
-        filled += nfill
-        done0[bi, :] = 1
-        nod = dict(g.attrs["nodata"])
-        nod["filled"] = filled
-        g.attrs["nodata"] = nod
-        prev_row = strip[-1].copy()
+    out = ChunkWriter(g, "heights/0")
+    state = {"filled": int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0}
+
+    def write(bi: int, strip: np.ndarray, nfill: int):
+        out.write(bi, 0, np.stack([strip[:, bj * (block - 1): bj * (block - 1) + block] for bj in range(nb0)]))
+        return bi, nfill
+
+    def tasks():
+        prev_row = None
+        for bi in range(nb0):
+            if flags[bi].all():  # done in an earlier run: rebuild its last row from the stored blocks
+                last = np.asarray(heights0[bi, :, -1, :])  # (nb0, M); neighbours share their border sample
+                prev_row = np.concatenate([last[:, :-1].ravel(), last[-1, -1:]])
+                yield lambda bi=bi: (bi, None)
+                continue
+            strip, nfill = _read_strip(src, lay, bi, prev_row)
+            prev_row = strip[-1].copy()
+            yield lambda bi=bi, strip=strip, nfill=nfill: write(bi, strip, nfill)
+
+    def done(res) -> None:
+        bi, nfill = res
+        if nfill is not None:
+            state["filled"] += nfill
+            done0[bi, :] = 1
+            nod = dict(g.attrs["nodata"])
+            nod["filled"] = state["filled"]
+            g.attrs["nodata"] = nod
         prog("level 0", nb0, nb0 * nb0)
-    if filled >= src.rows * src.cols:  # (a fresh run fails in the first strip already; this catches resumed ones)
+
+    run_ordered(workers, tasks(), done)
+    if state["filled"] >= src.rows * src.cols:  # (a fresh run fails in the first strip already; this catches resumed ones)
         _first_valid_row(src, src.rows)
-    return filled
+    return state["filled"]
 
 
-def _coarser_levels(g, lay: TerrainLayout, prog: Progress) -> None:
-    """Phase 2: levels 1..L by decimation of 2 × 2 child blocks (resumable per block row)."""
+def _coarser_levels(g, lay: TerrainLayout, prog: Progress, workers: int = 1) -> None:
+    """Phase 2: levels 1..L by decimation of 2 × 2 child blocks (resumable per block row;
+    rows read in order here, decimated and written by worker threads)."""
     for lv in range(1, lay.levels):
         nb = lay.blocks(lv)
         done = g[f"blocks/{lv}/done"]
         flags = np.asarray(done[...])
-        child, dst = g[f"heights/{lv - 1}"], g[f"heights/{lv}"]
-        for i in range(nb):
-            if not flags[i].all():
-                two = np.asarray(child[2 * i: 2 * i + 2])  # (2, 2nb, M, M): the two child block rows
-                dst[i] = np.stack([_decimate(two[:, 2 * j: 2 * j + 2]) for j in range(nb)])
+        child, out = g[f"heights/{lv - 1}"], ChunkWriter(g, f"heights/{lv}")
+
+        def make(i: int, two: np.ndarray, nb=nb, out=out) -> int:
+            out.write(i, 0, np.stack([_decimate(two[:, 2 * j: 2 * j + 2]) for j in range(nb)]))
+            return i
+
+        def tasks(nb=nb, flags=flags, child=child, make=make):
+            for i in range(nb):
+                if flags[i].all():
+                    yield lambda i=i: -1 - i
+                else:  # (2, 2nb, M, M): the two child block rows
+                    yield lambda i=i, two=np.asarray(child[2 * i: 2 * i + 2]): make(i, two)
+
+        def finished(i: int, nb=nb, done=done, lv=lv) -> None:
+            if i >= 0:
                 done[i, :] = 1
             prog(f"level {lv}", nb, nb * nb)
+
+        run_ordered(workers, tasks(), finished)
 
 
 def _decimate(quad: np.ndarray) -> np.ndarray:
