@@ -167,9 +167,9 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     meta = compute_metadata(store, prog, write_color=ortho is not None, ortho=ortho, vertical_scale=vertical_scale, workers=workers)
     write_metadata(g, lay, meta)
     write_shading(store, g, meta.zlo, meta.zhi, prog, workers)
-    from .roettger import DEFAULT_C_MIN, compute_table, write_table  # T2's per-node table (Röttger d2)
+    from .roettger import DEFAULT_C_MIN, iter_table, write_table  # T2's per-node table (Röttger d2)
 
-    write_table(g, compute_table(store, DEFAULT_C_MIN, prog), DEFAULT_C_MIN)
+    write_table(g, iter_table(store, DEFAULT_C_MIN, prog), DEFAULT_C_MIN)
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
