@@ -91,7 +91,8 @@ def cmd_prepare(args) -> int:
     ortho = open_source(args.color) if args.color else None
     with progress_bar(args.quiet) as prog:
         res = prepare_terrain(src, Path(args.output), block=args.block, vertical_scale=args.vertical_scale,
-                              color=None if args.no_color else "computed", ortho=ortho, overwrite=args.overwrite, progress=prog)
+                              color=None if args.no_color else "computed", ortho=ortho, overwrite=args.overwrite, progress=prog,
+                              workers=getattr(args, "workers", 0))
     mb = res.input_bytes / 1e6
     print(f"{'resumed and completed' if res.resumed else 'wrote'} {res.path}: {res.layout.rows}x{res.layout.cols} samples, "
           f"{res.layout.levels} levels of {res.layout.M}² blocks, {res.filled} nodata samples filled, "

@@ -41,13 +41,16 @@ def write_synthetic(path: Path, size: int, seed: int, fmt: str, progress: Callab
     strips = range(0, size, _TILE)
     tmp = path.with_name(path.name + ".partial")
     if fmt == "npy":
+        from .workers import resolve_workers, run_ordered
+
         out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=(size, size))
-        for r0 in strips:
-            r1 = min(r0 + _TILE, size)
-            for c0 in range(0, size, _TILE_COLS):
-                out[r0:r1, c0:c0 + _TILE_COLS] = src.read(r0, r1, c0, min(c0 + _TILE_COLS, size))
-            out.flush()  # written pages can be dropped from this process's memory
-            prog(r1 - r0, size)
+
+        def window(r0: int, r1: int, c0: int) -> int:
+            out[r0:r1, c0:c0 + _TILE_COLS] = src.read(r0, r1, c0, min(c0 + _TILE_COLS, size))
+            return r1 - r0 if c0 + _TILE_COLS >= size else 0
+
+        windows = ((lambda r0=r0, c0=c0: window(r0, min(r0 + _TILE, size), c0)) for r0 in strips for c0 in range(0, size, _TILE_COLS))
+        run_ordered(resolve_workers(None), windows, lambda n: n and (out.flush(), prog(n, size)))  # windows on every core
         out.flush()
         del out
     elif fmt == "tif":

@@ -35,7 +35,10 @@ def run_ordered(workers: int, tasks: Iterable[Callable[[], object]], done: Calla
                 depth: int = 2) -> None:
     """Run ``tasks`` (zero-argument callables, produced lazily) on ``workers`` threads with at
     most ``depth × workers`` in flight, and hand each result to ``done`` in submission order
-    (on the calling thread). One worker runs everything inline, in order."""
+    (on the calling thread). One worker runs everything inline, in order. If producing a task
+    or a task fails, the tasks already submitted are still finished and handed to ``done`` in
+    order up to the first failure (so work that reached the disk is recorded as done, for a
+    resumed run), then the error is raised."""
     sink = done or (lambda r: None)
     if workers <= 1:
         for t in tasks:
@@ -50,6 +53,13 @@ def run_ordered(workers: int, tasks: Iterable[Callable[[], object]], done: Calla
                     sink(pending.popleft().result())
             while pending:
                 sink(pending.popleft().result())
-        finally:
+        except BaseException:
+            while pending:
+                try:
+                    res = pending.popleft().result()
+                except BaseException:  # noqa: BLE001 - the first error is the one raised
+                    break
+                sink(res)
             for f in pending:
                 f.cancel()
+            raise
