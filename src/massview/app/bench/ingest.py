@@ -18,6 +18,8 @@ The DEM (default 16385², 1 GiB of float32; ``--size 32769``: 4.3 GB) is generat
 
 Printed: input MB/s of prepare, its ratio to the copy baseline, wall, CPU, the height
 compression ratio, the store size, peak RSS and the per-rank peaks. Nothing is asserted.
+"""
+
 from __future__ import annotations
 
 import os
