@@ -54,6 +54,9 @@ def cmd_generate(args) -> int:
     check_output_file(out, "output")
     if fmt != "store" and out.is_dir():
         raise OutputError(f"output {out}: is a folder; give a file name for --format {fmt}")
+    from ..data.terrain.workers import return_freed_memory
+
+    return_freed_memory()
     with progress_bar(args.quiet) as prog:
         if fmt == "store":
             res = prepare_terrain(SyntheticSource(args.size, args.seed), out, block=args.block, overwrite=args.overwrite, progress=prog)
@@ -83,8 +86,10 @@ def _shape(spec: str | None):
 
 def cmd_prepare(args) -> int:
     from ..data.terrain import open_source, prepare_terrain
+    from ..data.terrain.workers import return_freed_memory
     from .outputs import check_output_file
 
+    return_freed_memory()  # threads' freed rows go back to the system (≤ 1 GiB RSS, issue 20)
     check_output_file(Path(args.output), "-o")
     src = open_source(args.input, nodata=args.nodata, array=args.array, shape=_shape(args.shape), dtype=args.dtype,
                       spacing=args.spacing, crs=args.crs)

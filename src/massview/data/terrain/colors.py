@@ -104,8 +104,8 @@ def _shade0_row(prev: np.ndarray | None, cur: np.ndarray, nxt: np.ndarray | None
         c0, c1 = j0 * (M - 1), j1 * (M - 1) + 1
         s = _padded(above, cur, below, c0, c1)  # (M+2, c1-c0+2)
         sx, sy = horn_slopes(s, dx, dy)
-        t = (s[1:-1, 1:-1] - zlo) / rng
-        out[:, c0:c1] = np.stack([sx, sy, t], axis=-1)
+        for ch, v in enumerate((sx, sy, (s[1:-1, 1:-1] - zlo) / rng)):  # float32 → float16, channel by channel
+            out[:, c0:c1, ch] = v
         dst.write(i, j0, _cut(out[:, c0:c1], j1 - j0, M))
     return out
 
@@ -183,4 +183,4 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
             progress("shading", 1, total)
             _cascade(lv + 1)
 
-    run_ordered(resolve_workers(workers), heights(), done)
+    run_ordered(resolve_workers(workers), heights(), done, depth=1)  # bounded: a float16 row is 50 MB at 32769²

@@ -11,10 +11,19 @@ continues where it stopped and a half-written store never opens as a good one):
    the outer border only, cut into blocks. The shared row between strips is taken from the
    strip above, so borders are bit-identical in both blocks.
 2. **levels 1..L** by vertex decimation of 2 × 2 child blocks.
-3. **metadata** (and orthophoto colour): every block is read back once; min/max, dropped-sample
-   errors, square z-ranges (:mod:`meta`) and exact K-patch diamond errors (:mod:`deviation`);
-4. **shading pyramid** (:mod:`colors`): slopes and height fractions, seamless and mip-filtered.
+3. **metadata** (:mod:`metadata`; and orthophoto colour): every block is read back once;
+   min/max, dropped-sample errors, square z-ranges (:mod:`meta`) and exact K-patch diamond
+   errors (:mod:`deviation`, whose per-sample loop is compiled: :mod:`kernels`);
+4. **shading pyramid** (:mod:`colors`): slopes and height fractions, seamless and mip-filtered,
+   the coarser levels made in memory from the finer rows.
+5. **Röttger table** (:mod:`roettger`), one depth at a time, written as it is made.
    ``height_range`` is the full-resolution (level 0) min/max, i.e. the data's own range.
+
+Every phase runs on ``workers`` threads (:mod:`workers`; default every core): rows are read in
+order on the calling thread and processed, compressed (blosc releases the GIL; chunks are
+written by :class:`store.ChunkWriter`) and written by the workers; results are combined only
+by exact operations, so the store is the same for any number of workers, and the same as the
+single-threaded ingest wrote before issue 20 (tests/test_ingest_parallel.py).
 
 Bad data does not pass silently: an input with no valid sample at all (all nodata, NaN or
 ±inf) raises :class:`IngestError` naming the file (while reading the first strip, which looks
@@ -22,7 +31,9 @@ ahead for a valid row), and the store this run created is removed (a resumed one
 samples filled, or no georeference (1 m spacing assumed), is reported in
 ``PrepareResult.warnings`` (the CLI prints them).
 
-Peak memory is one strip (M × padded width float32, 17 MB at 16k) plus the diamond arrays.
+Peak memory is a few block rows per worker (17 MB each at 16385², 34 MB at 32769²), the
+diamond arrays and, at the end, two depths of the Röttger table (80 MiB at 16385², 320 MiB at
+32769²).
 """
 
 from __future__ import annotations

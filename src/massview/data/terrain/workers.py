@@ -16,7 +16,7 @@ from typing import Callable, Iterable
 
 from ...core.errors import ConfigError
 
-__all__ = ["resolve_workers", "run_ordered"]
+__all__ = ["resolve_workers", "run_ordered", "return_freed_memory"]
 
 
 def resolve_workers(workers: int | None) -> int:
@@ -63,3 +63,20 @@ def run_ordered(workers: int, tasks: Iterable[Callable[[], object]], done: Calla
             for f in pending:
                 f.cancel()
             raise
+
+
+def return_freed_memory(mmap_min: int = 1 << 20) -> bool:
+    """Serve buffers of ``mmap_min`` bytes and more (block rows, strips: 1–50 MB) from their
+    own mappings, unmapped when freed. The renderer's start-up setting keeps freed blocks up to
+    32 MiB in glibc's heap for reuse (``parallel.runtime.reuse_freed_memory``); with several
+    ingest threads, each with its own heap arena, that kept ~1 GiB resident at 16385². The
+    ingest commands call this once at start; a no-op (False) where the C library is not glibc."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's <malloc.h>
+    return bool(mallopt(m_mmap_threshold, mmap_min)) and bool(mallopt(m_trim_threshold, 8 << 20))
