@@ -26,7 +26,6 @@ the block come from ``coarse``, the finest samples at spacing 2^m.
 from __future__ import annotations
 
 import numpy as np
-from .kernels import grid_errors, masked_grid_errors, window_errors
 from .layout import TerrainLayout
 
 __all__ = ["DeviationAccumulator", "coarse_lattice"]
@@ -99,6 +98,8 @@ class DeviationAccumulator:
         y·(c01 − c00) + w·D with w = min(x, y) or max(0, x + y − 1) by the parity rule; the
         centred mesh's four quarter triangles), max-reduced per patch square and per region of
         :func:`_region_table`, then folded in with the float32 rounding margin."""
+        from .kernels import grid_errors, masked_grid_errors, window_errors  # numba: loaded on first use
+
         m, s, f = self.lay.m, 2**l, 2**self.lay.k
         tab = self._tables.get(f)
         if tab is None:

@@ -9,7 +9,9 @@ its results are bit-identical to them — the golden-store test (tests/test_inge
 checks this on whole stores. Maxima are exact whatever the order.
 
 Compilation happens once per machine (``cache=True`` writes it beside this file, or to
-``NUMBA_CACHE_DIR``); later processes load it in well under a second.
+``NUMBA_CACHE_DIR``, or a user cache folder; where none is writable, once per process);
+later processes load it in well under a second. Imported only when errors are computed, so
+commands that only read stores do not load numba.
 """
 
 from __future__ import annotations
@@ -19,12 +21,23 @@ from numba import njit
 
 __all__ = ["grid_errors", "masked_grid_errors", "window_errors"]
 
+
+
+def _jit(fn):
+    """``njit`` with the compiled code cached on disk; where no cache location is writable
+    (an install owned by another user, no writable home), compiled once per process instead."""
+    try:
+        return njit(cache=True, nogil=True, boundscheck=False)(fn)
+    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
+        return njit(nogil=True, boundscheck=False)(fn)
+
+
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
 _F2 = np.float32(2.0)
 
 
-@njit(cache=True, nogil=True, boundscheck=False)
+@_jit
 def _fold(sq_out, per_out, tab, f, v0, u0, V0, U0, iv, iu, msq, mt, mb, ml, mr):
     """Max-fold one lattice square's maxima into its patch square (v//f, u//f) and its
     quarters into the edge diamonds their region ``tab[q, v % f, u % f]`` names (deviation.py)."""
@@ -37,14 +50,14 @@ def _fold(sq_out, per_out, tab, f, v0, u0, V0, U0, iv, iu, msq, mt, mb, ml, mr):
         per_out[r, a, bb] = max(per_out[r, a, bb], e)
 
 
-@njit(cache=True, nogil=True, boundscheck=False)
+@_jit
 def _corners(c00, c10, c01, c11, cc, iv, iu):
     a00, a10, a01, a11, ac = c00[iv, iu], c10[iv, iu], c01[iv, iu], c11[iv, iu], cc[iv, iu]
     return (a00, a10, a01, a11, a10 - a00, a01 - a00, a00 - a10 - a01 + a11, _F2 * ac - a00 - a10,
             _F2 * ac - a01 - a11, _F2 * ac - a00 - a01, _F2 * ac - a10 - a11, a11 - a01, a11 - a10)
 
 
-@njit(cache=True, nogil=True, boundscheck=False)
+@_jit
 def grid_errors(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0, U0, sq_out, per_out):  # noqa: PLR0913
     """Exact deviations of the ``nq × nq`` closed lattice squares of spacing ``s`` over a block
     whose samples are all valid; ``fx = arange(s+1)/s`` (float32). The quarter triangles are
@@ -74,7 +87,7 @@ def grid_errors(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0
             _fold(sq_out, per_out, tab, f, v0, u0, V0, U0, iv, iu, msq, mt, mb, ml, mr)
 
 
-@njit(cache=True, nogil=True, boundscheck=False)
+@_jit
 def window_errors(b, valid, fx, fy, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, sq_out, per_out):  # noqa: PLR0913
     """Exact deviations of one lattice square that contains the whole block (any fractional
     coordinates fx (w,), fy (h,), float32; only ``valid`` samples count), by the masks of
@@ -102,7 +115,7 @@ def window_errors(b, valid, fx, fy, c00, c10, c01, c11, cc, parity, tab, f, v0, 
     _fold(sq_out, per_out, tab, f, v0, u0, v0 // f, u0 // f, 0, 0, msq, mt, mb, ml, mr)
 
 
-@njit(cache=True, nogil=True, boundscheck=False)
+@_jit
 def masked_grid_errors(b, valid, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0, U0, sq_out, per_out):  # noqa: PLR0913
     """:func:`grid_errors` for a block with padding samples (``valid`` false): masked."""
     for iv in range(nq):
