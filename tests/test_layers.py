@@ -5,7 +5,7 @@ from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "massview"
 ORDER = ["core", "data", "lod", "render", "parallel", "systems", "app"]
-OWNER = {"moderngl": "render", "glcontext": "render", "mpi4py": "parallel", "zarr": "data", "rasterio": "data", "trimesh": "data"}
+OWNER = {"moderngl": "render", "glcontext": "render", "mpi4py": "parallel", "zarr": "data", "rasterio": "data", "trimesh": "data", "numba": "data"}
 
 
 def _imports(path: Path):

@@ -154,6 +154,7 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--color", default=None, help="orthophoto (RGB GeoTIFF covering the DEM) for the colour pyramid")
     pt.add_argument("--no-color", action="store_true", help="no colour pyramid")
     pt.add_argument("--overwrite", action="store_true", help="rebuild a complete store")
+    pt.add_argument("--workers", type=int, default=0, help="worker threads (default 0: every core); the output does not depend on it")
     pt.add_argument("--quiet", "-q", action="store_true")
     add_prepare_parser(psub)
     from .roettger_cmds import add_parsers as _roettger_parsers
@@ -268,6 +269,8 @@ def _report_peak_rss() -> None:
     path = os.environ.get("MASSVIEW_PEAK_RSS_FILE")
     if not path:
         return
+
+    path = path.replace("{rank}", os.environ.get("PMI_RANK", "launcher"))  # one file per MPI rank (bench ingest)
 
     def write():
         with open("/proc/self/status") as f:

@@ -54,6 +54,9 @@ def cmd_generate(args) -> int:
     check_output_file(out, "output")
     if fmt != "store" and out.is_dir():
         raise OutputError(f"output {out}: is a folder; give a file name for --format {fmt}")
+    from ..data.terrain.workers import return_freed_memory
+
+    return_freed_memory()
     with progress_bar(args.quiet) as prog:
         if fmt == "store":
             res = prepare_terrain(SyntheticSource(args.size, args.seed), out, block=args.block, overwrite=args.overwrite, progress=prog)
@@ -83,15 +86,18 @@ def _shape(spec: str | None):
 
 def cmd_prepare(args) -> int:
     from ..data.terrain import open_source, prepare_terrain
+    from ..data.terrain.workers import return_freed_memory
     from .outputs import check_output_file
 
+    return_freed_memory()  # threads' freed rows go back to the system (≤ 1 GiB RSS, issue 20)
     check_output_file(Path(args.output), "-o")
     src = open_source(args.input, nodata=args.nodata, array=args.array, shape=_shape(args.shape), dtype=args.dtype,
                       spacing=args.spacing, crs=args.crs)
     ortho = open_source(args.color) if args.color else None
     with progress_bar(args.quiet) as prog:
         res = prepare_terrain(src, Path(args.output), block=args.block, vertical_scale=args.vertical_scale,
-                              color=None if args.no_color else "computed", ortho=ortho, overwrite=args.overwrite, progress=prog)
+                              color=None if args.no_color else "computed", ortho=ortho, overwrite=args.overwrite, progress=prog,
+                              workers=getattr(args, "workers", 0))
     mb = res.input_bytes / 1e6
     print(f"{'resumed and completed' if res.resumed else 'wrote'} {res.path}: {res.layout.rows}x{res.layout.cols} samples, "
           f"{res.layout.levels} levels of {res.layout.M}² blocks, {res.filled} nodata samples filled, "

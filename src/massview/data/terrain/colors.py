@@ -54,63 +54,133 @@ def horn_slopes(g: np.ndarray, dx: float, dy: float) -> tuple[np.ndarray, np.nda
 
 def tent_decimate(g: np.ndarray) -> np.ndarray:
     """[1 2 1]/4 ⊗ [1 2 1]/4 filter of the interior of a padded grid ((2R+1)+2)² … then every
-    other sample: (R+1, C+1, ...) from ((2R+1)+2, (2C+1)+2, ...)."""
+    other sample: (R+1, C+1, ...) from ((2R+1)+2, (2C+1)+2, ...). Only the kept samples are
+    filtered (each by the same float32 expression as filtering all and then decimating)."""
     g = g.astype(np.float32, copy=False)
-    v = g[:-2] * 0.25 + g[1:-1] * 0.5 + g[2:] * 0.25
-    h = v[:, :-2] * 0.25 + v[:, 1:-1] * 0.5 + v[:, 2:] * 0.25
-    return h[::2, ::2]
+    v = g[:-2:2] * 0.25 + g[1:-1:2] * 0.5 + g[2::2] * 0.25
+    return v[:, :-2:2] * 0.25 + v[:, 1:-1:2] * 0.5 + v[:, 2::2] * 0.25
 
 
-def _strip(rows_of: Callable[[int], np.ndarray], nb: int, M: int, i: int, rows: tuple[int, int]) -> np.ndarray:
-    """Global-grid rows [r0, r1) relative to block row i's first row (reaching into the block
-    rows before and after, clamped at the domain border = edge replication), full width, with
-    one edge-replicated column on both sides."""
-    span = M - 1
-    gr = np.clip(i * span + np.arange(*rows), 0, nb * span)
-    bi = np.minimum(gr // span, nb - 1)
-    s = np.stack([rows_of(b)[r - b * span] for b, r in zip(bi.tolist(), gr.tolist())])
-    return np.concatenate([s[:, :1], s, s[:, -1:]], axis=1)
+def _wide(blocks: np.ndarray) -> np.ndarray:
+    """(nb, M, M, ...) blocks of one block row → (M, nb·(M-1)+1, ...) global rows."""
+    nb, M = blocks.shape[0], blocks.shape[1]
+    out = np.empty((M, nb * (M - 1) + 1) + blocks.shape[3:], blocks.dtype)
+    for j in range(nb):
+        out[:, j * (M - 1): j * (M - 1) + M] = blocks[j]
+    return out
 
 
-class _RowCache:
-    """Block rows of one pyramid level as wide arrays (M, nb·(M-1)+1, ...), read once each."""
-
-    def __init__(self, read: Callable[[int], np.ndarray]):
-        self.read, self.rows = read, {}
-
-    def __call__(self, bi: int) -> np.ndarray:
-        if bi not in self.rows:
-            if len(self.rows) > 3:
-                self.rows.pop(min(self.rows))
-            blocks = self.read(bi)
-            self.rows[bi] = np.concatenate([blocks[j, :, :-1] for j in range(len(blocks))] + [blocks[-1, :, -1:]], axis=1)
-        return self.rows[bi]
+def _padded(above: np.ndarray, mid: np.ndarray, below: np.ndarray, c0: int, c1: int) -> np.ndarray:
+    """Rows ``above`` (1 or more), ``mid``, ``below`` of global columns c0 .. c1-1, with one
+    more column on each side (edge-replicated at the domain border)."""
+    W = mid.shape[1]
+    lo, hi = max(c0 - 1, 0), min(c1 + 1, W)
+    parts = [x[:, lo:hi] for x in (above, mid, below)]
+    g = np.concatenate(parts, axis=0)
+    if c0 == 0 or c1 == W:  # replicate the border column
+        g = np.concatenate(([g[:, :1]] if c0 == 0 else []) + [g] + ([g[:, -1:]] if c1 == W else []), axis=1)
+    return g
 
 
-def _cut(strip: np.ndarray, nb: int, M: int) -> np.ndarray:
-    """(M, W, ...) global rows of one block row → (nb, M, M, ...) blocks."""
-    return np.stack([strip[:, j * (M - 1): j * (M - 1) + M] for j in range(nb)])
+def _cut(wide: np.ndarray, nb: int, M: int) -> np.ndarray:
+    """(M, nb·(M-1)+1, ...) global rows → (nb, M, M, ...) blocks."""
+    return np.stack([wide[:, j * (M - 1): j * (M - 1) + M] for j in range(nb)])
 
 
-def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int, int], None]) -> None:
-    """Compute ``shade/<l>`` for every level of ``store`` into the zarr group ``g``."""
+_CHUNK = 16  # blocks per column chunk: bounds the temporaries (≈ 40 MB at M = 257)
+
+
+def _shade0_row(prev: np.ndarray | None, cur: np.ndarray, nxt: np.ndarray | None, dx: float, dy: float, zlo: float,
+                rng: float, dst, i: int) -> np.ndarray:
+    """Level-0 shading of block row i from the wide height rows i-1, i, i+1 (None beyond the
+    border: edge replication); writes ``dst[i]`` and returns the float16 wide row."""
+    M, W = cur.shape[0], cur.shape[1]
+    nb = (W - 1) // (M - 1)
+    above = prev[M - 2: M - 1] if prev is not None else cur[:1]
+    below = nxt[1:2] if nxt is not None else cur[M - 1:]
+    out = np.empty((M, W, 3), np.float16)
+    for j0 in range(0, nb, _CHUNK):
+        j1 = min(j0 + _CHUNK, nb)
+        c0, c1 = j0 * (M - 1), j1 * (M - 1) + 1
+        s = _padded(above, cur, below, c0, c1)  # (M+2, c1-c0+2)
+        sx, sy = horn_slopes(s, dx, dy)
+        for ch, v in enumerate((sx, sy, (s[1:-1, 1:-1] - zlo) / rng)):  # float32 → float16, channel by channel
+            out[:, c0:c1, ch] = v
+        dst.write(i, j0, _cut(out[:, c0:c1], j1 - j0, M))
+    return out
+
+
+def _tent_row(rows: list, nbp: int, i: int, dst) -> np.ndarray:
+    """Level l block row i from the float16 wide rows 2i-1 .. 2i+2 of level l-1 (``rows``: a
+    dict, entries beyond the border absent): the [1 2 1]/4 tent at the kept samples only."""
+    a, m0, m1, b = (rows.get(k) for k in (2 * i - 1, 2 * i, 2 * i + 1, 2 * i + 2))
+    M, W = m0.shape[0], m0.shape[1]
+    nb = (W - 1) // (M - 1) // 2
+    above = a[M - 2: M - 1] if a is not None else m0[:1]
+    below = b[0:2] if b is not None else np.concatenate([m1[M - 1:]] * 2)  # global rows (2i+2)(M-1) + 0, 1
+    mid = np.concatenate([m0[:M - 1], m1[:M - 1]])  # global rows 2i·(M-1) .. (2i+2)·(M-1) - 1
+    out = np.empty((M, nb * (M - 1) + 1, 3), np.float16)
+    for j0 in range(0, nb, _CHUNK):
+        j1 = min(j0 + _CHUNK, nb)
+        c0, c1 = 2 * j0 * (M - 1), 2 * j1 * (M - 1) + 1
+        g = _padded(above, mid, below, c0, c1).astype(np.float32)
+        o0, o1 = j0 * (M - 1), j1 * (M - 1) + 1
+        out[:, o0:o1] = tent_decimate(g)
+        dst.write(i, j0, _cut(out[:, o0:o1], j1 - j0, M))
+    return out
+
+
+def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int, int], None], workers: int | None = None) -> None:
+    """Compute ``shade/<l>`` for every level of ``store`` into the zarr group ``g``.
+
+    Level 0 block rows are computed by worker threads from the wide height rows read in order
+    here; each finished row (float16, as stored) feeds the coarser levels in memory — block
+    row i of level l is made as soon as rows 2i-1 .. 2i+2 of level l-1 exist — so no level is
+    read back. Every output sample is the same float32 expression as on the whole grid."""
+    from .store import ChunkWriter
+    from .workers import resolve_workers, run_ordered
+
     lay = store.layout
-    M, dx, dy = lay.M, *store.spacing
+    M, (dx, dy) = lay.M, store.spacing
     rng = max(zhi - zlo, 1e-6)
     total = sum(lay.blocks(lv) for lv in range(lay.levels))
-    nb = lay.blocks(0)
-    rows = _RowCache(lambda bi: store.get_block_row(0, bi))
-    dst = g["shade/0"]
-    for i in range(nb):
-        s = _strip(rows, nb, M, i, (-1, M + 1))  # (M+2, W+2)
-        sx, sy = horn_slopes(s, dx, dy)
-        t = (s[1:-1, 1:-1] - zlo) / rng
-        dst[i] = _cut(np.stack([sx, sy, t], axis=-1), nb, M).astype(np.float16)
+    nb0 = lay.blocks(0)
+    cache: list[dict] = [{} for _ in range(lay.levels)]
+    made = [0] * lay.levels  # block rows made per level
+    writers = [ChunkWriter(g, f"shade/{lv}") for lv in range(lay.levels)]
+
+    def heights():
+        rows = {}
+        for i in range(nb0 + 1):
+            if i < nb0:
+                rows[i] = _wide(store.get_block_row(0, i))
+            if i >= 1:
+                k = i - 1
+                yield (lambda k=k, p=rows.get(k - 1), c=rows[k], n=rows.get(k + 1):
+                       (k, _shade0_row(p, c, n, dx, dy, zlo, rng, writers[0], k)))
+                rows.pop(k - 1, None)
+
+    def done(res) -> None:
+        k, wide = res
+        cache[0][k] = wide
+        made[0] += 1
         progress("shading", 1, total)
-    for lv in range(1, lay.levels):
-        nb, src, dst = lay.blocks(lv), g[f"shade/{lv - 1}"], g[f"shade/{lv}"]
-        rows = _RowCache(lambda bi, src=src: np.asarray(src[bi]).astype(np.float32))
-        for i in range(nb):
-            s = _strip(rows, 2 * nb, M, 2 * i, (-1, 2 * (M - 1) + 2))  # level lv-1 rows around block row i
-            dst[i] = _cut(tent_decimate(s), nb, M).astype(np.float16)
+        _cascade(1)
+
+    def _cascade(lv: int) -> None:
+        if lv >= lay.levels:
+            return
+        below, nbp = cache[lv - 1], lay.blocks(lv - 1)
+        while made[lv] < lay.blocks(lv):
+            i = made[lv]
+            need = min(2 * i + 2, nbp - 1)
+            if made[lv - 1] <= need:
+                return
+            cache[lv][i] = _tent_row(below, nbp, i, writers[lv])
+            for k in [k for k in below if k < 2 * i + 1]:
+                del below[k]
+            made[lv] += 1
             progress("shading", 1, total)
+            _cascade(lv + 1)
+
+    run_ordered(resolve_workers(workers), heights(), done, depth=1)  # bounded: a float16 row is 50 MB at 32769²

@@ -11,10 +11,19 @@ continues where it stopped and a half-written store never opens as a good one):
    the outer border only, cut into blocks. The shared row between strips is taken from the
    strip above, so borders are bit-identical in both blocks.
 2. **levels 1..L** by vertex decimation of 2 × 2 child blocks.
-3. **metadata** (and orthophoto colour): every block is read back once; min/max, dropped-sample
-   errors, square z-ranges (:mod:`meta`) and exact K-patch diamond errors (:mod:`deviation`);
-4. **shading pyramid** (:mod:`colors`): slopes and height fractions, seamless and mip-filtered.
+3. **metadata** (:mod:`metadata`; and orthophoto colour): every block is read back once;
+   min/max, dropped-sample errors, square z-ranges (:mod:`meta`) and exact K-patch diamond
+   errors (:mod:`deviation`, whose per-sample loop is compiled: :mod:`kernels`);
+4. **shading pyramid** (:mod:`colors`): slopes and height fractions, seamless and mip-filtered,
+   the coarser levels made in memory from the finer rows.
+5. **Röttger table** (:mod:`roettger`), one depth at a time, written as it is made.
    ``height_range`` is the full-resolution (level 0) min/max, i.e. the data's own range.
+
+Every phase runs on ``workers`` threads (:mod:`workers`; default every core): rows are read in
+order on the calling thread and processed, compressed (blosc releases the GIL; chunks are
+written by :class:`store.ChunkWriter`) and written by the workers; results are combined only
+by exact operations, so the store is the same for any number of workers, and the same as the
+single-threaded ingest wrote before issue 20 (tests/test_ingest_parallel.py).
 
 Bad data does not pass silently: an input with no valid sample at all (all nodata, NaN or
 ±inf) raises :class:`IngestError` naming the file (while reading the first strip, which looks
@@ -22,7 +31,9 @@ ahead for a valid row), and the store this run created is removed (a resumed one
 samples filled, or no georeference (1 m spacing assumed), is reported in
 ``PrepareResult.warnings`` (the CLI prints them).
 
-Peak memory is one strip (M × padded width float32, 17 MB at 16k) plus the diamond arrays.
+Peak memory is a few block rows per worker (17 MB each at 16385², 34 MB at 32769²), the
+diamond arrays and, at the end, two depths of the Röttger table (80 MiB at 16385², 320 MiB at
+32769²).
 """
 
 from __future__ import annotations
@@ -39,12 +50,12 @@ import numpy as np
 from ...core.errors import IngestError
 from .colors import write_shading
 from .layout import TerrainLayout
-from .deviation import DeviationAccumulator, coarse_lattice
-from .meta import DiamondAccumulator, block_errors_from, saturate, vertex_deltas
+from .metadata import Metadata, compute_metadata, write_metadata
 from .sources import RasterSource
-from .store import TerrainStore, create_store
+from .store import ChunkWriter, TerrainStore, create_store
+from .workers import resolve_workers, run_ordered
 
-__all__ = ["prepare_terrain", "PrepareResult", "fill_nodata"]
+__all__ = ["prepare_terrain", "PrepareResult", "fill_nodata", "compute_metadata", "write_metadata", "Metadata"]
 
 Progress = Callable[[str, int, int], None]  # (phase, advance, phase_total)
 _FILL_MARGIN = 32
@@ -139,7 +150,9 @@ def _first_valid_row(src: RasterSource, r: int, step: int = 256) -> np.ndarray:
 
 def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17, vertical_scale: float = 1.0,
                     color: str | None = "computed", ortho: RasterSource | None = None, overwrite: bool = False,
-                    progress: Progress | None = None) -> PrepareResult:
+                    progress: Progress | None = None, workers: int | None = None) -> PrepareResult:
+    """Build the store at ``out`` from ``src`` (see the module docstring); ``workers`` threads
+    (None/0: every core this process may use) share the work, with identical output."""
     t0 = time.perf_counter()
     lay = TerrainLayout(src.rows, src.cols, block, K)
     if not (math.isfinite(vertical_scale) and vertical_scale > 0):
@@ -150,23 +163,24 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
              "nodata": {"value": None if src.nodata is None else float(src.nodata), "filled": 0},
              "source": src.name, "source_dtype": str(src.dtype), "color": None}
     g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite)
+    workers = resolve_workers(workers)
     prog = progress or (lambda phase, adv, total: None)
     try:
-        filled = _level0(g, src, lay, block, resumed, prog)
+        filled = _level0(g, src, lay, block, resumed, prog, workers)
     except IngestError:
         if not resumed:  # created by this run, nothing of value in it: leave no store behind
             shutil.rmtree(out, ignore_errors=True)
         raise
-    _coarser_levels(g, lay, prog)
+    _coarser_levels(g, lay, prog, workers)
 
     # 3. metadata and colour --------------------------------------------------------------
     store = TerrainStore(out, require_complete=False)
-    meta = compute_metadata(store, prog, write_color=ortho is not None, ortho=ortho, vertical_scale=vertical_scale)
+    meta = compute_metadata(store, prog, write_color=ortho is not None, ortho=ortho, vertical_scale=vertical_scale, workers=workers)
     write_metadata(g, lay, meta)
-    write_shading(store, g, meta.zlo, meta.zhi, prog)
-    from .roettger import DEFAULT_C_MIN, compute_table, write_table  # T2's per-node table (Röttger d2)
+    write_shading(store, g, meta.zlo, meta.zhi, prog, workers)
+    from .roettger import DEFAULT_C_MIN, iter_table, write_table  # T2's per-node table (Röttger d2)
 
-    write_table(g, compute_table(store, DEFAULT_C_MIN, prog), DEFAULT_C_MIN)
+    write_table(g, iter_table(store, DEFAULT_C_MIN, prog), DEFAULT_C_MIN)
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
@@ -180,48 +194,76 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     return res
 
 
-def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress) -> int:
+def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress, workers: int = 1) -> int:
     """Phase 1; returns the number of filled samples (all runs). Raises IngestError when no
-    input sample is valid."""
+    input sample is valid. Strips are read and filled in order here (each needs the row above
+    it); worker threads compress and write them, and a block row is flagged done, in order,
+    only once its chunks are on disk."""
     nb0 = lay.blocks(0)
     done0 = g["blocks/0/done"]
     flags = np.asarray(done0[...])
     heights0 = g["heights/0"]
-    prev_row = None
-    filled = int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0
-    for bi in range(nb0):
-        if flags[bi].all():  # done in an earlier run: rebuild its last row from the stored blocks
-            last = np.asarray(heights0[bi, :, -1, :])  # (nb0, M); neighbours share their border sample
-            prev_row = np.concatenate([last[:, :-1].ravel(), last[-1, -1:]])
-            prog("level 0", nb0, nb0 * nb0)
-            continue
-        strip, nfill = _read_strip(src, lay, bi, prev_row)
-        heights0[bi] = np.stack([strip[:, bj * (block - 1): bj * (block - 1) + block] for bj in range(nb0)])
-        filled += nfill
-        done0[bi, :] = 1
-        nod = dict(g.attrs["nodata"])
-        nod["filled"] = filled
-        g.attrs["nodata"] = nod
-        prev_row = strip[-1].copy()
+    out = ChunkWriter(g, "heights/0")
+    state = {"filled": int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0}
+
+    def write(bi: int, strip: np.ndarray, nfill: int):
+        out.write(bi, 0, np.stack([strip[:, bj * (block - 1): bj * (block - 1) + block] for bj in range(nb0)]))
+        return bi, nfill
+
+    def tasks():
+        prev_row = None
+        for bi in range(nb0):
+            if flags[bi].all():  # done in an earlier run: rebuild its last row from the stored blocks
+                last = np.asarray(heights0[bi, :, -1, :])  # (nb0, M); neighbours share their border sample
+                prev_row = np.concatenate([last[:, :-1].ravel(), last[-1, -1:]])
+                yield lambda bi=bi: (bi, None)
+                continue
+            strip, nfill = _read_strip(src, lay, bi, prev_row)
+            prev_row = strip[-1].copy()
+            yield lambda bi=bi, strip=strip, nfill=nfill: write(bi, strip, nfill)
+
+    def done(res) -> None:
+        bi, nfill = res
+        if nfill is not None:
+            state["filled"] += nfill
+            done0[bi, :] = 1
+            nod = dict(g.attrs["nodata"])
+            nod["filled"] = state["filled"]
+            g.attrs["nodata"] = nod
         prog("level 0", nb0, nb0 * nb0)
-    if filled >= src.rows * src.cols:  # (a fresh run fails in the first strip already; this catches resumed ones)
+
+    run_ordered(workers, tasks(), done)
+    if state["filled"] >= src.rows * src.cols:  # (a fresh run fails in the first strip already; this catches resumed ones)
         _first_valid_row(src, src.rows)
-    return filled
+    return state["filled"]
 
 
-def _coarser_levels(g, lay: TerrainLayout, prog: Progress) -> None:
-    """Phase 2: levels 1..L by decimation of 2 × 2 child blocks (resumable per block row)."""
+def _coarser_levels(g, lay: TerrainLayout, prog: Progress, workers: int = 1) -> None:
+    """Phase 2: levels 1..L by decimation of 2 × 2 child blocks (resumable per block row;
+    rows read in order here, decimated and written by worker threads)."""
     for lv in range(1, lay.levels):
         nb = lay.blocks(lv)
         done = g[f"blocks/{lv}/done"]
         flags = np.asarray(done[...])
-        child, dst = g[f"heights/{lv - 1}"], g[f"heights/{lv}"]
-        for i in range(nb):
-            if not flags[i].all():
-                two = np.asarray(child[2 * i: 2 * i + 2])  # (2, 2nb, M, M): the two child block rows
-                dst[i] = np.stack([_decimate(two[:, 2 * j: 2 * j + 2]) for j in range(nb)])
+        child, out = g[f"heights/{lv - 1}"], ChunkWriter(g, f"heights/{lv}")
+
+        def make(i: int, two: np.ndarray, nb=nb, out=out) -> int:
+            out.write(i, 0, np.stack([_decimate(two[:, 2 * j: 2 * j + 2]) for j in range(nb)]))
+            return i
+
+        def tasks(nb=nb, flags=flags, child=child, make=make):
+            for i in range(nb):
+                if flags[i].all():
+                    yield lambda i=i: -1 - i
+                else:  # (2, 2nb, M, M): the two child block rows
+                    yield lambda i=i, two=np.asarray(child[2 * i: 2 * i + 2]): make(i, two)
+
+        def finished(i: int, nb=nb, done=done, lv=lv) -> None:
+            if i >= 0:
                 done[i, :] = 1
             prog(f"level {lv}", nb, nb * nb)
+
+        run_ordered(workers, tasks(), finished)
 
 
 def _decimate(quad: np.ndarray) -> np.ndarray:
@@ -231,85 +273,3 @@ def _decimate(quad: np.ndarray) -> np.ndarray:
     return np.concatenate([top, bottom[1:]], 0)[::2, ::2]
 
 
-@dataclass
-class Metadata:
-    minmax: list[np.ndarray]
-    block_error: list[np.ndarray]
-    sq: list[np.ndarray]
-    dg: list[np.ndarray]
-    zmin: list[np.ndarray]
-    zmax: list[np.ndarray]
-    zlo: float
-    zhi: float
-
-
-def compute_metadata(store: TerrainStore, prog: Progress, write_color: bool = False, ortho: RasterSource | None = None,
-                     vertical_scale: float = 1.0) -> Metadata:
-    """Read every block once and derive all metadata (also what ``verify`` recomputes)."""
-    lay = store.layout
-    acc = DiamondAccumulator(lay)  # square z-ranges (level 0)
-    dev = DeviationAccumulator(lay, coarse_lattice(store))  # exact K-patch errors (level 0)
-    minmax, dmax = [], []
-    total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
-    for lv in range(lay.levels):
-        nb = lay.blocks(lv)
-        mm = np.zeros((nb, nb, 2), np.float32)
-        dm = np.zeros((nb, nb), np.float32)
-        for i in range(nb):
-            row = store.get_block_row(lv, i)
-            for j in range(nb):
-                b = row[j]
-                mm[i, j] = b.min(), b.max()
-                d = vertex_deltas(b)
-                dm[i, j] = max(float(x.max()) if x.size else 0.0 for x in d)
-                if lv == 0:
-                    acc.add_block(lv, i, j, b, d)
-                    dev.add_block(i, j, b)
-            prog("metadata", nb, total)
-        minmax.append(mm)
-        dmax.append(dm)
-    _, _, zmin, zmax = acc.finish()
-    sq, dg = saturate(dev.sq, dev.dg)
-    zlo, zhi = float(minmax[0][..., 0].min()), float(minmax[0][..., 1].max())  # the data's range (level 0)
-    if write_color:
-        _write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
-    return Metadata(minmax, block_errors_from(dmax), sq, dg, zmin, zmax, zlo, zhi)
-
-
-def _write_colors(store: TerrainStore, lay: TerrainLayout, zlo: float, zhi: float, ortho, vscale: float, prog: Progress) -> None:
-    import zarr
-
-    g = zarr.open_group(str(store.path), mode="r+")
-    total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
-    for lv in range(lay.levels):
-        nb = lay.blocks(lv)
-        dst = g[f"color/{lv}"]
-        for i in range(nb):
-            dst[i] = np.stack([_ortho_block(ortho, lay, lv, i, j) for j in range(nb)])
-            prog("colour", nb, total)
-
-
-def _ortho_block(ortho, lay: TerrainLayout, lv: int, i: int, j: int) -> np.ndarray:
-    """Orthophoto pixels for a block, resampled (nearest) from an image covering the DEM extent."""
-    M = lay.M
-    step = 2**lv
-    rows = (i * (M - 1) + np.arange(M)) * step
-    cols = (j * (M - 1) + np.arange(M)) * step
-    fy, fx = ortho.rows / lay.rows, ortho.cols / lay.cols
-    ry = np.clip((np.minimum(rows, lay.rows - 1) * fy).astype(int), 0, ortho.rows - 1)
-    rx = np.clip((np.minimum(cols, lay.cols - 1) * fx).astype(int), 0, ortho.cols - 1)
-    r0, r1, c0, c1 = ry.min(), ry.max() + 1, rx.min(), rx.max() + 1
-    rgb = ortho.read_rgb(r0, r1, c0, c1)
-    return rgb[np.ix_(ry - r0, rx - c0)]
-
-
-def write_metadata(g, lay: TerrainLayout, meta: Metadata) -> None:
-    for lv in range(lay.levels):
-        for name, arr in ((f"blocks/{lv}/minmax", meta.minmax[lv]), (f"blocks/{lv}/error", meta.block_error[lv])):
-            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True)[...] = arr
-    for j in range(lay.J):
-        g.create_array(f"lod/square_error/{j}", shape=meta.sq[j].shape, dtype="float32", chunks=meta.sq[j].shape, overwrite=True)[...] = meta.sq[j]
-        g.create_array(f"lod/edge_error/{j}", shape=meta.dg[j].shape, dtype="float32", chunks=meta.dg[j].shape, overwrite=True)[...] = meta.dg[j]
-    for j in range(lay.J + 1):
-        for name, arr in ((f"lod/zmin/{j}", meta.zmin[j]), (f"lod/zmax/{j}", meta.zmax[j])):
-            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True)[...] = arr

@@ -99,6 +99,18 @@ class DiamondAccumulator:
             uu = np.where(top | bottom | left, U, U + 1)
             np.maximum.at(self.dg[j], (oo.ravel(), vv.ravel(), uu.ravel()), d.ravel())
 
+    def add_zrange(self, bi: int, bj: int, b: np.ndarray) -> None:
+        """Fold in the z-ranges of level-0 block (bi, bj) only (writes only that block's own
+        squares, so blocks may be added from several threads at once)."""
+        self._add_zrange(bi, bj, b)
+
+    def zranges(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """The z-ranges of every square level (what :meth:`finish` returns, without the errors)."""
+        for j in range(self.lay.J - 1, -1, -1):
+            self.zmin[j] = reduce_min(self.zmin[j + 1], 2)
+            self.zmax[j] = reduce_max(self.zmax[j + 1], 2)
+        return self.zmin, self.zmax
+
     def _add_zrange(self, bi: int, bj: int, b: np.ndarray) -> None:
         f = 2**self.lay.k
         lo = np.minimum.reduce([reduce_min(b[dy:dy + b.shape[0] - 1, dx:dx + b.shape[1] - 1], f) for dy in (0, 1) for dx in (0, 1)])

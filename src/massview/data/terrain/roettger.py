@@ -29,7 +29,7 @@ from ...core.errors import StoreError
 from .store import TerrainStore
 
 __all__ = ["C_RANGE", "k_factor", "local_d2", "propagate_into", "DEFAULT_C_MIN", "compute_table", "write_table",
-           "prepare_roettger", "RoettgerTable", "has_table", "table_from_grid"]
+           "prepare_roettger", "RoettgerTable", "has_table", "table_from_grid", "iter_table"]
 
 DEFAULT_C_MIN = 4.0
 C_RANGE = (2.0, 64.0)  # the C for which the level-difference proof holds (lod/roettger.py)
@@ -121,51 +121,66 @@ def _grid_strips(store: TerrainStore, level: int) -> Iterator[tuple[int, np.ndar
         yield i * (M - 1), strip
 
 
-def compute_table(store: TerrainStore, C_min: float = DEFAULT_C_MIN,
-                  progress: Callable[[str, int, int], None] | None = None) -> list[np.ndarray]:
-    """The propagated d2 of depths 0 .. n-2 (list index = depth)."""
+def iter_table(store: TerrainStore, C_min: float = DEFAULT_C_MIN,
+               progress: Callable[[str, int, int], None] | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    """(depth t, propagated d2 (2^t, 2^t) float32) for t = n-2 .. 0, finest first.
+
+    The propagated array of depth t is built in place: the finer depth's contribution first,
+    then each strip's local d2 max-merged into its rows, so memory holds one depth's array and
+    the next coarser one (320 MiB at a 32769² DEM) plus one strip."""
     lay = store.layout
     n = lay.n
     if not (C_RANGE[0] <= C_min <= C_RANGE[1]):
         raise StoreError(f"--min-C must be in [{C_RANGE[0]:g}, {C_RANGE[1]:g}], got {C_min}")
     K = k_factor(C_min)
-    pushed = np.zeros((2 ** (n - 2), 2 ** (n - 2)), np.float32) if n >= 2 else None
-    out: list[np.ndarray] = [None] * max(n - 1, 0)  # type: ignore[list-item]
+    cur = np.zeros((2 ** (n - 2), 2 ** (n - 2)), np.float32) if n >= 2 else None
     for t in range(n - 1, -1, -1):
         d, level = 2 ** (n - t), n - t - 1
-        local = None if t == n - 1 else np.zeros((2**t, 2**t), np.float32)
         for g0, strip in _grid_strips(store, level):
             a = local_d2(strip, d)
             if t == n - 1:
-                if pushed is not None:
-                    propagate_into(pushed, a, g0 // 2, K)
-            else:
-                local[g0 // 2: g0 // 2 + a.shape[0]] = a
+                if cur is not None:
+                    propagate_into(cur, a, g0 // 2, K)
+            else:  # max(local, pushed), row band by row band
+                band = cur[g0 // 2: g0 // 2 + a.shape[0]]
+                np.maximum(a, band, out=band)
         if t < n - 1:
-            cur = np.maximum(local, pushed)
-            out[t] = cur
-            pushed = np.zeros((2 ** (t - 1), 2 ** (t - 1)), np.float32) if t >= 1 else None
-            if pushed is not None:
-                propagate_into(pushed, cur, 0, K)
+            done, cur = cur, (np.zeros((2 ** (t - 1), 2 ** (t - 1)), np.float32) if t >= 1 else None)
+            if cur is not None:
+                propagate_into(cur, done, 0, K)
+            yield t, done
+            del done
         if progress:
             progress("roettger", 1, n)
+
+
+def compute_table(store: TerrainStore, C_min: float = DEFAULT_C_MIN,
+                  progress: Callable[[str, int, int], None] | None = None) -> list[np.ndarray]:
+    """The propagated d2 of depths 0 .. n-2 (list index = depth)."""
+    out: list[np.ndarray] = [None] * max(store.layout.n - 1, 0)  # type: ignore[list-item]
+    for t, a in iter_table(store, C_min, progress):
+        out[t] = a
     return out
 
 
-def write_table(target, d2: list[np.ndarray], C_min: float) -> None:
+def write_table(target, d2, C_min: float) -> None:
     """Write the table into the store ``target`` (a path, or the open zarr group of a prepare
-    in progress), arrays first, the attribute last."""
+    in progress), arrays first, the attribute last. ``d2``: the list of :func:`compute_table`
+    or the (depth, array) pairs of :func:`iter_table` (written as they come)."""
     import zarr
     from zarr.codecs import BloscCodec
 
     g = zarr.open_group(str(target), mode="r+") if isinstance(target, (str, Path)) else target
     g.attrs["roettger"] = None  # "no table" until every array is written
-    for t, a in enumerate(d2):
+    pairs = enumerate(d2) if isinstance(d2, list) else d2
+    depths = 0
+    for t, a in pairs:
         ch = (min(a.shape[0], 256), min(a.shape[1], 256))
         arr = g.create_array(f"roettger/d2/{t}", shape=a.shape, chunks=ch, dtype="float32", overwrite=True,
                              compressors=BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=4))
         arr[...] = a
-    g.attrs["roettger"] = {"version": VERSION, "C_min": float(C_min), "K": k_factor(C_min), "depths": len(d2)}
+        depths += 1
+    g.attrs["roettger"] = {"version": VERSION, "C_min": float(C_min), "K": k_factor(C_min), "depths": depths}
 
 
 def prepare_roettger(path, C_min: float = DEFAULT_C_MIN, progress=None) -> dict:

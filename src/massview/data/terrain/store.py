@@ -36,16 +36,20 @@ import numpy as np
 from ...core.errors import BlockNotFoundError, CorruptBlockError, StoreError
 from .layout import TerrainLayout
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "create_shade_arrays", "dir_size"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "create_shade_arrays", "dir_size", "ChunkWriter"]
 
 FORMAT = "massview-terrain"
 FORMAT_VERSION = 2
 
 
 def _compressor(typesize: int = 4):
+    """Blosc lz4 (level 9) + byte shuffle. Lossless like the zstd level 3 of the first format-2
+    stores, so the decoded arrays are the same; per CPU-second it encodes 3.3× (heights) to 2×
+    (shading) and decodes 4.4× to 2.5× faster than zstd 1, for ~8 % (heights) and ~13 %
+    (shading) more bytes than zstd 3 (measured on a 4097² synthetic store, issue 20)."""
     from zarr.codecs import BloscCodec
 
-    return BloscCodec(cname="zstd", clevel=3, shuffle="shuffle" if typesize > 1 else "noshuffle", typesize=typesize)
+    return BloscCodec(cname="lz4", clevel=9, shuffle="shuffle" if typesize > 1 else "noshuffle", typesize=typesize)
 
 
 def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, overwrite: bool = False):
@@ -89,6 +93,36 @@ def create_shade_arrays(g, layout: TerrainLayout) -> None:
         nb = layout.blocks(lv)
         g.create_array(f"shade/{lv}", shape=(nb, nb, M, M, 3), chunks=(1, 1, M, M, 3), dtype="float16",
                        compressors=_compressor(2), fill_value=0, overwrite=True)
+
+
+class ChunkWriter:
+    """Whole-chunk writes of one array of a store, encoded on the calling thread.
+
+    The bytes are exactly those zarr writes (its blosc codec object encodes the chunk's
+    little-endian bytes, stored under the array's default chunk key ``c/i/j/0/...``), but
+    without zarr's per-chunk event-loop round trip, so worker threads compress in parallel
+    (blosc releases the GIL). Reads go through zarr as before. Only for arrays whose chunks are
+    single blocks (``(1, 1, M, M[, 3])``) with codecs ``bytes`` + ``blosc``."""
+
+    def __init__(self, group, name: str):
+        from zarr.codecs import BloscCodec, BytesCodec
+
+        arr = group[name]
+        codecs = arr.metadata.codecs
+        if not (len(codecs) == 2 and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)):
+            raise StoreError(f"{name}: unexpected codecs {codecs} for direct chunk writes")
+        self.dtype = np.dtype(arr.dtype).newbyteorder("<")
+        self.blosc = codecs[1]._blosc_codec
+        self.root = Path(str(group.store.root)) / group.path / name / "c" if group.path else Path(str(group.store.root)) / name / "c"
+        self.tail = ["0"] * (arr.ndim - 2)
+
+    def write(self, i: int, j0: int, blocks: np.ndarray) -> None:
+        """Blocks (n, M, M[, 3]) into chunks (i, j0 .. j0+n-1)."""
+        for k in range(blocks.shape[0]):
+            data = self.blosc.encode(np.ascontiguousarray(blocks[k], self.dtype).reshape(-1).view(np.uint8))
+            path = self.root.joinpath(str(i), str(j0 + k), *self.tail)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(data)
 
 
 def dir_size(path: Path) -> int:

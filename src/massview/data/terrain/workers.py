@@ -1,0 +1,82 @@
+"""The ingest's thread pool: how many workers, and ordered, bounded task submission.
+
+Ingest work is numpy (which releases the GIL on array operations), the compiled kernels of
+:mod:`kernels` (``nogil``) and blosc (de)compression inside zarr (its own threads), so threads
+of one process use every core without copying data between processes. Every result is
+combined by exact operations (max, min, disjoint writes), so the output does not depend on the
+number of workers or on the order tasks finish in (tests/test_ingest_parallel.py).
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Callable, Iterable
+
+from ...core.errors import ConfigError
+
+__all__ = ["resolve_workers", "run_ordered", "return_freed_memory"]
+
+
+def resolve_workers(workers: int | None) -> int:
+    """``None`` or 0 → the CPUs this process may run on; otherwise at least 1."""
+    if workers is None or workers == 0:
+        try:
+            return max(len(os.sched_getaffinity(0)), 1)
+        except AttributeError:  # pragma: no cover - not Linux
+            return os.cpu_count() or 1
+    if workers < 0:
+        raise ConfigError(f"--workers must be 0 (all cores) or a positive count, got {workers}")
+    return int(workers)
+
+
+def run_ordered(workers: int, tasks: Iterable[Callable[[], object]], done: Callable[[object], None] | None = None,
+                depth: int = 2) -> None:
+    """Run ``tasks`` (zero-argument callables, produced lazily) on ``workers`` threads with at
+    most ``depth × workers`` in flight, and hand each result to ``done`` in submission order
+    (on the calling thread). One worker runs everything inline, in order. If producing a task
+    or a task fails, the tasks already submitted are still finished and handed to ``done`` in
+    order up to the first failure (so work that reached the disk is recorded as done, for a
+    resumed run), then the error is raised."""
+    sink = done or (lambda r: None)
+    if workers <= 1:
+        for t in tasks:
+            sink(t())
+        return
+    pending: deque[Future] = deque()
+    with ThreadPoolExecutor(workers, thread_name_prefix="ingest") as ex:
+        try:
+            for t in tasks:
+                pending.append(ex.submit(t))
+                while len(pending) >= depth * workers:
+                    sink(pending.popleft().result())
+            while pending:
+                sink(pending.popleft().result())
+        except BaseException:
+            while pending:
+                try:
+                    res = pending.popleft().result()
+                except BaseException:  # noqa: BLE001 - the first error is the one raised
+                    break
+                sink(res)
+            for f in pending:
+                f.cancel()
+            raise
+
+
+def return_freed_memory(mmap_min: int = 1 << 20) -> bool:
+    """Serve buffers of ``mmap_min`` bytes and more (block rows, strips: 1–50 MB) from their
+    own mappings, unmapped when freed. The renderer's start-up setting keeps freed blocks up to
+    32 MiB in glibc's heap for reuse (``parallel.runtime.reuse_freed_memory``); with several
+    ingest threads, each with its own heap arena, that kept ~1 GiB resident at 16385². The
+    ingest commands call this once at start; a no-op (False) where the C library is not glibc."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's <malloc.h>
+    return bool(mallopt(m_mmap_threshold, mmap_min)) and bool(mallopt(m_trim_threshold, 8 << 20))

@@ -1,0 +1,109 @@
+"""Golden checksums of ``prepare terrain`` output, recorded before the parallel ingest (issue 20).
+
+``store_digest`` walks every array of a terrain store and hashes its *decoded* values (dtype,
+shape and bytes), plus the attributes that do not depend on the run; two stores with equal
+digests hold identical arrays, whatever their compressed bytes. ``CASES`` are small DEMs that
+between them take every branch of the ingest: a real DEM (Jacksboro fault, 344 × 403) with the
+pyramid below the patch lattice, a synthetic non-2^n+1 one with ``L > k`` (coarse lattice
+above the block size: the "whole window" branch of the exact errors) and one with nodata holes
+and an orthophoto.
+
+Run as a script (``python tests/ingest_golden.py``) to (re)record ``tests/data/ingest_golden.json``
+— only ever with the reference ingest; the test compares against the recorded file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from massview.data.terrain import ArraySource, prepare_terrain
+from massview.data.terrain.synthetic import SyntheticSource
+
+GOLDEN = Path(__file__).parent / "data" / "ingest_golden.json"
+_RUN_ATTRS = {"complete", "source"}
+
+
+def _jacksboro():
+    sys.path.insert(0, str(Path(__file__).parent))
+    from terrain_oracle import real_dem
+
+    arr, (dx, dy) = real_dem()
+    return ArraySource(arr, "jacksboro", transform=(0.0, dx, 0.0, 0.0, 0.0, -dy))
+
+
+def _holes():
+    a = SyntheticSource(301, seed=7).read(0, 301, 0, 277)
+    a[40:90, 100:180] = -9999.0
+    a[200, :] = -9999.0
+    return ArraySource(a, "holes", nodata=-9999.0, transform=(0.0, 25.0, 0.0, 0.0, 0.0, -25.0))
+
+
+class _Ortho(ArraySource):
+    def read_rgb(self, r0, r1, c0, c1):
+        return self.arr[r0:r1, c0:c1]
+
+
+def _ortho():
+    y, x = np.mgrid[0:150, 0:140]
+    rgb = np.stack([(x * 7) % 256, (y * 5) % 256, (x * y) % 256], axis=-1).astype(np.uint8)
+    o = _Ortho(rgb[..., 0], "ortho")
+    o.arr = rgb
+    return o
+
+
+CASES = {  # name: (source factory, prepare keyword arguments)
+    "jacksboro_b129": (_jacksboro, dict(block=129)),
+    "synthetic_700x700_b129_K5": (lambda: SyntheticSource(700, seed=3), dict(block=129, K=5)),
+    "holes_301x277_b129_ortho": (_holes, dict(block=129, K=9, ortho="ortho")),
+}
+
+
+def prepare_case(name: str, path: Path, **extra):
+    make, kw = CASES[name]
+    kw = dict(kw)
+    if kw.pop("ortho", None):
+        kw["ortho"] = _ortho()
+    return prepare_terrain(make(), path, **kw, **extra)
+
+
+def store_digest(path: Path) -> dict[str, str]:
+    """{array path: sha256 of dtype, shape and decoded bytes} and {"attrs": sha256 of the
+    run-independent attributes} of a store."""
+    import zarr
+
+    g = zarr.open_group(str(path), mode="r")
+    out = {}
+    for name, arr in sorted(_walk(g), key=lambda t: t[0]):
+        a = np.ascontiguousarray(np.asarray(arr[...]))
+        h = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+        out[name] = h.hexdigest()
+    attrs = {k: v for k, v in dict(g.attrs).items() if k not in _RUN_ATTRS}
+    out["attrs"] = hashlib.sha256(json.dumps(attrs, sort_keys=True).encode()).hexdigest()
+    return out
+
+
+def _walk(g, prefix=""):
+    for name, arr in g.arrays():
+        yield prefix + name, arr
+    for name, sub in g.groups():
+        yield from _walk(sub, prefix + name + "/")
+
+
+if __name__ == "__main__":
+    import tempfile
+
+    rec = {}
+    with tempfile.TemporaryDirectory() as d:
+        for name in CASES:
+            p = Path(d) / f"{name}.zarr"
+            prepare_case(name, p)
+            rec[name] = store_digest(p)
+            print(name, len(rec[name]), "arrays")
+    GOLDEN.write_text(json.dumps(rec, indent=1, sort_keys=True) + "\n")
+    print("wrote", GOLDEN)
