@@ -88,20 +88,19 @@ def grid_errors(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0
 
 
 @_jit
-def window_errors(b, valid, fx, fy, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, sq_out, per_out):  # noqa: PLR0913
-    """Exact deviations of one lattice square that contains the whole block (any fractional
-    coordinates fx (w,), fy (h,), float32; only ``valid`` samples count), by the masks of
-    the numpy formulation. Max-folds into sq_out (1, 1) and per_out (4, 1, 1)."""
-    a00, a10, a01, a11, dx, dy, dd, et, eb, el, er, dx2, dy3 = _corners(c00, c10, c01, c11, cc, 0, 0)
-    even = parity % 2 == 0
+def _masked_maxima(b, valid, r0, c0, fy, fx, even, k):
+    """Maxima (square, top, bottom, left, right) of the deviations of the valid samples
+    ``b[r0 + r, c0 + c]`` at fractional coordinates (fx[c], fy[r]) from one lattice square's
+    meshes, ``k`` being its :func:`_corners`; the masks of the numpy formulation."""
+    a00, a10, a01, a11, dx, dy, dd, et, eb, el, er, dx2, dy3 = k
     msq, mt, mb, ml, mr = _F0, _F0, _F0, _F0, _F0
     for r in range(fy.shape[0]):
         y = fy[r]
         for c in range(fx.shape[0]):
-            if not valid[r, c]:
+            if not valid[r0 + r, c0 + c]:
                 continue
             x = fx[c]
-            z0 = b[r, c]
+            z0 = b[r0 + r, c0 + c]
             wgt = min(x, y) if even else max(x + y - _F1, _F0)
             msq = max(msq, abs(a00 + x * dx + y * dy + wgt * dd - z0))
             if y <= x and y <= _F1 - x:
@@ -112,6 +111,16 @@ def window_errors(b, valid, fx, fy, c00, c10, c01, c11, cc, parity, tab, f, v0, 
                 ml = max(ml, abs(a00 + y * dy + x * el - z0))
             if x >= y and x >= _F1 - y:
                 mr = max(mr, abs(a10 + y * dy3 + (_F1 - x) * er - z0))
+    return msq, mt, mb, ml, mr
+
+
+@_jit
+def window_errors(b, valid, fx, fy, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, sq_out, per_out):  # noqa: PLR0913
+    """Exact deviations of one lattice square that contains the whole block (any fractional
+    coordinates fx (w,), fy (h,), float32; only ``valid`` samples count), by the masks of
+    the numpy formulation. Max-folds into sq_out (1, 1) and per_out (4, 1, 1)."""
+    k = _corners(c00, c10, c01, c11, cc, 0, 0)
+    msq, mt, mb, ml, mr = _masked_maxima(b, valid, 0, 0, fy, fx, parity % 2 == 0, k)
     _fold(sq_out, per_out, tab, f, v0, u0, v0 // f, u0 // f, 0, 0, msq, mt, mb, ml, mr)
 
 
@@ -122,24 +131,6 @@ def masked_grid_errors(b, valid, s, nq, fx, c00, c10, c01, c11, cc, parity, tab,
         for iu in range(nq):
             if not valid[iv * s, iu * s]:
                 continue  # the square's first sample is padding: so is every later one (padding is a suffix)
-            a00, a10, a01, a11, dx, dy, dd, et, eb, el, er, dx2, dy3 = _corners(c00, c10, c01, c11, cc, iv, iu)
-            even = (parity + iv + iu) % 2 == 0
-            msq, mt, mb, ml, mr = _F0, _F0, _F0, _F0, _F0
-            for r in range(s + 1):
-                y = fx[r]
-                for c in range(s + 1):
-                    if not valid[iv * s + r, iu * s + c]:
-                        continue
-                    x = fx[c]
-                    z0 = b[iv * s + r, iu * s + c]
-                    wgt = min(x, y) if even else max(x + y - _F1, _F0)
-                    msq = max(msq, abs(a00 + x * dx + y * dy + wgt * dd - z0))
-                    if y <= x and y <= _F1 - x:
-                        mt = max(mt, abs(a00 + x * dx + y * et - z0))
-                    if y >= x and y >= _F1 - x:
-                        mb = max(mb, abs(a01 + x * dx2 + (_F1 - y) * eb - z0))
-                    if x <= y and x <= _F1 - y:
-                        ml = max(ml, abs(a00 + y * dy + x * el - z0))
-                    if x >= y and x >= _F1 - y:
-                        mr = max(mr, abs(a10 + y * dy3 + (_F1 - x) * er - z0))
+            k = _corners(c00, c10, c01, c11, cc, iv, iu)
+            msq, mt, mb, ml, mr = _masked_maxima(b, valid, iv * s, iu * s, fx, fx, (parity + iv + iu) % 2 == 0, k)
             _fold(sq_out, per_out, tab, f, v0, u0, V0, U0, iv, iu, msq, mt, mb, ml, mr)
