@@ -1,18 +1,21 @@
 """The K-patch selection as it was before issue 20's LOD-stage rewrite, kept verbatim (only
 the imports moved) as the baseline ``massview bench lod`` measures against and the reference
 tests/test_lod_stage.py compares the new walk with: a triangle-by-triangle top-down walk with
-per-level sorting to group diamonds (see :mod:`massview.lod.kpatch` for the model)."""
+per-level sorting to group diamonds (see :mod:`massview.lod.kpatch` for the model). The
+hierarchy, the :class:`Front` and the block lookups it walks over are :mod:`massview.lod.kpatch`'s
+own: only the walk is the old one."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
 from ...core.camera import Camera
 from ...data.terrain.layout import TerrainLayout
+from ...lod import kpatch
+from ...lod.kpatch import Front, lookup_blocks, patch_boxes
 
 __all__ = ["PatchHierarchy", "Front", "select_front", "patch_boxes", "lookup_blocks"]
 
@@ -20,134 +23,13 @@ Resident = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (level,
 Request = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]  # (level, bi, bj, priority)
 
 
-class PatchHierarchy:
-    """Per-diamond saturated errors, height ranges and nested bounding spheres (world units:
-    x = col·dx, y = −row·dy, z = base + Z·(h·vertical_scale − base) with Z the view-time
-    exaggeration and base the lowest scaled height, so errors scale by vertical_scale·Z)."""
+class PatchHierarchy(kpatch.PatchHierarchy):
+    """:class:`massview.lod.kpatch.PatchHierarchy` (the same errors, height ranges and spheres)
+    keeping the (…, 3) sphere centres ``sq_c``/``dg_c`` the old walk reads, without the flat
+    tables the new walk builds from them."""
 
-    def __init__(self, layout: TerrainLayout, sq_err, dg_err, zmin, zmax, spacing=(1.0, 1.0), vscale: float = 1.0,
-                 exaggeration: float = 1.0):
-        self.lay = layout
-        self.dx, self.dy = (float(v) for v in spacing)
-        self.vs = float(vscale)
-        self.exaggeration = Z = float(exaggeration)
-        J = layout.J
-        self.base = float(np.min(zmin[0])) * self.vs
-        self.sq_err = [np.asarray(e, np.float64) * self.vs * Z for e in sq_err]
-        self.dg_err = [np.asarray(e, np.float64) * self.vs * Z for e in dg_err]
-        self.zmin = [self.base + Z * (np.asarray(z, np.float64) * self.vs - self.base) for z in zmin]
-        self.zmax = [self.base + Z * (np.asarray(z, np.float64) * self.vs - self.base) for z in zmax]
-        # edge-diamond height ranges: the union of the two squares beside the edge
-        self.dg_zmin, self.dg_zmax = [], []
-        for j in range(J):
-            lo, hi = self._edge_range(self.zmin[j], np.inf, np.minimum), self._edge_range(self.zmax[j], -np.inf, np.maximum)
-            self.dg_zmin.append(lo)
-            self.dg_zmax.append(hi)
-        self._spheres()
-
-    @staticmethod
-    def _edge_range(sq: np.ndarray, fill: float, op) -> np.ndarray:
-        n = sq.shape[0]
-        p = np.pad(sq, 1, constant_values=fill)
-        out = np.full((2, n + 1, n + 1), fill)
-        out[0, :, :n] = op(p[:-1, 1:-1], p[1:, 1:-1])  # horizontal edge v: squares v-1 and v
-        out[1, :n, :] = op(p[1:-1, :-1], p[1:-1, 1:])  # vertical edge u: squares u-1 and u
-        return out
-
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """World box of the valid (non-padding) terrain."""
-        lay = self.lay
-        lo = np.array([0.0, -(lay.rows - 1) * self.dy, self.zmin[0].min()])
-        hi = np.array([(lay.cols - 1) * self.dx, 0.0, self.zmax[0].max()])
-        return lo, hi
-
-    def _world(self, x, y, z):
-        return np.stack([np.asarray(x, np.float64) * self.dx, -np.asarray(y, np.float64) * self.dy, z], axis=-1)
-
-    def _spheres(self) -> None:
-        lay, J = self.lay, self.lay.J
-        half = lambda a: math.hypot(a / 2 * self.dx, a / 2 * self.dy)  # noqa: E731
-        self.sq_c, self.sq_r, self.dg_c, self.dg_r = [None] * J, [None] * J, [None] * J, [None] * J
-        for j in range(J - 1, -1, -1):
-            a = lay.square_side(j)
-            n = 2**j
-            # edge diamonds (children: the 4 squares of level j+1 meeting at the midpoint)
-            idx = np.arange(n + 1)
-            valid = np.isfinite(self.dg_zmin[j])
-            zc = np.where(valid, (np.where(valid, self.dg_zmin[j], 0) + np.where(valid, self.dg_zmax[j], 0)) / 2, 0.0)
-            xs = np.stack([np.broadcast_to((idx[None, :] + 0.5) * a, (n + 1, n + 1)), np.broadcast_to(idx[None, :] * a, (n + 1, n + 1))])
-            ys = np.stack([np.broadcast_to(idx[:, None] * a, (n + 1, n + 1)), np.broadcast_to((idx[:, None] + 0.5) * a, (n + 1, n + 1))])
-            c = self._world(xs, ys, zc)
-            r = np.sqrt(half(a) ** 2 + np.where(valid, (np.where(valid, self.dg_zmax[j], 0) - np.where(valid, self.dg_zmin[j], 0)) / 2, 0.0) ** 2)
-            if j + 1 < J:
-                r = np.maximum(r, self._edge_child_bound(c, n, self.sq_c[j + 1], self.sq_r[j + 1]))
-            self.dg_c[j], self.dg_r[j] = c, r
-            # square diamonds (children: the edge diamonds on their 4 sides)
-            uu, vv = np.meshgrid(np.arange(n), np.arange(n))
-            zc = (self.zmin[j] + self.zmax[j]) / 2
-            c = self._world((uu + 0.5) * a, (vv + 0.5) * a, zc)
-            r = np.sqrt(half(a) ** 2 + ((self.zmax[j] - self.zmin[j]) / 2) ** 2)
-            for o, dv, du in ((0, 0, 0), (0, 1, 0), (1, 0, 0), (1, 0, 1)):
-                cc, rr = self.dg_c[j][o, dv:dv + n, du:du + n], self.dg_r[j][o, dv:dv + n, du:du + n]
-                r = np.maximum(r, np.linalg.norm(c - cc, axis=-1) + rr)
-            self.sq_c[j], self.sq_r[j] = c, r
-
-    @staticmethod
-    def _edge_child_bound(c: np.ndarray, n: int, kc: np.ndarray, kr: np.ndarray) -> np.ndarray:
-        out = np.zeros(c.shape[:3])
-        m = kc.shape[0]  # 2n
-        for o in (0, 1):
-            v, u = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
-            if o == 0:  # horizontal edge (v, u): midpoint row 2v, col 2u+1 -> squares rows 2v-1..2v, cols 2u..2u+1
-                rows, cols = (2 * v - 1, 2 * v), (2 * u, 2 * u + 1)
-            else:
-                rows, cols = (2 * v, 2 * v + 1), (2 * u - 1, 2 * u)
-            for rr_ in rows:
-                for cc_ in cols:
-                    ok = (rr_ >= 0) & (rr_ < m) & (cc_ >= 0) & (cc_ < m)
-                    ri, ci = np.clip(rr_, 0, m - 1), np.clip(cc_, 0, m - 1)
-                    d = np.linalg.norm(c[o] - kc[ri, ci], axis=-1) + kr[ri, ci]
-                    out[o] = np.maximum(out[o], np.where(ok, d, 0.0))
-        return out
-
-
-@dataclass
-class Front:
-    """Selected patches (one row each): apex/left/right vertices in finest-sample units
-    (x = col, y = row), bintree depth, the block (level, bi, bj) they draw from, the sample
-    stride inside that block, and the diamond z-range for culling."""
-
-    ax: np.ndarray
-    ay: np.ndarray
-    lx: np.ndarray
-    ly: np.ndarray
-    rx: np.ndarray
-    ry: np.ndarray
-    depth: np.ndarray
-    level: np.ndarray
-    bi: np.ndarray
-    bj: np.ndarray
-    stride: np.ndarray
-    zmin: np.ndarray
-    zmax: np.ndarray
-    deferred: int = 0  # diamonds that wanted to split but waited for data
-
-    def __len__(self) -> int:
-        return len(self.ax)
-
-    def take(self, idx) -> "Front":
-        f = {k: getattr(self, k)[idx] for k in ("ax", "ay", "lx", "ly", "rx", "ry", "depth", "level", "bi", "bj", "stride", "zmin", "zmax")}
-        return Front(**f, deferred=self.deferred)
-
-
-def lookup_blocks(grids: list[np.ndarray], level: np.ndarray, bi: np.ndarray, bj: np.ndarray) -> np.ndarray:
-    """``grids[level[n]][bi[n], bj[n]]`` for every n: per-block values kept as one (nb, nb)
-    grid per pyramid level (residency flags, GL slots ...)."""
-    out = np.empty(len(level), grids[0].dtype if grids else bool)
-    for lv in np.unique(level):
-        sel = level == lv
-        out[sel] = grids[lv][bi[sel], bj[sel]]
-    return out
+    def _tables(self) -> None:
+        pass
 
 
 def _draw_level(lay: TerrainLayout, depth: np.ndarray) -> np.ndarray:
@@ -270,15 +152,6 @@ def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident: 
     cx, cy = (ax + lx + rx) // 3, (ay + ly + ry) // 3
     blvl, bi, bj, stride = _blocks_for(lay, depth, cx, cy)
     return Front(ax, ay, lx, ly, rx, ry, depth, blvl, bi, bj, stride, zlo, zhi, deferred)
-
-
-def patch_boxes(h: PatchHierarchy, f: Front) -> tuple[np.ndarray, np.ndarray]:
-    """World-space axis-aligned boxes (lo, hi), (n, 3) each, bounding every patch."""
-    xs = np.stack([f.ax, f.lx, f.rx]) * h.dx
-    ys = -np.stack([f.ay, f.ly, f.ry]) * h.dy
-    lo = np.stack([xs.min(0), ys.min(0), f.zmin], axis=1)
-    hi = np.stack([xs.max(0), ys.max(0), f.zmax], axis=1)
-    return lo, hi
 
 
 class BaselineStage:
