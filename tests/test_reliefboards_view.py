@@ -3,46 +3,23 @@ panel shows requests in flight and the angle-error histogram, boards get tinted 
 Ctrl-C stops every rank."""
 
 import os
-import re
-import shutil
 import signal
-import socket
-import subprocess
-import sys
-import time
 
 import pytest
 
+from test_viewer import CHROMIUM, launch, start_viewer  # noqa: F401 - skips without chromium
+
 pytestmark = pytest.mark.mpi
-
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-if CHROMIUM is None and not os.environ.get("CI"):
-    pytest.skip("chromium is not installed (apt-get install chromium); CI installs it", allow_module_level=True)
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_reliefboards_viewer_panel_and_tint():
     from playwright.sync_api import sync_playwright
 
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
-    proc = subprocess.Popen([sys.executable, "-m", "massview", "view", "builtin:objects?n=100", "--system", "reliefboards",
-                             "--ranks", "3", "--port", str(_port()), "--size", "320x240", "--tnz", "5000", "--board-px", "32",
-                             "--min-triangles", "100"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
-                            start_new_session=True)
+    url, _, proc = start_viewer("builtin:objects?n=100", ranks=3, size="320x240",
+                                extra=("--system", "reliefboards", "--tnz", "5000", "--board-px", "32", "--min-triangles", "100"))
     try:
-        line, t0 = "", time.monotonic()
-        while "serving http" not in line:
-            line = proc.stdout.readline()
-            assert line or proc.poll() is None, "viewer exited early"
-            assert time.monotonic() - t0 < 120
-        url = re.search(r"http://\S+", line).group(0)
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=["--no-sandbox", "--disable-gpu"])
+            browser = launch(p)
             page = browser.new_page()
             page.goto(url)
             page.wait_for_function("window.mv && window.mv.stats && window.mv.stats.m2 && window.mv.stats.m2.answered > 0",

@@ -2,15 +2,9 @@
 shows T2's per-rank figures (LOD time, fans, triangles, bytes sent to each visualization rank),
 with non-zero triangles on the computation ranks and the drawn count on the visualization rank."""
 
-import os
-import re
-import subprocess
-import sys
-import time
-
 import pytest
 
-from test_viewer import free_port, launch, stop_viewer
+from test_viewer import launch, start_viewer, stop_viewer
 
 pytestmark = pytest.mark.mpi
 
@@ -23,17 +17,8 @@ def test_view_roettger_panel_shows_per_rank_figures(tmp_path):
 
     store = tmp_path / "real.zarr"
     prepare_terrain(ArraySource(real_dem(), "jacksboro", transform=(0.0, 80.0, 0.0, 0.0, 0.0, -80.0)), store, block=129, color=None)
-    port = free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
-    proc = subprocess.Popen([sys.executable, "-m", "massview", "view", str(store), "--system", "roettger", "--ranks", "3",
-                             "--compute-ranks", "2", "--port", str(port), "--size", "320x240"], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, env=env, start_new_session=True)
+    url, _, proc = start_viewer(store, ranks=3, size="320x240", extra=("--system", "roettger", "--compute-ranks", "2"))
     try:
-        line = ""
-        while "serving http" not in line:
-            line = proc.stdout.readline()
-            assert line or proc.poll() is None, "viewer exited early"
-        url = re.search(r"http://\S+", line).group(0)
         with sync_playwright() as p:
             browser = launch(p)
             page = browser.new_page()

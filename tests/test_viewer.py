@@ -25,11 +25,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_viewer(store, ranks=2, host=None, size="480x270"):
+def start_viewer(store, ranks=2, host=None, size="480x270", extra=()):
+    """``massview view STORE`` in its own session; returns (url, port, process) once it serves.
+    ``extra``: further command-line arguments (e.g. ``--system dmmr``)."""
     port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
     proc = subprocess.Popen([sys.executable, "-m", "massview", "view", str(store), "--ranks", str(ranks), "--port", str(port),
-                             "--size", size] + (["--host", host] if host else []), stdout=subprocess.PIPE,
+                             "--size", size] + (["--host", host] if host else []) + list(extra), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, env=env, start_new_session=True)
     line = ""
     t0 = time.monotonic()
