@@ -228,7 +228,7 @@ class TerrainSystem:
         """Blocks resident on every rank, as per-level grids. With per-tile cuts the same
         Allreduce also ORs the blocks each rank's cut drew from and wanted (last pass), so every
         rank keeps and loads what any tile needs and the agreement stays the same everywhere."""
-        flat = np.concatenate([g.ravel() for g in pool.resident])
+        flat = self._blocks.flat(pool.resident)
         if not tiles:
             agreed = agree_all(comm, flat)
         else:
@@ -249,7 +249,7 @@ class TerrainSystem:
                                           lambda z: h.base + h.exaggeration * (z * h.vs - h.base), camera)
         self._tex_ids = self._blocks.ids(lv, bi, bj)
         _, pool, _, _ = self._renderers()
-        flat = np.concatenate([g.ravel() for g in pool.resident])
+        flat = self._blocks.flat(pool.resident)
         miss = np.flatnonzero(~flat[self._tex_ids])
         for key, p in zip(self._blocks.keys(self._tex_ids[miss]), prio[miss].tolist()):
             self._wanted.add(key)
