@@ -5,8 +5,8 @@ frame loop of :func:`massview.app.render_cmd.run_render`, so :func:`massview.api
 it to :func:`render_reliefboards`: the scene name, the frozen :class:`RenderConfig`, the
 :class:`~massview.systems.reliefboards.ReliefboardOptions` and the cameras (or the path name,
 resolved on the visualization rank exactly as ``massview render --system reliefboards`` does)
-are pickled into a temporary job folder; ``mpiexec -n N python -m massview.app.reliefboards_api
-DIR`` runs :func:`massview.app.reliefboards_cmds.run` on every rank, which writes lossless PNG
+are pickled into a temporary job folder; ``mpiexec -n N python -m massview
+__m2job DIR`` runs :func:`massview.app.reliefboards_cmds.run` on every rank, which writes lossless PNG
 frames, ``stats.jsonl`` and ``summary.json`` — the CLI's outputs — and this process reads them
 back: the visualization rank's pixels bit for bit. Inside an MPI job already, the call is
 collective and returns on rank 0.
@@ -20,8 +20,6 @@ from __future__ import annotations
 import json
 import pickle
 import shutil
-import subprocess
-import sys
 import tempfile
 from dataclasses import fields
 from pathlib import Path
@@ -52,17 +50,16 @@ def board_options(options=None):
 
 
 def _job(spec: str, cfg: RenderConfig, opts, cameras, out: Path, nranks: int) -> None:
-    """Run the M2 job on ``nranks`` local ranks, writing into ``out``; RankJobError on failure."""
-    import os
-
-    from ..parallel.runtime import find_mpiexec
+    """Run the M2 job on ``nranks`` local ranks (``python -m massview __m2job DIR`` through the
+    runtime's :func:`relaunch`, like every other local job), writing into ``out``; RankJobError
+    on failure."""
+    from ..parallel.runtime import relaunch
 
     tmp = Path(tempfile.mkdtemp(prefix="massview-m2-"))
     try:
         job = {"spec": spec, "cfg": cfg, "opts": opts, "cameras": cameras, "out": str(out)}
         (tmp / "job.pkl").write_bytes(pickle.dumps(job))
-        cmd = [find_mpiexec(), "-n", str(nranks), sys.executable, "-m", "massview.app.reliefboards_api", str(tmp)]
-        rc = subprocess.run(cmd, env=dict(os.environ, MASSVIEW_UNDER_MPI="1")).returncode
+        rc = relaunch(["__m2job", str(tmp)], nranks)
         if rc != 0:
             err = tmp / "error.txt"
             raise RankJobError(err.read_text().strip() if err.exists() else f"the {nranks}-rank reliefboards job exited with status {rc}", rc)
@@ -158,7 +155,3 @@ def _png(path: Path):
 
     with PILImage.open(path) as im:
         return np.asarray(im.convert("RGB"))
-
-
-if __name__ == "__main__":  # a rank of a job started by render_reliefboards
-    sys.exit(run_job(sys.argv[1]))
