@@ -76,29 +76,56 @@ class View:
 
     def code(self, px, py, pz, r) -> np.ndarray:
         """0 outside a plane, 1 crossing, 2 inside all (spheres in camera space)."""
-        m = -pz - self.near
+        inside, full = self._planes(px, py, pz, r)
+        return inside.view(np.int8) + full.view(np.int8)
+
+    def _planes(self, px, py, pz, r, npz=None):
+        """(touches every plane, inside every plane): the least signed distance of the centre
+        to the six planes against ∓r."""
+        m = -pz if npz is None else npz.copy()
+        m -= self.near
         np.minimum(m, pz + self.far, out=m)
         for a, c in self.sides_x:
             np.minimum(m, a * px + c * pz, out=m)
         for b, c in self.sides_y:
             np.minimum(m, b * py + c * pz, out=m)
-        return (m >= -r).view(np.int8) + (m >= r).view(np.int8)
+        return m >= -r, m >= r
 
     def test(self, x, y, z, r, err):
         px, py, pz = self.camera_space(x, y, z)
-        code = self.code(px, py, pz, r)
-        zlo = -pz - r  # nearest depth in the sphere
+        npz = -pz
+        inside, full = self._planes(px, py, pz, r, npz)
+        zlo = npz
+        zlo -= r  # nearest depth in the sphere
         ok = zlo > 0
-        zz = np.where(ok, zlo, 1.0)
-        a = (np.abs(px) + r) / zz
-        b = (np.abs(py) + r) / zz
-        s = self.ux + a * self.uz
-        q = self.uy + b * self.uz
-        g = self.f * np.sqrt(s * s + q * q) / zz
-        with np.errstate(invalid="ignore"):  # 0 · inf (exact patch touching the eye) is 0
-            pix = err * np.where(ok, g, np.inf)
-        pix[np.isnan(pix)] = 0.0
-        return (code > 0) & (pix > self.tau), pix, code
+        every = bool(ok.all())
+        zz = zlo if every else np.where(ok, zlo, 1.0)
+        a = np.abs(px)
+        a += r
+        a /= zz
+        b = np.abs(py)
+        b += r
+        b /= zz
+        s = a * self.uz
+        s += self.ux
+        q = b * self.uz
+        q += self.uy
+        s *= s
+        q *= q
+        s += q
+        g = np.sqrt(s, out=s)
+        g *= self.f
+        g /= zz
+        if every:
+            pix = g
+            pix *= err
+        else:
+            with np.errstate(invalid="ignore"):  # 0 · inf (exact patch touching the eye) is 0
+                pix = err * np.where(ok, g, np.inf)
+            pix[np.isnan(pix)] = 0.0
+        code = inside.view(np.int8) + full.view(np.int8)
+        inside &= pix > self.tau
+        return inside, pix, code
 
 
 class Residency:

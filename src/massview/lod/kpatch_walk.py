@@ -5,29 +5,43 @@ A present diamond travels as one int64 *key*: u in bits 0–29, v in bits 30–5
 orientation o in bit 60 and its present halves in bits 61 (half 0) and 62 (half 1). Each
 depth selects from one array instead of five, which is most of the work: numpy's masked
 selections cost several ns per element on the irregular masks a cut produces.
+
+Every depth is a fixed, short sequence of whole-array operations (about a hundred per
+diamond, most of them the split test), so the cost is elements × operations. What keeps the
+count down:
+
+* integer lattice arithmetic: sphere centres ``x = (u·a + a/2)·dx`` from integer (v, u) (the
+  same float64 values as ``(u + ½)·a·dx``); the blocks a half's children draw from are
+  ``(v ≫ d, u ≫ d)`` (one step up or left for half 0 of an edge), because side ``a`` divides
+  the block span ``2^d·a`` — no centroid division, no clipping;
+* a split diamond's children from its own (v, u) (keys shifted by one bit are the child
+  squares' keys), paired by the mark array (:func:`~.kpatch_cut.merge_halves`);
+* the kept patches' records from per-(depth, parity, half) tables (:func:`_vertex_tables`):
+  each vertex is ``(u·a, v·a)`` plus a tabled offset, the block index the vertex sum's tabled
+  share shifted down — a handful of gathers per patch instead of the geometry of
+  :func:`~.kpatch_cut.patch_vertices`, which builds the tables.
 """
 
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 
-from .kpatch_cut import Residency, View, draw_level, edge_halves, merge_halves, patch_vertices, square_halves
+from .kpatch_cut import Residency, View, draw_level, merge_halves, patch_vertices
 
 __all__ = ["pack", "walk", "emit"]
 
 _M = (1 << 30) - 1
 _O, _H0, _H1 = 1 << 60, 1 << 61, 1 << 62
+_VU = (1 << 60) - 1  # the (v, u) bits
+_ROW = 1 << 30
 
 
 def pack(o, v, u, h0, h1) -> np.ndarray:
     return (np.asarray(v, np.int64) << 30) | u | (np.asarray(o, np.int64) << 60) | (np.asarray(h0, np.int64) << 61) | (
         np.asarray(h1, np.int64) << 62)
-
-
-def _unpack(key):
-    return (key >> 60) & 1, (key >> 30) & _M, key & _M, (key & _H0) != 0, (key & _H1) != 0
 
 
 def walk(h, view: View, res: Residency, request, t0: int, key: np.ndarray):
@@ -47,95 +61,172 @@ def walk(h, view: View, res: Residency, request, t0: int, key: np.ndarray):
 
 
 def _step(h, view: View, res: Residency, request, t: int, key):
-    lay, j, edge = h.dims, t // 2, t % 2 == 1
-    a, n = lay.square_side(j), 2**j
-    o, v, u, h0, h1 = _unpack(key)
-    tab = h.dg_tab[j] if edge else h.sq_tab[j]
-    if edge:
-        ids = (o * (n + 1) + v) * (n + 1) + u
-        x = (u + 0.5 * (1 - o)) * a * h.dx
-        y = -((v + 0.5 * o) * a) * h.dy
+    lay, j = h.dims, t >> 1
+    sa = lay.n - j
+    a, n = 1 << sa, 1 << j
+    u = key & _M
+    v = (key >> 30) & _M
+    hb = key >> 61  # present halves: 1 (half 0), 2 (half 1), 3 (both)
+    o = None
+    if t & 1:
+        o = (key >> 60) & 1
+        N = n + 1
+        ids = (o * N + v) * N + u
+        x = ((u << sa) + ((1 - o) << (sa - 1))) * h.dx  # (u + ½(1 − o))·a·dx, exactly
+        y = ((v << sa) + (o << (sa - 1))) * -h.dy
         w = np.where(o == 0, v, u)  # halves exist inside the domain only
-        complete = (h0 == (w >= 1)) & (h1 == (w < n))
+        complete = hb == (w >= 1) + 2 * (w < n)
+        tab = h.dg_tab[j]
     else:
-        ids = v * n + u
-        x, y = (u + 0.5) * a * h.dx, -((v + 0.5) * a) * h.dy
-        complete = h0 & h1
-    crit, pix, code = view.test(x, y, tab[0][ids], tab[1][ids], tab[2][ids])
+        ids = (v << j) | u
+        x = ((u << sa) + (a >> 1)) * h.dx  # (u + ½)·a·dx, exactly
+        y = ((v << sa) + (a >> 1)) * -h.dy
+        complete = hb == 3
+        tab = h.sq_tab[j]
+    crit, pix, code = view.test(x, y, tab[0].take(ids), tab[1].take(ids), tab[2].take(ids))
     split = crit & complete
     if not res.all:
-        split = _resident(lay, res, request, t, o, v, u, h0, h1, crit, pix, split)
+        split = _resident(lay, res, request, t, o, v, u, hb, crit, pix, split)
     wait = crit & ~split
-    deferred = int(np.count_nonzero(wait & h0)) + int(np.count_nonzero(wait & h1))
+    hw = hb[wait]
+    deferred = len(hw) + int(np.count_nonzero(hw == 3))
     keep = np.flatnonzero(~split)
     kept = (t, ids.take(keep), key.take(keep), code.take(keep))
-    return _children(h, t, key[split]), kept, deferred
+    s = np.flatnonzero(split)
+    if t & 1:
+        return _edge_children(h, n, key.take(s), o.take(s), hb.take(s)), kept, deferred
+    return _square_children(h, n, v.take(s), u.take(s)), kept, deferred
 
 
 def _children(h, t: int, ks: np.ndarray) -> np.ndarray:
     """Keys of the next depth's diamonds from the keys of those that split at depth ``t``."""
-    o, v, u, h0, h1 = _unpack(ks)
-    n = 2 ** (t // 2)
-    if t % 2 == 0:  # squares give their 4 sides (edges, same level) one half each
-        N = n + 1
-        k0 = np.concatenate([((v + 1) << 30) | u, (v << 30) | (u + 1) | _O])
-        k1 = np.concatenate([(v << 30) | u, (v << 30) | u | _O])
-        id0 = np.concatenate([(v + 1) * N + u, N * N + v * N + u + 1])
-        id1 = np.concatenate([v * N + u, N * N + v * N + u])
-    else:  # edges give the 4 squares around their midpoint one level down one half each
-        k0, id0 = _edge_kids(v[o == 0], u[o == 0], h0[o == 0], h1[o == 0], 0, 2 * n)
-        k1, id1 = _edge_kids(v[o == 1], u[o == 1], h0[o == 1], h1[o == 1], 1, 2 * n)
+    n = 1 << (t >> 1)
+    if t & 1:
+        return _edge_children(h, n, ks, (ks >> 60) & 1, ks >> 61)
+    return _square_children(h, n, (ks >> 30) & _M, ks & _M)
+
+
+def _square_children(h, n: int, v, u) -> np.ndarray:
+    """Split squares (v, u) of a level with n per side give their 4 sides (edges, same level)
+    one half each: half 0 to the edges below (o = 0) and right (o = 1), half 1 to the edges
+    above and left."""
+    N = n + 1
+    base = (v << 30) | u
+    w = v * N + u
+    id0 = np.concatenate([w + N, w + (N * N + 1)])
+    id1 = np.concatenate([w, w + N * N])
     in1, only1 = merge_halves(h._mark, id0, id1)
-    return np.concatenate([k0 | _H0 | (in1.astype(np.int64) << 62), k1[only1] | _H1])
+    k0 = np.concatenate([base + (_ROW | _H0), base + (1 | _O | _H0)])
+    k0 |= np.left_shift(in1, 62, dtype=np.int64)
+    k1 = np.concatenate([base | _H1, base | (_O | _H1)])
+    return np.concatenate([k0, k1[only1]])
 
 
-def _edge_kids(v, u, h0, h1, o: int, m: int):
-    """(keys, ids) of the squares (level with m per side) split edges of orientation ``o``
-    give a half: rows 2v−1, 2v (o = 0) or columns 2u−1, 2u (o = 1), from the half above/left
-    (h0) and below/right (h1)."""
-    r, c = 2 * v, 2 * u
-    if o == 0:
-        rows = np.concatenate([r - 1, r - 1, r, r])
-        cols = np.concatenate([c, c + 1, c, c + 1])
-    else:
-        rows = np.concatenate([r, r + 1, r, r + 1])
-        cols = np.concatenate([c - 1, c - 1, c, c])
-    ok = np.flatnonzero(np.concatenate([h0, h0, h1, h1]))
-    rows, cols = rows.take(ok), cols.take(ok)
-    return (rows << 30) | cols, rows * m + cols
+def _edge_children(h, n: int, ks, o, hb) -> np.ndarray:
+    """Split edges give the 4 squares around their midpoint (one level down, 2n per side) one
+    half each: rows 2v−1, 2v (o = 0) or columns 2u−1, 2u (o = 1), the first pair from the
+    half above/left (half 0), the second from the half below/right; a square's half 0 comes
+    from its horizontal parent edge, half 1 from its vertical one."""
+    m = 2 * n
+    horizontal = o == 0
+    h0 = np.flatnonzero(horizontal)
+    k0, id0 = _edge_kids(ks.take(h0), hb.take(h0), (_ROW, _ROW - 1, 0, -1), (m, m - 1, 0, -1), m)
+    h1 = np.flatnonzero(~horizontal)
+    k1, id1 = _edge_kids(ks.take(h1), hb.take(h1), (1, -_ROW + 1, 0, -_ROW), (1, -m + 1, 0, -m), m)
+    in1, only1 = merge_halves(h._mark, id0, id1)
+    k0 |= _H0
+    k0 |= np.left_shift(in1, 62, dtype=np.int64)
+    return np.concatenate([k0, k1[only1] | _H1])
 
 
-def _resident(lay, res: Residency, request, t, o, v, u, h0, h1, crit, pix, split):
+def _edge_kids(ks, hb, dk, di, m: int):
+    """(keys, ids) of the child squares of split edges of one orientation: ``c − dk[0]``,
+    ``c − dk[1]`` from half 0 and ``c − dk[2]``, ``c − dk[3]`` from half 1, with c = (2v, 2u)
+    as a key (``di``: the same offsets in ids v·m + u)."""
+    c = (ks & _VU) << 1
+    w = ((c >> 30) * m) | (c & _M)
+    keys = np.concatenate([c - dk[0], c - dk[1], c - dk[2], c - dk[3]])
+    ids = np.concatenate([w - di[0], w - di[1], w - di[2], w - di[3]])
+    if len(hb) and not (hb == 3).all():  # border edges: one half
+        h0, h1 = (hb & 1) != 0, hb >= 2
+        ok = np.flatnonzero(np.concatenate([h0, h0, h1, h1]))
+        keys, ids = keys.take(ok), ids.take(ok)
+    return keys, ids
+
+
+def _resident(lay, res: Residency, request, t, o, v, u, hb, crit, pix, split):
     """``split`` further restricted to diamonds whose present halves' children have their
-    blocks resident; requests the missing ones (priority: the pixel error)."""
+    blocks resident; requests the missing ones (priority: the pixel error). The children of a
+    half draw from the block (at level ``blvl``) holding the half's centroid; with the square
+    side ``a`` dividing the block span ``a·2^d`` that block is (v ≫ d, u ≫ d), or for half 0 of
+    an edge the one above (o = 0: (v − 1) ≫ d) or left (o = 1)."""
     blvl = min(draw_level(lay.J, t + 1), lay.L)
     if res.level_resident(blvl):
         return split
-    a = lay.square_side(t // 2)
-    span, nb = (lay.M - 1) << blvl, 2 ** (lay.L - blvl)
-    ap0, ap1, pq = edge_halves(o, v, u, a) if t % 2 else square_halves(v, u, a)
-    for ap, hh in ((ap0, h0), (ap1, h1)):
-        bi = np.clip((pq[1] + ap[1]) // 3 // span, 0, nb - 1)
-        bj = np.clip((pq[0] + ap[0]) // 3 // span, 0, nb - 1)
-        r = res.lookup(blvl, bi, bj)
-        miss = crit & hh & ~r
-        if request is not None and miss.any():
-            request(np.full(int(miss.sum()), blvl), bi[miss], bj[miss], np.minimum(pix[miss], 1e30))
-        split = split & (r | ~hh)
+    d = lay.m + blvl - (lay.n - (t >> 1))
+    nb = 1 << (lay.L - blvl)
+    if t & 1 == 0:
+        bi, bj = v >> d, u >> d
+        r = _lookup(res, blvl, bi, bj, nb)
+        _request(request, blvl, bi, bj, crit & ~r, pix)  # every present square has a half
+        return split & r
+    for k, (bi, bj) in enumerate((((v - 1 + o) >> d, (u - o) >> d), (v >> d, u >> d))):
+        hk = (hb & (1 << k)) != 0
+        r = _lookup(res, blvl, bi, bj, nb)
+        _request(request, blvl, bi, bj, crit & hk & ~r, pix)
+        split = split & (r | ~hk)
     return split
+
+
+def _lookup(res: Residency, blvl: int, bi, bj, nb: int):
+    """Agreed residency of blocks (blvl, bi, bj); indices just outside the level (the absent
+    half of a border edge) read an arbitrary flag, which the caller masks."""
+    if res.fn is not None:
+        return np.asarray(res.fn(np.full(len(bi), blvl), np.clip(bi, 0, nb - 1), np.clip(bj, 0, nb - 1)), bool)
+    return res.flat.take(res.offset[blvl] + bi * nb + bj, mode="clip")
+
+
+def _request(request, blvl: int, bi, bj, miss, pix) -> None:
+    if request is not None and miss.any():
+        request(np.full(int(np.count_nonzero(miss)), blvl), bi[miss], bj[miss], np.minimum(pix[miss], 1e30))
 
 
 def _leaves(h, view: View, key):
     """The deepest square level: every present half is a patch; spheres for culling only."""
     lay, J = h.dims, h.dims.J
     a, n = lay.square_side(J), 2**J
-    _, v, u, _, _ = _unpack(key)
-    ids = v * n + u
-    zlo, zhi = h.sq_tab[J][3][ids], h.sq_tab[J][4][ids]
+    v, u = (key >> 30) & _M, key & _M
+    ids = (v << J) | u
+    zlo, zhi = h.sq_tab[J][3].take(ids), h.sq_tab[J][4].take(ids)
     half = math.hypot(a / 2 * h.dx, a / 2 * h.dy)
     dz = (zhi - zlo) / 2
     px, py, pz = view.camera_space((u + 0.5) * a * h.dx, -(v + 0.5) * a * h.dy, (zlo + zhi) / 2)
     return (2 * J, ids, key, view.code(px, py, pz, np.sqrt(half * half + dz * dz)))
+
+
+@lru_cache(maxsize=8)
+def _vertex_tables(n: int, J: int, L: int, m: int):
+    """Per (depth t, parity code c) rows, index 16·t + c with c = (u & 1) | (v & 1) << 1 |
+    half << 2 | o << 3: the six vertex offsets from (u·a, v·a) and the shift a = 2^sa
+    (int64 (7, 16·(2J+1))), the centroid offsets from (u·a, v·a) and the block shift
+    (int64 (3, …)), and depth, block level and stride (int64 (3, …))."""
+    rows = 16 * (2 * J + 1)
+    verts, cent, rec = np.zeros((7, rows), np.int64), np.zeros((3, rows), np.int64), np.zeros((3, rows), np.int64)
+    c = np.arange(16)
+    uu, vv, half, o = c & 1, (c >> 1) & 1, (c >> 2) & 1, (c >> 3) & 1
+    for t in range(2 * J + 1):
+        sa = n - t // 2
+        a = 1 << sa
+        oo = o if t % 2 else np.zeros(16, np.int64)
+        vx = patch_vertices(t, oo, vv, uu, half.astype(bool), a)
+        off = np.stack([vx[i] - (uu if i % 2 == 0 else vv) * a for i in range(6)])
+        s = slice(16 * t, 16 * t + 16)
+        verts[:6, s], verts[6, s] = off, sa
+        lvl = draw_level(J, t)
+        blvl = min(lvl, L)
+        cent[0, s], cent[1, s], cent[2, s] = (off[0] + off[2] + off[4]) // 3, (off[1] + off[3] + off[5]) // 3, blvl + m
+        rec[0, s], rec[1, s], rec[2, s] = t, blvl, 1 << (lvl - blvl)
+    return verts, cent, rec
 
 
 def emit(h, parts, head) -> list[np.ndarray]:
@@ -143,41 +234,54 @@ def emit(h, parts, head) -> list[np.ndarray]:
     the kept halves of ``parts`` (square depths, then edge depths; in each depth its half-0
     patches before its half-1 patches), written once into the output arrays."""
     lay = h.dims
-    groups = ([], [])
+    parts = [p for p in parts if p[0] % 2 == 0] + [p for p in parts if p[0] % 2 == 1]
+    sels = []
     for t, ids, key, code in parts:
-        h0, h1 = (key & _H0) != 0, (key & _H1) != 0
-        sel = np.concatenate([np.flatnonzero(h0), np.flatnonzero(h1)])
-        if len(sel) == 0:
-            continue
-        n0 = int(np.count_nonzero(h0))
-        tab = h.dg_tab[t // 2] if t % 2 else h.sq_tab[t // 2]
-        i = ids.take(sel)
-        groups[t % 2].append((t, n0, len(sel), key.take(sel), tab[3].take(i), tab[4].take(i), code.take(sel)))
+        s0, s1 = np.flatnonzero((key & _H0) != 0), np.flatnonzero((key & _H1) != 0)
+        sels.append((len(s0), len(s1), np.concatenate([s0, s1])))
     m = len(head[0][0])
-    total = m + sum(g[2] for grp in groups for g in grp)
+    total = m + sum(len(s[2]) for s in sels)
     out = [np.empty(total, np.int64) for _ in range(11)] + [np.empty(total), np.empty(total), np.empty(total, np.int8)]
     for o_, c in zip(out, (*head[0], head[1])):
         o_[:m] = c
-    for kind, g in enumerate(groups):
-        if not g:
-            continue
-        cnt = np.array([x[2] for x in g])
-        ts = np.array([x[0] for x in g])
-        t = np.repeat(ts, cnt)
-        half = np.concatenate([np.arange(x[2]) >= x[1] for x in g])
-        key = np.concatenate([x[3] for x in g])
-        o, v, u, _, _ = _unpack(key)
-        a = np.repeat(np.left_shift(1, lay.n - ts // 2), cnt)
-        lvl = lay.J - ts // 2 - kind
-        blvl = np.minimum(lvl, lay.L)
-        e = m + int(cnt.sum())
-        ax, ay, lx, ly, rx, ry = patch_vertices(kind, o, v, u, half, a)
-        shift = np.repeat(blvl + lay.m, cnt)
-        cols = (ax, ay, lx, ly, rx, ry, t, np.repeat(blvl, cnt), ((ay + ly + ry) // 3) >> shift, ((ax + lx + rx) // 3) >> shift,
-                np.repeat(np.left_shift(1, lvl - blvl), cnt))
-        for o_, c in zip(out, cols):
-            o_[m:e] = c
-        for o_, k in zip(out[11:], (4, 5, 6)):
-            np.concatenate([x[k] for x in g], out=o_[m:e])
-        m = e
+    if total == m:
+        return out
+    key = np.empty(total - m, np.int64)
+    e = m
+    for (t, ids, k, code), (n0, n1, sel) in zip(parts, sels):
+        b, e = e, e + n0 + n1
+        tab = h.dg_tab[t // 2] if t % 2 else h.sq_tab[t // 2]
+        i = ids.take(sel)
+        _take_into(tab[3], i, out[11][b:e])
+        _take_into(tab[4], i, out[12][b:e])
+        code.take(sel, out=out[13][b:e])
+        k.take(sel, out=key[b - m:e - m])
+    row = np.repeat(np.array([[16 * p[0], 16 * p[0] + 4] for p in parts]).ravel(), np.array([s[:2] for s in sels]).ravel())
+    row |= key & 1
+    row |= (key >> 29) & 2
+    row |= (key >> 57) & 8
+    _patch_records(lay, key, row, [o_[m:] for o_ in out[:11]])
     return out
+
+
+def _take_into(src: np.ndarray, idx, dst: np.ndarray) -> None:
+    if src.dtype == dst.dtype:
+        src.take(idx, out=dst)
+    else:  # a narrower table (the hierarchy may keep float32 heights)
+        dst[...] = src.take(idx)
+
+
+def _patch_records(lay, key, row, out) -> None:
+    """Write the 11 integer Front columns of the patches ``key`` (table rows ``row``) into
+    ``out``: vertices (u·a, v·a) + offset, block (centroid ≫ shift), depth, level, stride."""
+    verts, cent, rec = _vertex_tables(lay.n, lay.J, lay.L, lay.m)
+    sa = verts[6].take(row)
+    x0 = (key & _M) << sa
+    y0 = ((key >> 30) & _M) << sa
+    for i in range(6):
+        np.add(x0 if i % 2 == 0 else y0, verts[i].take(row), out=out[i])
+    sh = cent[2].take(row)
+    np.right_shift(y0 + cent[1].take(row), sh, out=out[8])
+    np.right_shift(x0 + cent[0].take(row), sh, out=out[9])
+    for i, k in ((6, 0), (7, 1), (10, 2)):
+        rec[k].take(row, out=out[i])
