@@ -238,13 +238,11 @@ def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident=N
     res = Residency(resident, lay.levels, lay.L)
     top = h.top
     split, H0, H1, code, deferred = top.walk(view, res, request)
-    rec, rcode = top.kept(split, H0, H1, code)
-    s = slice(top.offsets[-2], top.offsets[-1])  # the last batched depth: its splits seed the walk
-    t = top.depths - 1
-    seed = kpatch_walk._children(h, t, kpatch_walk.pack(top.o[s], top.v[s], top.u[s], H0[s], H1[s])[split[s]])
+    head = top.kept(split, H0, H1, code)
+    seed = kpatch_walk._edge_children(h, 2 ** (top.depths // 2 - 1), *top.seeds(split, H0, H1))
     parts, d = kpatch_walk.walk(h, view, res, request, top.depths, seed)
-    arr = kpatch_walk.emit(h, parts, (rec, rcode))
-    return Front(*arr[:13], deferred=deferred + d, code=arr[13], code_vp=view_vp(camera, viewport))
+    cols, zs, codes = kpatch_walk.emit(h, parts, head)
+    return Front(*cols, *zs, deferred=deferred + d, code=codes, code_vp=view_vp(camera, viewport))
 
 
 def view_vp(camera: Camera, vp: Viewport | None) -> Viewport | None:

@@ -46,12 +46,16 @@ class Dims:
 class View:
     """Per-camera constants of the split test, in camera space (x right, y up, looking down −z).
 
-    ``test(x, y, z, r, err)`` for spheres (world centre, radius) and saturated errors (world
-    units), all (n,) float64, returns (critical, pixel error, code) with code 0 = the sphere is
+    ``test(xyz, r, err)`` for spheres (world centres (3, n), radii) and saturated errors (world
+    units), all float64, returns (critical, pixel error, code) with code 0 = the sphere is
     outside a frustum plane, 1 = it crosses one, 2 = it is inside all six. The frustum is the
     camera's, or the off-axis sub-frustum of ``viewport`` (sort-first tiles). The pixel bound
     is the module docstring's of :mod:`massview.lod.kpatch`: f·e·√((|u_x| + a|u_z|)² +
-    (|u_y| + b|u_z|)²)/(z_c − r)."""
+    (|u_y| + b|u_z|)²)/(z_c − r).
+
+    Every operation is elementwise over the spheres (the three-term rotation sums reduce an
+    rotation rows add in order, ((r₀x + r₁y) + r₂z) + t), so a sphere's result never depends
+    on its batch; the work is a few dozen whole-array calls per batch."""
 
     def __init__(self, camera: Camera, tau: float, viewport: Viewport | None = None):
         self.tau = float(tau)
@@ -68,52 +72,61 @@ class View:
         self.sides_y = [(n / math.hypot(n, bottom), bottom / math.hypot(n, bottom)),
                         (-n / math.hypot(n, top), -top / math.hypot(n, top))]
         self.near, self.far = float(camera.near), float(camera.far)
+        self._rot = np.array(self.rot)[:, :, None]  # (3, 3, 1): column k of the rotation as (3, 1)
+        self._t = np.array(self.t)[:, None]
+        sides = self.sides_x + self.sides_y
+        self._side_a = np.array([a for a, _ in sides])[:, None]  # on x, x, y, y
+        self._side_c = np.array([c for _, c in sides])[:, None]  # on z
+        self._u = np.array([self.ux, self.uy])[:, None]
 
     def camera_space(self, x, y, z):
         (a, b, c), (d, e, f), (g, h, i) = self.rot
         tx, ty, tz = self.t
         return a * x + b * y + c * z + tx, d * x + e * y + f * z + ty, g * x + h * y + i * z + tz
 
+    def to_camera(self, xyz: np.ndarray) -> np.ndarray:
+        """(3, n) world points to camera space, the same float64 values as :meth:`camera_space`."""
+        p = self._rot[:, 0] * xyz[0]
+        p += self._rot[:, 1] * xyz[1]
+        p += self._rot[:, 2] * xyz[2]
+        p += self._t
+        return p
+
     def code(self, px, py, pz, r) -> np.ndarray:
         """0 outside a plane, 1 crossing, 2 inside all (spheres in camera space)."""
-        inside, full = self._planes(px, py, pz, r)
+        inside, full = self._planes(np.stack([px, py, pz]), r)
         return inside.view(np.int8) + full.view(np.int8)
 
-    def _planes(self, px, py, pz, r, npz=None):
-        """(touches every plane, inside every plane): the least signed distance of the centre
-        to the six planes against ∓r."""
-        m = -pz if npz is None else npz.copy()
-        m -= self.near
+    def _planes(self, p: np.ndarray, r):
+        """(touches every plane, inside every plane) for spheres at camera-space ``p`` (3, n):
+        the least signed distance of the centre to the six planes against ∓r."""
+        pz = p[2]
+        d = p.take([0, 0, 1, 1], axis=0)
+        d *= self._side_a
+        d += np.multiply(pz, self._side_c)
+        m = d.min(axis=0)
         np.minimum(m, pz + self.far, out=m)
-        for a, c in self.sides_x:
-            np.minimum(m, a * px + c * pz, out=m)
-        for b, c in self.sides_y:
-            np.minimum(m, b * py + c * pz, out=m)
-        return m >= -r, m >= r
+        near = np.negative(pz)
+        near -= self.near
+        np.minimum(m, near, out=m)
+        return m >= np.negative(r), m >= r
 
-    def test(self, x, y, z, r, err):
-        px, py, pz = self.camera_space(x, y, z)
-        npz = -pz
-        inside, full = self._planes(px, py, pz, r, npz)
-        zlo = npz
+    def test(self, xyz, r, err):
+        p = self.to_camera(xyz)
+        inside, full = self._planes(p, r)
+        zlo = np.negative(p[2])
         zlo -= r  # nearest depth in the sphere
         ok = zlo > 0
         every = bool(ok.all())
         zz = zlo if every else np.where(ok, zlo, 1.0)
-        a = np.abs(px)
-        a += r
-        a /= zz
-        b = np.abs(py)
-        b += r
-        b /= zz
-        s = a * self.uz
-        s += self.ux
-        q = b * self.uz
-        q += self.uy
-        s *= s
-        q *= q
-        s += q
-        g = np.sqrt(s, out=s)
+        ab = np.abs(p[:2])  # a, b: the off-axis slopes over the sphere
+        ab += r
+        ab /= zz
+        ab *= self.uz
+        ab += self._u
+        ab *= ab
+        g = np.add(ab[0], ab[1])
+        np.sqrt(g, out=g)
         g *= self.f
         g /= zz
         if every:

@@ -52,9 +52,14 @@ class TopBatch:
         for k, val in cols.items():
             setattr(self, k, np.concatenate(val))
         self.size = self.offsets[-1]
+        self.xyz = np.stack([self.x, self.y, self.cz])
         self.p0, self.p1 = (np.where(p == -2, self.size + 1, np.where(p < 0, self.size, p)) for p in (self.par0, self.par1))
         self._blocks(h)
         self._records(h)
+        self._levels = [(slice(a, b), np.stack([self.p0[a:b], self.p1[a:b]]), np.stack([self.ex0[a:b], self.ex1[a:b]]))
+                        for a, b in zip(self.offsets[:-1], self.offsets[1:])]
+        last = slice(self.offsets[-2], self.offsets[-1])  # the deepest batched depth (edges): the walk's seeds
+        self._last = (last, (self.v[last] << 30) | self.u[last] | (self.o[last] << 60), self.o[last])
 
     def _parents(self, t, o, v, u, n, ex0, ex1):
         """Batch positions of each diamond's half-0 and half-1 parents; ``size`` (a False
@@ -122,7 +127,7 @@ class TopBatch:
 
     def walk(self, view: View, res: Residency, request):
         """Decide the batch for one view: returns (split flags, H0, H1, crit, code, deferred)."""
-        crit, pix, code = view.test(self.x, self.y, self.cz, self.r, self.err)
+        crit, pix, code = view.test(self.xyz, self.r, self.err)
         ok = crit
         r0 = r1 = None
         if not res.all:
@@ -130,13 +135,11 @@ class TopBatch:
             ok = crit & (r0 | ~self.ex0) & (r1 | ~self.ex1)
         S = np.zeros(self.size + 2, bool)
         S[self.size + 1] = True  # the root's halves are always present
-        H0, H1 = np.zeros(self.size, bool), np.zeros(self.size, bool)
-        p0, p1 = self.p0, self.p1
-        for t in range(self.depths):
-            s = slice(self.offsets[t], self.offsets[t + 1])
-            h0, h1 = S[p0[s]], S[p1[s]]
-            H0[s], H1[s] = h0, h1
-            S[s] = ok[s] & (h0 == self.ex0[s]) & (h1 == self.ex1[s])
+        for s, q, e in self._levels:
+            c = S.take(q)
+            c ^= e  # a half differs from what exists: absent where it exists, or the reverse
+            S[s] = ok[s] & ~(c[0] | c[1])
+        H0, H1 = S.take(self.p0), S.take(self.p1)
         split = S[:self.size]
         if r0 is not None and request is not None:
             for rk, Hk, key in ((r0, H0, self.bkey[0]), (r1, H1, self.bkey[1])):
@@ -148,10 +151,17 @@ class TopBatch:
         return split, H0, H1, code, deferred
 
     def kept(self, split, H0, H1, code):
-        """The patches the batch keeps: (13 Front columns, codes), half-0 patches first."""
+        """The patches the batch keeps, half-0 patches first: (int64 (11, n), float64 (2, n)
+        Front columns, int8 (n,) codes)."""
         idx = np.concatenate([np.flatnonzero(H0 & ~split), self.size + np.flatnonzero(H1 & ~split)])
-        cols = [*self.rec_int.take(idx, axis=1), *self.rec_flt.take(idx, axis=1)]
-        return cols, np.concatenate([code, code]).take(idx)
+        return self.rec_int.take(idx, axis=1), self.rec_flt.take(idx, axis=1), np.concatenate([code, code]).take(idx)
+
+    def seeds(self, split, H0, H1):
+        """(keys, o, present halves) of the diamonds of the deepest batched depth that split."""
+        s, key, o = self._last
+        i = np.flatnonzero(split[s])
+        hb = H0[s].take(i) + 2 * H1[s].take(i).astype(np.int64)
+        return key.take(i) | (hb << 61), o.take(i), hb
 
     def _resident(self, res: Residency):
         if res.fn is not None:

@@ -46,7 +46,8 @@ def pack(o, v, u, h0, h1) -> np.ndarray:
 
 def walk(h, view: View, res: Residency, request, t0: int, key: np.ndarray):
     """Depths t0 … 2J of the walk from the present diamonds ``key`` at depth t0. Returns the
-    kept parts ((t, ids, keys, codes) per depth) and the deferred-split count."""
+    kept parts (per depth: t, half-0 count, ids, keys, codes; see :func:`_kept`) and the
+    deferred-split count."""
     parts, deferred = [], 0
     J = h.dims.J
     for t in range(t0, 2 * J):
@@ -72,30 +73,43 @@ def _step(h, view: View, res: Residency, request, t: int, key):
         o = (key >> 60) & 1
         N = n + 1
         ids = (o * N + v) * N + u
-        x = ((u << sa) + ((1 - o) << (sa - 1))) * h.dx  # (u + ½(1 − o))·a·dx, exactly
-        y = ((v << sa) + (o << (sa - 1))) * -h.dy
+        xi = (u << sa) + ((1 - o) << (sa - 1))  # (u + ½(1 − o))·a
+        yi = (v << sa) + (o << (sa - 1))
         w = np.where(o == 0, v, u)  # halves exist inside the domain only
         complete = hb == (w >= 1) + 2 * (w < n)
         tab = h.dg_tab[j]
     else:
         ids = (v << j) | u
-        x = ((u << sa) + (a >> 1)) * h.dx  # (u + ½)·a·dx, exactly
-        y = ((v << sa) + (a >> 1)) * -h.dy
+        xi = (u << sa) + (a >> 1)  # (u + ½)·a
+        yi = (v << sa) + (a >> 1)
         complete = hb == 3
         tab = h.sq_tab[j]
-    crit, pix, code = view.test(x, y, tab[0].take(ids), tab[1].take(ids), tab[2].take(ids))
+    xyz = np.empty((3, len(key)))
+    np.multiply(xi, h.dx, out=xyz[0])  # the same float64 centres as (u + ½)·a·dx
+    np.multiply(yi, -h.dy, out=xyz[1])
+    tab[0].take(ids, out=xyz[2], mode="clip")
+    crit, pix, code = view.test(xyz, tab[1].take(ids), tab[2].take(ids))
     split = crit & complete
     if not res.all:
         split = _resident(lay, res, request, t, o, v, u, hb, crit, pix, split)
-    wait = crit & ~split
-    hw = hb[wait]
-    deferred = len(hw) + int(np.count_nonzero(hw == 3))
-    keep = np.flatnonzero(~split)
-    kept = (t, ids.take(keep), key.take(keep), code.take(keep))
+    kept, deferred = _kept(t, ids, key, code, hb, crit, split)
     s = np.flatnonzero(split)
     if t & 1:
         return _edge_children(h, n, key.take(s), o.take(s), hb.take(s)), kept, deferred
     return _square_children(h, n, v.take(s), u.take(s)), kept, deferred
+
+
+def _kept(t: int, ids, key, code, hb, crit, split):
+    """The patches a depth keeps — the present halves of the diamonds that do not split, its
+    half-0 patches first: (t, half-0 count, ids, keys, codes) — and the deferred splits
+    (present halves of critical diamonds that do not split)."""
+    h0, h1 = (hb & 1) != 0, hb >= 2
+    stay = ~split
+    wait = crit & stay
+    deferred = int(np.count_nonzero(wait & h0)) + int(np.count_nonzero(wait & h1))
+    s0 = np.flatnonzero(stay & h0)
+    sel = np.concatenate([s0, np.flatnonzero(stay & h1)])
+    return (t, len(s0), ids.take(sel), key.take(sel), code.take(sel)), deferred
 
 
 def _children(h, t: int, ks: np.ndarray) -> np.ndarray:
@@ -119,7 +133,7 @@ def _square_children(h, n: int, v, u) -> np.ndarray:
     k0 = np.concatenate([base + (_ROW | _H0), base + (1 | _O | _H0)])
     k0 |= np.left_shift(in1, 62, dtype=np.int64)
     k1 = np.concatenate([base | _H1, base | (_O | _H1)])
-    return np.concatenate([k0, k1[only1]])
+    return np.concatenate([k0, k1.take(np.flatnonzero(only1))])
 
 
 def _edge_children(h, n: int, ks, o, hb) -> np.ndarray:
@@ -136,7 +150,9 @@ def _edge_children(h, n: int, ks, o, hb) -> np.ndarray:
     in1, only1 = merge_halves(h._mark, id0, id1)
     k0 |= _H0
     k0 |= np.left_shift(in1, 62, dtype=np.int64)
-    return np.concatenate([k0, k1[only1] | _H1])
+    k1 = k1.take(np.flatnonzero(only1))
+    k1 |= _H1
+    return np.concatenate([k0, k1])
 
 
 def _edge_kids(ks, hb, dk, di, m: int):
@@ -194,24 +210,27 @@ def _request(request, blvl: int, bi, bj, miss, pix) -> None:
 def _leaves(h, view: View, key):
     """The deepest square level: every present half is a patch; spheres for culling only."""
     lay, J = h.dims, h.dims.J
-    a, n = lay.square_side(J), 2**J
+    a = lay.square_side(J)
     v, u = (key >> 30) & _M, key & _M
     ids = (v << J) | u
     zlo, zhi = h.sq_tab[J][3].take(ids), h.sq_tab[J][4].take(ids)
     half = math.hypot(a / 2 * h.dx, a / 2 * h.dy)
     dz = (zhi - zlo) / 2
     px, py, pz = view.camera_space((u + 0.5) * a * h.dx, -(v + 0.5) * a * h.dy, (zlo + zhi) / 2)
-    return (2 * J, ids, key, view.code(px, py, pz, np.sqrt(half * half + dz * dz)))
+    code = view.code(px, py, pz, np.sqrt(half * half + dz * dz))
+    none = np.zeros(len(key), bool)
+    return _kept(2 * J, ids, key, code, key >> 61, none, none)[0]
 
 
 @lru_cache(maxsize=8)
 def _vertex_tables(n: int, J: int, L: int, m: int):
     """Per (depth t, parity code c) rows, index 16·t + c with c = (u & 1) | (v & 1) << 1 |
-    half << 2 | o << 3: the six vertex offsets from (u·a, v·a) and the shift a = 2^sa
-    (int64 (7, 16·(2J+1))), the centroid offsets from (u·a, v·a) and the block shift
-    (int64 (3, …)), and depth, block level and stride (int64 (3, …))."""
+    half << 2 | o << 3: int64 (7, 16·(2J+1)) — the six vertex offsets from (u·a, v·a) and
+    log2 a — and int64 (6, …) — depth, block level, the centroid's offsets (y, x) from
+    (v·a, u·a) (the vertex sums are 3·(u·a) plus the offsets' sum, so the centroid is exact),
+    stride, and the block shift log2 of the block span."""
     rows = 16 * (2 * J + 1)
-    verts, cent, rec = np.zeros((7, rows), np.int64), np.zeros((3, rows), np.int64), np.zeros((3, rows), np.int64)
+    verts, rec = np.zeros((7, rows), np.int64), np.zeros((6, rows), np.int64)
     c = np.arange(16)
     uu, vv, half, o = c & 1, (c >> 1) & 1, (c >> 2) & 1, (c >> 3) & 1
     for t in range(2 * J + 1):
@@ -224,64 +243,60 @@ def _vertex_tables(n: int, J: int, L: int, m: int):
         verts[:6, s], verts[6, s] = off, sa
         lvl = draw_level(J, t)
         blvl = min(lvl, L)
-        cent[0, s], cent[1, s], cent[2, s] = (off[0] + off[2] + off[4]) // 3, (off[1] + off[3] + off[5]) // 3, blvl + m
-        rec[0, s], rec[1, s], rec[2, s] = t, blvl, 1 << (lvl - blvl)
-    return verts, cent, rec
+        rec[:, s] = np.stack([np.full(16, t), np.full(16, blvl), (off[1] + off[3] + off[5]) // 3, (off[0] + off[2] + off[4]) // 3,
+                              np.full(16, 1 << (lvl - blvl)), np.full(16, blvl + m)])
+    return verts, rec
 
 
-def emit(h, parts, head) -> list[np.ndarray]:
-    """The 13 Front columns and the codes: ``head`` (the batched top's columns and codes), then
-    the kept halves of ``parts`` (square depths, then edge depths; in each depth its half-0
-    patches before its half-1 patches), written once into the output arrays."""
-    lay = h.dims
+def emit(h, parts, head):
+    """The Front's columns: (int64 (11, n): ax … stride, float64 (2, n): zmin, zmax, int8 (n,):
+    codes) — ``head`` (the batched top's, the same three), then the kept halves of ``parts``
+    (square depths, then edge depths; in each depth its half-0 patches before its half-1
+    patches), each column written once."""
     parts = [p for p in parts if p[0] % 2 == 0] + [p for p in parts if p[0] % 2 == 1]
-    sels = []
-    for t, ids, key, code in parts:
-        s0, s1 = np.flatnonzero((key & _H0) != 0), np.flatnonzero((key & _H1) != 0)
-        sels.append((len(s0), len(s1), np.concatenate([s0, s1])))
-    m = len(head[0][0])
-    total = m + sum(len(s[2]) for s in sels)
-    out = [np.empty(total, np.int64) for _ in range(11)] + [np.empty(total), np.empty(total), np.empty(total, np.int8)]
-    for o_, c in zip(out, (*head[0], head[1])):
-        o_[:m] = c
+    m = head[0].shape[1]
+    total = m + sum(len(p[2]) for p in parts)
+    cols, zs, code = np.empty((11, total), np.int64), np.empty((2, total)), np.empty(total, np.int8)
+    cols[:, :m], zs[:, :m], code[:m] = head
     if total == m:
-        return out
-    key = np.empty(total - m, np.int64)
+        return cols, zs, code
+    key = np.concatenate([p[3] for p in parts])
+    np.concatenate([p[4] for p in parts], out=code[m:])
     e = m
-    for (t, ids, k, code), (n0, n1, sel) in zip(parts, sels):
-        b, e = e, e + n0 + n1
+    for t, n0, ids, _, _ in parts:
+        b, e = e, e + len(ids)
         tab = h.dg_tab[t // 2] if t % 2 else h.sq_tab[t // 2]
-        i = ids.take(sel)
-        _take_into(tab[3], i, out[11][b:e])
-        _take_into(tab[4], i, out[12][b:e])
-        code.take(sel, out=out[13][b:e])
-        k.take(sel, out=key[b - m:e - m])
-    row = np.repeat(np.array([[16 * p[0], 16 * p[0] + 4] for p in parts]).ravel(), np.array([s[:2] for s in sels]).ravel())
+        _take_into(tab[3], ids, zs[0, b:e])
+        _take_into(tab[4], ids, zs[1, b:e])
+    row = np.repeat(np.array([[16 * p[0], 16 * p[0] + 4] for p in parts]).ravel(),
+                    np.array([[p[1], len(p[2]) - p[1]] for p in parts]).ravel())
     row |= key & 1
     row |= (key >> 29) & 2
     row |= (key >> 57) & 8
-    _patch_records(lay, key, row, [o_[m:] for o_ in out[:11]])
-    return out
+    _patch_records(h.dims, key, row, cols[:, m:])
+    return cols, zs, code
 
 
 def _take_into(src: np.ndarray, idx, dst: np.ndarray) -> None:
     if src.dtype == dst.dtype:
-        src.take(idx, out=dst)
+        src.take(idx, out=dst, mode="clip")
     else:  # a narrower table (the hierarchy may keep float32 heights)
         dst[...] = src.take(idx)
 
 
 def _patch_records(lay, key, row, out) -> None:
-    """Write the 11 integer Front columns of the patches ``key`` (table rows ``row``) into
-    ``out``: vertices (u·a, v·a) + offset, block (centroid ≫ shift), depth, level, stride."""
-    verts, cent, rec = _vertex_tables(lay.n, lay.J, lay.L, lay.m)
+    """Write the 11 integer Front columns (``out``, (11, n)) of the patches ``key`` (table rows
+    ``row``): vertices (u·a, v·a) + offset, depth, level, block (centroid ≫ shift), stride."""
+    verts, rec = _vertex_tables(lay.n, lay.J, lay.L, lay.m)
     sa = verts[6].take(row)
     x0 = (key & _M) << sa
     y0 = ((key >> 30) & _M) << sa
-    for i in range(6):
-        np.add(x0 if i % 2 == 0 else y0, verts[i].take(row), out=out[i])
-    sh = cent[2].take(row)
-    np.right_shift(y0 + cent[1].take(row), sh, out=out[8])
-    np.right_shift(x0 + cent[0].take(row), sh, out=out[9])
-    for i, k in ((6, 0), (7, 1), (10, 2)):
-        rec[k].take(row, out=out[i])
+    verts[:6].take(row, axis=1, out=out[:6], mode="clip")
+    out[0:6:2] += x0
+    out[1:6:2] += y0
+    rec[:5].take(row, axis=1, out=out[6:], mode="clip")
+    sh = rec[5].take(row)
+    out[8] += y0
+    out[8] >>= sh
+    out[9] += x0
+    out[9] >>= sh

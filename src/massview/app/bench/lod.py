@@ -108,7 +108,9 @@ def _new_stage(sysm, comm, cam, cfg, nranks: int):
     def go():
         sysm.prepare_frame(comm, cam, cfg, FrameStats(0, 0))
         task = sysm.plan(cam, cfg, nranks)[comm.Get_rank()]
-        sysm.front.take(sysm.select(task, cam, cfg))
+        idx = sysm.select(task, cam, cfg)
+        if len(idx) != len(sysm.front):  # as TerrainSystem.render: the whole front is drawn as it is
+            sysm.front.take(idx)
     return go
 
 
