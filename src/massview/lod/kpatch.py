@@ -51,7 +51,7 @@ from .kpatch_cut import Dims, Residency, View
 __all__ = ["PatchHierarchy", "Front", "select_front", "visible_patches", "patch_boxes", "lookup_blocks", "refine_uniform",
            "watertight_problems"]
 
-TOP_LEVELS = 6  # square/edge levels walked as one batch (kpatch_top)
+TOP_LEVELS = 7  # square/edge levels walked as one batch (kpatch_top)
 Resident = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (level, bi, bj) -> bool
 Request = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]  # (level, bi, bj, priority)
 
@@ -238,10 +238,10 @@ def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident=N
     res = Residency(resident, lay.levels, lay.L)
     top = h.top
     split, H0, H1, code, deferred = top.walk(view, res, request)
-    head = top.kept(split, H0, H1, code)
+    head = top.kept(split, H0, H1)
     seed = kpatch_walk._edge_children(h, 2 ** (top.depths // 2 - 1), *top.seeds(split, H0, H1))
     parts, d = kpatch_walk.walk(h, view, res, request, top.depths, seed)
-    cols, zs, codes = kpatch_walk.emit(h, parts, head)
+    cols, zs, codes = kpatch_walk.emit(h, parts, head, code)
     return Front(*cols, *zs, deferred=deferred + d, code=codes, code_vp=view_vp(camera, viewport))
 
 
@@ -274,11 +274,13 @@ def boxes_touch(h: PatchHierarchy, f: Front, idx: np.ndarray, planes: np.ndarray
     x0, x1 = np.minimum(np.minimum(ax, lx), rx) * h.dx, np.maximum(np.maximum(ax, lx), rx) * h.dx
     y0, y1 = -np.maximum(np.maximum(ay, ly), ry) * h.dy, -np.minimum(np.minimum(ay, ly), ry) * h.dy
     z0, z1 = f.zmin[idx], f.zmax[idx]
-    ok = np.ones(len(idx), bool)
-    for nx, ny, nz, w in planes:
-        d = (x1 if nx >= 0 else x0) * nx + (y1 if ny >= 0 else y0) * ny + (z1 if nz >= 0 else z0) * nz + w
-        ok &= d >= 0
-    return ok
+    p = planes[:, :, None]
+    pos = p[:, :3] >= 0
+    d = np.where(pos[:, 0], x1, x0) * p[:, 0]  # the p-vertex against every plane at once: (6, n)
+    d += np.where(pos[:, 1], y1, y0) * p[:, 1]
+    d += np.where(pos[:, 2], z1, z0) * p[:, 2]
+    d += p[:, 3]
+    return (d >= 0).all(axis=0)
 
 
 def patch_boxes(h: PatchHierarchy, f: Front) -> tuple[np.ndarray, np.ndarray]:

@@ -56,6 +56,7 @@ class TopBatch:
         self.p0, self.p1 = (np.where(p == -2, self.size + 1, np.where(p < 0, self.size, p)) for p in (self.par0, self.par1))
         self._blocks(h)
         self._records(h)
+        self.no0, self.no1 = ~self.ex0, ~self.ex1
         self._levels = [(slice(a, b), np.stack([self.p0[a:b], self.p1[a:b]]), np.stack([self.ex0[a:b], self.ex1[a:b]]))
                         for a, b in zip(self.offsets[:-1], self.offsets[1:])]
         last = slice(self.offsets[-2], self.offsets[-1])  # the deepest batched depth (edges): the walk's seeds
@@ -132,13 +133,13 @@ class TopBatch:
         r0 = r1 = None
         if not res.all:
             r0, r1 = self._resident(res)
-            ok = crit & (r0 | ~self.ex0) & (r1 | ~self.ex1)
+            ok = crit & (r0 | self.no0) & (r1 | self.no1)
         S = np.zeros(self.size + 2, bool)
         S[self.size + 1] = True  # the root's halves are always present
         for s, q, e in self._levels:
-            c = S.take(q)
-            c ^= e  # a half differs from what exists: absent where it exists, or the reverse
-            S[s] = ok[s] & ~(c[0] | c[1])
+            bad = S.take(q)
+            bad ^= e  # a half differs from what exists: absent where it exists, or the reverse
+            np.greater(ok[s], bad[0] | bad[1], out=S[s])  # ok and no half is wrong
         H0, H1 = S.take(self.p0), S.take(self.p1)
         split = S[:self.size]
         if r0 is not None and request is not None:
@@ -150,11 +151,10 @@ class TopBatch:
         deferred = int(np.count_nonzero(wait & H0)) + int(np.count_nonzero(wait & H1))
         return split, H0, H1, code, deferred
 
-    def kept(self, split, H0, H1, code):
-        """The patches the batch keeps, half-0 patches first: (int64 (11, n), float64 (2, n)
-        Front columns, int8 (n,) codes)."""
-        idx = np.concatenate([np.flatnonzero(H0 & ~split), self.size + np.flatnonzero(H1 & ~split)])
-        return self.rec_int.take(idx, axis=1), self.rec_flt.take(idx, axis=1), np.concatenate([code, code]).take(idx)
+    def kept(self, split, H0, H1):
+        """Positions in the (2·size) half records (:attr:`rec_int`, :attr:`rec_flt`) of the
+        patches the batch keeps, half-0 patches first."""
+        return np.concatenate([np.flatnonzero(H0 > split), self.size + np.flatnonzero(H1 > split)])
 
     def seeds(self, split, H0, H1):
         """(keys, o, present halves) of the diamonds of the deepest batched depth that split."""

@@ -248,16 +248,19 @@ def _vertex_tables(n: int, J: int, L: int, m: int):
     return verts, rec
 
 
-def emit(h, parts, head):
+def emit(h, parts, head, head_code):
     """The Front's columns: (int64 (11, n): ax … stride, float64 (2, n): zmin, zmax, int8 (n,):
-    codes) — ``head`` (the batched top's, the same three), then the kept halves of ``parts``
+    codes) — the batched top's kept halves first (``head``: positions in its half records,
+    ``head_code``: its diamonds' codes), then the kept halves of ``parts``
     (square depths, then edge depths; in each depth its half-0 patches before its half-1
     patches), each column written once."""
     parts = [p for p in parts if p[0] % 2 == 0] + [p for p in parts if p[0] % 2 == 1]
-    m = head[0].shape[1]
+    top, m = h.top, len(head)
     total = m + sum(len(p[2]) for p in parts)
     cols, zs, code = np.empty((11, total), np.int64), np.empty((2, total)), np.empty(total, np.int8)
-    cols[:, :m], zs[:, :m], code[:m] = head
+    top.rec_int.take(head, axis=1, out=cols[:, :m], mode="clip")
+    top.rec_flt.take(head, axis=1, out=zs[:, :m], mode="clip")
+    head_code.take(head, out=code[:m], mode="wrap")  # half records: size + i is diamond i's half 1
     if total == m:
         return cols, zs, code
     key = np.concatenate([p[3] for p in parts])
