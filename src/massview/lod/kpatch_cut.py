@@ -150,7 +150,9 @@ class Residency:
         if callable(resident):
             self.fn = resident
         elif resident is not None:
-            self.flat = np.concatenate([np.asarray(g, bool).ravel() for g in resident])
+            self.flat = _flat_view(resident)
+            if self.flat is None:
+                self.flat = np.concatenate([np.asarray(g, bool).ravel() for g in resident])
             self.offset = np.cumsum([0] + [np.asarray(g).size for g in resident])
             self.nb = [np.asarray(g).shape[1] for g in resident]
             self.level_all = [bool(np.asarray(g).all()) for g in resident]
@@ -167,6 +169,20 @@ class Residency:
         if self.fn is not None:
             return np.asarray(self.fn(np.full(len(bi), blvl), bi, bj), bool)
         return self.flat[self.offset[blvl] + bi * self.nb[blvl] + bj]
+
+
+def _flat_view(grids):
+    """The flat bool array the per-level ``grids`` are consecutive views of (as
+    :meth:`massview.lod.blockindex.BlockIndex.grids` makes them), or None."""
+    base = getattr(grids[0], "base", None) if len(grids) else None
+    if not isinstance(base, np.ndarray) or base.ndim != 1 or base.dtype != bool or not base.flags.c_contiguous:
+        return None
+    at = base.__array_interface__["data"][0]
+    for g in grids:
+        if g.base is not base or not g.flags.c_contiguous or g.__array_interface__["data"][0] != at:
+            return None
+        at += g.size
+    return base if at == base.__array_interface__["data"][0] + base.size else None
 
 
 def square_halves(v, u, a: int):

@@ -61,6 +61,7 @@ class TopBatch:
                         for a, b in zip(self.offsets[:-1], self.offsets[1:])]
         last = slice(self.offsets[-2], self.offsets[-1])  # the deepest batched depth (edges): the walk's seeds
         self._last = (last, (self.v[last] << 30) | self.u[last] | (self.o[last] << 60), self.o[last])
+        del self.x, self.y, self.cz, self.par0, self.par1, self.t, self.o, self.v, self.u, self.ex0, self.ex1  # build-time only
 
     def _parents(self, t, o, v, u, n, ex0, ex1):
         """Batch positions of each diamond's half-0 and half-1 parents; ``size`` (a False

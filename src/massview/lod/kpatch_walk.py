@@ -210,16 +210,24 @@ def _request(request, blvl: int, bi, bj, miss, pix) -> None:
 def _leaves(h, view: View, key):
     """The deepest square level: every present half is a patch; spheres for culling only."""
     lay, J = h.dims, h.dims.J
-    a = lay.square_side(J)
+    sa = lay.n - J
+    a = 1 << sa
     v, u = (key >> 30) & _M, key & _M
     ids = (v << J) | u
     zlo, zhi = h.sq_tab[J][3].take(ids), h.sq_tab[J][4].take(ids)
+    xyz = np.empty((3, len(key)))
+    np.multiply((u << sa) + (a >> 1), h.dx, out=xyz[0])  # (u + ½)·a·dx
+    np.multiply((v << sa) + (a >> 1), -h.dy, out=xyz[1])
+    np.add(zlo, zhi, out=xyz[2])
+    xyz[2] /= 2
     half = math.hypot(a / 2 * h.dx, a / 2 * h.dy)
-    dz = (zhi - zlo) / 2
-    px, py, pz = view.camera_space((u + 0.5) * a * h.dx, -(v + 0.5) * a * h.dy, (zlo + zhi) / 2)
-    code = view.code(px, py, pz, np.sqrt(half * half + dz * dz))
+    dz = zhi - zlo
+    dz /= 2
+    dz *= dz
+    dz += half * half
+    inside, full = view._planes(view.to_camera(xyz), np.sqrt(dz, out=dz))
     none = np.zeros(len(key), bool)
-    return _kept(2 * J, ids, key, code, key >> 61, none, none)[0]
+    return _kept(2 * J, ids, key, inside.view(np.int8) + full.view(np.int8), key >> 61, none, none)[0]
 
 
 @lru_cache(maxsize=8)
