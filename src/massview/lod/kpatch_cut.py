@@ -165,10 +165,13 @@ class Residency:
         """Every block of level ``blvl`` is resident (the lookups can be skipped)."""
         return self.fn is None and (self.flat is None or self.level_all[blvl])
 
-    def lookup(self, blvl: int, bi: np.ndarray, bj: np.ndarray) -> np.ndarray:
+    def lookup(self, blvl: int, bi: np.ndarray, bj: np.ndarray, nb: int) -> np.ndarray:
+        """Agreed residency of blocks (blvl, bi, bj) of a level with ``nb`` per side; indices
+        just outside the level (the absent half of a border edge) read an arbitrary flag, which
+        the caller masks."""
         if self.fn is not None:
-            return np.asarray(self.fn(np.full(len(bi), blvl), bi, bj), bool)
-        return self.flat[self.offset[blvl] + bi * self.nb[blvl] + bj]
+            return np.asarray(self.fn(np.full(len(bi), blvl), np.clip(bi, 0, nb - 1), np.clip(bj, 0, nb - 1)), bool)
+        return self.flat.take(self.offset[blvl] + bi * nb + bj, mode="clip")
 
 
 def _flat_view(grids):

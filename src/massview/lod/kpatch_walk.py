@@ -183,23 +183,15 @@ def _resident(lay, res: Residency, request, t, o, v, u, hb, crit, pix, split):
     nb = 1 << (lay.L - blvl)
     if t & 1 == 0:
         bi, bj = v >> d, u >> d
-        r = _lookup(res, blvl, bi, bj, nb)
+        r = res.lookup(blvl, bi, bj, nb)
         _request(request, blvl, bi, bj, crit & ~r, pix)  # every present square has a half
         return split & r
     for k, (bi, bj) in enumerate((((v - 1 + o) >> d, (u - o) >> d), (v >> d, u >> d))):
         hk = (hb & (1 << k)) != 0
-        r = _lookup(res, blvl, bi, bj, nb)
+        r = res.lookup(blvl, bi, bj, nb)
         _request(request, blvl, bi, bj, crit & hk & ~r, pix)
         split = split & (r | ~hk)
     return split
-
-
-def _lookup(res: Residency, blvl: int, bi, bj, nb: int):
-    """Agreed residency of blocks (blvl, bi, bj); indices just outside the level (the absent
-    half of a border edge) read an arbitrary flag, which the caller masks."""
-    if res.fn is not None:
-        return np.asarray(res.fn(np.full(len(bi), blvl), np.clip(bi, 0, nb - 1), np.clip(bj, 0, nb - 1)), bool)
-    return res.flat.take(res.offset[blvl] + bi * nb + bj, mode="clip")
 
 
 def _request(request, blvl: int, bi, bj, miss, pix) -> None:
