@@ -239,7 +239,7 @@ def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident=N
     top = h.top
     split, H0, H1, code, deferred = top.walk(view, res, request)
     head = top.kept(split, H0, H1)
-    seed = kpatch_walk._edge_children(h, 2 ** (top.depths // 2 - 1), *top.seeds(split, H0, H1))
+    seed = kpatch_walk.edge_children(h, 2 ** (top.depths // 2 - 1), *top.seeds(split, H0, H1))
     parts, d = kpatch_walk.walk(h, view, res, request, top.depths, seed)
     cols, zs, codes = kpatch_walk.emit(h, parts, head, code)
     return Front(*cols, *zs, deferred=deferred + d, code=codes, code_vp=view_vp(camera, viewport))

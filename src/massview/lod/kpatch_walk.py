@@ -6,9 +6,9 @@ orientation o in bit 60 and its present halves in bits 61 (half 0) and 62 (half 
 depth selects from one array instead of five, which is most of the work: numpy's masked
 selections cost several ns per element on the irregular masks a cut produces.
 
-Every depth is a fixed, short sequence of whole-array operations (about a hundred per
-diamond, most of them the split test), so the cost is elements × operations. What keeps the
-count down:
+Every depth is a fixed sequence of a few dozen whole-array operations (a third of the work
+is the split test), so the cost is elements × passes plus the memory the passes touch. What
+keeps both down:
 
 * integer lattice arithmetic: sphere centres ``x = (u·a + a/2)·dx`` from integer (v, u) (the
   same float64 values as ``(u + ½)·a·dx``); the blocks a half's children draw from are
@@ -31,7 +31,7 @@ import numpy as np
 
 from .kpatch_cut import Residency, View, draw_level, merge_halves, patch_vertices
 
-__all__ = ["pack", "walk", "emit"]
+__all__ = ["pack", "walk", "edge_children", "emit"]
 
 _M = (1 << 30) - 1
 _O, _H0, _H1 = 1 << 60, 1 << 61, 1 << 62
@@ -95,7 +95,7 @@ def _step(h, view: View, res: Residency, request, t: int, key):
     kept, deferred = _kept(t, ids, key, code, hb, crit, split)
     s = np.flatnonzero(split)
     if t & 1:
-        return _edge_children(h, n, key.take(s), o.take(s), hb.take(s)), kept, deferred
+        return edge_children(h, n, key.take(s), o.take(s), hb.take(s)), kept, deferred
     return _square_children(h, n, v.take(s), u.take(s)), kept, deferred
 
 
@@ -110,14 +110,6 @@ def _kept(t: int, ids, key, code, hb, crit, split):
     s0 = np.flatnonzero(stay & h0)
     sel = np.concatenate([s0, np.flatnonzero(stay & h1)])
     return (t, len(s0), ids.take(sel), key.take(sel), code.take(sel)), deferred
-
-
-def _children(h, t: int, ks: np.ndarray) -> np.ndarray:
-    """Keys of the next depth's diamonds from the keys of those that split at depth ``t``."""
-    n = 1 << (t >> 1)
-    if t & 1:
-        return _edge_children(h, n, ks, (ks >> 60) & 1, ks >> 61)
-    return _square_children(h, n, (ks >> 30) & _M, ks & _M)
 
 
 def _square_children(h, n: int, v, u) -> np.ndarray:
@@ -136,7 +128,7 @@ def _square_children(h, n: int, v, u) -> np.ndarray:
     return np.concatenate([k0, k1.take(np.flatnonzero(only1))])
 
 
-def _edge_children(h, n: int, ks, o, hb) -> np.ndarray:
+def edge_children(h, n: int, ks, o, hb) -> np.ndarray:
     """Split edges give the 4 squares around their midpoint (one level down, 2n per side) one
     half each: rows 2v−1, 2v (o = 0) or columns 2u−1, 2u (o = 1), the first pair from the
     half above/left (half 0), the second from the half below/right; a square's half 0 comes
@@ -258,7 +250,7 @@ def emit(h, parts, head, head_code):
     top, m = h.top, len(head)
     total = m + sum(len(p[2]) for p in parts)
     cols, zs, code = np.empty((11, total), np.int64), np.empty((2, total)), np.empty(total, np.int8)
-    top.rec_int.take(head, axis=1, out=cols[:, :m], mode="clip")
+    cols[:, :m] = top.rec_int.take(head, axis=1)
     top.rec_flt.take(head, axis=1, out=zs[:, :m], mode="clip")
     head_code.take(head, out=code[:m], mode="wrap")  # half records: size + i is diamond i's half 1
     if total == m:
