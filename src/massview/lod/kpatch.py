@@ -269,7 +269,8 @@ def visible_patches(h: PatchHierarchy, f: Front, camera: Camera, vp: Viewport | 
 
 def boxes_touch(h: PatchHierarchy, f: Front, idx: np.ndarray, planes: np.ndarray) -> np.ndarray:
     """(len(idx),) bool: the world box of each patch ``idx`` is not entirely outside any plane
-    (the p-vertex test of :func:`massview.lod.cull.boxes_in_frustum`, one plane at a time)."""
+    (the p-vertex test of :func:`massview.lod.cull.boxes_in_frustum`, all six planes as one (6, n)
+    array, each distance summed in the same order as one plane at a time)."""
     ax, lx, rx, ay, ly, ry = (getattr(f, k)[idx] for k in ("ax", "lx", "rx", "ay", "ly", "ry"))
     x0, x1 = np.minimum(np.minimum(ax, lx), rx) * h.dx, np.maximum(np.maximum(ax, lx), rx) * h.dx
     y0, y1 = -np.maximum(np.maximum(ay, ly), ry) * h.dy, -np.minimum(np.minimum(ay, ly), ry) * h.dy
