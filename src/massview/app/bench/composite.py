@@ -34,7 +34,7 @@ from ...core.stats import FrameStats
 from ...core.task import Task
 from ...parallel.composite import COMPOSITORS, composite, deliver, final_regions
 from ...parallel.decompose import sort_last_ranges
-from ...parallel.exchange import max_over_ranks, measure_bandwidth, measure_memory_bandwidth
+from ...parallel.exchange import Outbox, max_over_ranks, measure_bandwidth, measure_memory_bandwidth
 from ...parallel.runtime import relaunch, world
 
 __all__ = ["add_arguments", "run", "worker"]
@@ -71,8 +71,9 @@ def worker(args) -> int:
             st = FrameStats(0, rank)
             comm.Barrier()
             t0, c0 = time.perf_counter(), time.thread_time()
-            piece = composite(comm, image, method, 4, st, args.codec)
-            deliver(comm, piece, [(0, cam.viewport)], st, args.codec, final_regions(n, method, 4, cam.viewport))
+            box = Outbox(comm, st)
+            piece = composite(comm, image, method, 4, st, args.codec, box)
+            deliver(comm, piece, [(0, cam.viewport)], st, args.codec, final_regions(n, method, 4, cam.viewport), box)
             cpu = max_over_ranks(comm, time.thread_time() - c0)
             dt = max_over_ranks(comm, time.perf_counter() - t0)
             if dt < best:
