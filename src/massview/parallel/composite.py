@@ -195,17 +195,28 @@ _TILES_LOCK = threading.Lock()
 _TILES_KEPT = 3
 
 
+def _refcounts(pool: list) -> list[int]:
+    """The larger reference count of each pooled pair's two arrays, as this code sees it."""
+    return [max(sys.getrefcount(c), sys.getrefcount(d)) for c, d in pool]
+
+
+_FREE_REFS = _refcounts([(np.empty(1), np.empty(1))])[0]  # what a pair only the pool holds shows here
+
+
 def _tile_buffer(vp: Viewport, blank: bool) -> Image:
     """A display tile's buffer: a pooled one nobody holds any more (its arrays referenced only
     by the pool: every view numpy hands out keeps a reference to the array it came from, so a
     tile, or any part of one, still held by a caller is never reused), else a new one. Reusing
     pages saves the page faults of a fresh tile every frame (~1 ms at 1280×1024)."""
     with _TILES_LOCK:
-        for color, depth in _TILES:  # the refs of a free pair: the pool's tuple, the loop variable, the call's argument
-            if color.shape == (vp.h, vp.w, 4) and sys.getrefcount(color) == 3 and sys.getrefcount(depth) == 3:
-                break
+        free = [i for i, refs in enumerate(_refcounts(_TILES)) if refs == _FREE_REFS]
+        same = [i for i in free if _TILES[i][0].shape == (vp.h, vp.w, 4)]
+        if same:
+            color, depth = _TILES[same[0]]
         else:
             color, depth = np.empty((vp.h, vp.w, 4), np.uint8), np.empty((vp.h, vp.w), np.float32)
+            if free and len(_TILES) >= _TILES_KEPT:  # the tile size changed: forget a free one of another size
+                del _TILES[free[0]]
             if len(_TILES) < _TILES_KEPT:
                 _TILES.append((color, depth))
         out = Image(color, depth, vp)
