@@ -157,7 +157,7 @@ def _cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
-def _gil_probe(system, cams, cfg, seconds: float = 1.5) -> float:
+def _gil_probe(system, cams, cfg, seconds: float = 0.6) -> float:
     """How fast a second thread runs Python + numpy compositing work (encode a band of a
     rendered frame and merge it into the other band) while this thread draws frames, relative
     to while this thread sleeps: what the pipelined loop's communication thread gets during a
@@ -197,8 +197,10 @@ def _gil_probe(system, cams, cfg, seconds: float = 1.5) -> float:
         return done[0] / (time.perf_counter() - t0)
 
     del bottom
-    alone = rate(False)
-    return rate(True) / alone if alone else float("nan")
+    alone = drawing = 0.0
+    for _ in range(3):  # alternate, best window of each: a shared machine's load comes and goes
+        alone, drawing = max(alone, rate(False)), max(drawing, rate(True))
+    return drawing / alone if alone else float("nan")
 
 
 def worker(args) -> int:
