@@ -110,7 +110,7 @@ def decode_runs(data) -> tuple[Viewport, np.ndarray, np.ndarray, np.ndarray]:
     if len(raw) != nruns * 4 + nact * 8:
         raise ParallelError(f"image message body is {len(raw)} bytes, header says {nruns * 4 + nact * 8}")
     runs = np.frombuffer(raw, np.uint32, nruns)
-    if int(runs.sum(dtype=np.int64)) != w * h or int(runs[1::2].sum(dtype=np.int64)) != nact:
+    if int(runs.sum(dtype=np.int64)) != w * h or int(runs[1::2].sum(dtype=np.int64)) != nact or (nruns > 1 and not runs[1::2].all()):
         raise ParallelError("image message runs do not cover its viewport (corrupt message)")
     off = nruns * 4
     return Viewport(x, y, w, h), runs, np.frombuffer(raw, np.uint32, nact, off), np.frombuffer(raw, np.float32, nact, off + nact * 4)

@@ -80,16 +80,16 @@ def pack_runs(depth: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, int, in
 
 
 def active_index(runs: np.ndarray, nact: int) -> np.ndarray:
-    """Flat (row-major) indices, ``intp[nact]``, of the active pixels a run list describes;
-    cost ∝ active pixels + runs."""
+    """Flat (row-major) indices, ``intp[nact]``, of the active pixels a run list describes
+    (active runs non-empty, as :func:`pack_runs` writes them); cost ∝ active pixels + runs:
+    a step of 1 between neighbours, of 1 + the background run at each run's first pixel, summed."""
     na = runs.size // 2
-    lens = runs[1: 2 * na: 2]
-    ends = np.cumsum(runs[: 2 * na], dtype=np.intp)
-    base = ends[0::2]  # where each active run starts ...
-    base[1:] -= np.cumsum(lens[:-1], dtype=np.intp)  # ... less the active pixels before it
-    idx = np.repeat(base, lens)
-    idx += np.arange(nact, dtype=np.intp)
-    return idx
+    steps = np.ones(nact, np.intp)
+    if nact == 0:
+        return steps
+    steps[0] = runs[0]
+    steps[np.cumsum(runs[1: 2 * na - 2: 2], dtype=np.intp)] += runs[2: 2 * na: 2]
+    return np.cumsum(steps, out=steps)
 
 
 def active_mask(runs: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
