@@ -16,14 +16,18 @@ and combines one band from all members, in rank order.
 * ``radix-k``: N factored into digits ≤ k (a prime factor larger than k is one digit).
 
 Kernels work in place (issue 20): bands are encoded from views of the image, received
-messages are combined into this rank's own band by their active-pixel runs without being
-decoded to images (lower ranks' parts in front, nearest first, then higher ranks' — the same
-pixels as combining in rank order), and the band lives in a per-thread scratch buffer reused
-frame after frame. ``combine`` itself stays the reference the tests compare with.
+messages are combined into this rank's own band by their active pixels without being decoded
+to images (lower ranks' parts in front, nearest first, then higher ranks' — the same pixels as
+combining in rank order), and the band lives in a per-thread scratch buffer reused frame
+after frame. ``combine`` itself stays the reference the tests compare with. A rank never
+waits where it has work of its own: each band is sent the moment it is encoded
+(:class:`~.exchange.Outbox`), the own band is copied while those fly, each part is received
+just before it is combined, and sends are completed only at the end of :func:`deliver`.
 
 Each rank ends with the final pixels of one region (maybe empty). ``deliver`` then moves
 regions to display tiles: the destination rank (one tile covering the frame) or the ranks of
-a display wall, each receiving only the pixels of its own tile.
+a display wall, each receiving only the pixels of its own tile, in row chunks so that a
+display rank pastes one while its sender encodes the next, into a pooled tile buffer.
 """
 
 from __future__ import annotations

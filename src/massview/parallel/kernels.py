@@ -2,10 +2,16 @@
 
 Images are handled as 2-D views — depth ``(h, w) float32`` and color ``(h, w) uint32`` (one
 RGBA8 pixel per word) — so row bands and tile crops are never copied first. Every kernel
-writes straight into a preallocated destination: the wire buffer when packing (runs, colors
-and depths land in their final places with ``np.compress(out=)``), the accumulating band when
-merging, the display tile when pasting. The only temporaries are one boolean mask per image
-(1 B a pixel) and the gathered active pixels of a received part.
+writes straight into a preallocated destination: the wire buffer when packing, the
+accumulating band when merging, the display tile when pasting. Work is by active-pixel index
+(issue 20): packing scans the depths once (``!= 1``, then the flat indices of the active
+pixels) and everything after that — run lengths from the breaks between consecutive indices,
+colors and depths gathered with ``np.take(out=)`` — costs in proportion to the active pixels;
+merging and pasting rebuild those indices from the runs (:func:`active_index`, a cumulative
+sum) and read and write the destination only there (merging writes only where the part
+wins). The temporaries are the depth mask (1 B a pixel) when packing and a few arrays of
+the active pixels' size. Strided crops (a tile narrower than the band) go through a boolean
+mask instead; both paths give the same bytes.
 
 A received sub-image is its run list (``uint32``, alternating background/active starting with
 background, over the row-major pixels of its viewport; see :mod:`.codec`) and the color and

@@ -158,49 +158,54 @@ def _cores() -> int:
 
 
 def _gil_probe(system, cams, cfg, seconds: float = 0.6) -> float:
-    """How fast a second thread runs Python + numpy compositing work (encode a band of a
-    rendered frame and merge it into the other band) while this thread draws frames, relative
+    """How fast a second thread runs Python + numpy compositing work (encode the top band of a
+    rendered frame and merge it into a copy of itself) while this thread draws frames, relative
     to while this thread sleeps: what the pipelined loop's communication thread gets during a
     draw. A GL call that keeps the GIL (moderngl's draws and its ``finish``, which waits for
-    llvmpipe's raster threads) stops that thread for its whole duration."""
-    import threading
-
+    llvmpipe's raster threads) stops that thread for its whole duration. Best of three
+    alternating windows each (a shared machine's load comes and goes)."""
     from ...core.image import Image
     from ...core.task import Task
-    from ...parallel.codec import encode_region, merge_into
     from ...parallel.composite import split_rows
 
     img = system.render(Task(0, cams[0].viewport), cams[0], cfg, FrameStats(-1, 0))
-    top, bottom = split_rows(img.viewport, 2)
+    top = split_rows(img.viewport, 2)[0]
     acc = Image(img.color[: top.h].copy(), img.depth[: top.h].copy(), top)
-
-    def rate(draw: bool) -> float:
-        stop, done = threading.Event(), [0]
-
-        def work():
-            while not stop.is_set():
-                merge_into(acc, encode_region(img, top, "blosc2"), front=False)
-                done[0] += 1
-
-        worker = threading.Thread(target=work, daemon=True)
-        t0 = time.perf_counter()
-        worker.start()
-        f = 0
-        while time.perf_counter() - t0 < seconds:
-            if draw:
-                system.render(Task(0, cams[f % len(cams)].viewport), cams[f % len(cams)], cfg, FrameStats(-1, 0))
-                f += 1
-            else:
-                time.sleep(0.01)
-        stop.set()
-        worker.join()
-        return done[0] / (time.perf_counter() - t0)
-
-    del bottom
     alone = drawing = 0.0
-    for _ in range(3):  # alternate, best window of each: a shared machine's load comes and goes
-        alone, drawing = max(alone, rate(False)), max(drawing, rate(True))
+    for _ in range(3):
+        alone = max(alone, _probe_rate(system, cams, cfg, img, acc, False, seconds))
+        drawing = max(drawing, _probe_rate(system, cams, cfg, img, acc, True, seconds))
     return drawing / alone if alone else float("nan")
+
+
+def _probe_rate(system, cams, cfg, img, acc, draw: bool, seconds: float) -> float:
+    """Work items/s of the probe's thread while this thread draws (``draw``) or sleeps."""
+    import threading
+
+    from ...core.task import Task
+    from ...parallel.codec import encode_region, merge_into
+
+    stop, done = threading.Event(), [0]
+
+    def work():
+        while not stop.is_set():
+            merge_into(acc, encode_region(img, acc.viewport, "blosc2"), front=False)
+            done[0] += 1
+
+    thread = threading.Thread(target=work, daemon=True)
+    t0 = time.perf_counter()
+    thread.start()
+    f = 0
+    while time.perf_counter() - t0 < seconds:
+        if draw:
+            cam = cams[f % len(cams)]
+            system.render(Task(0, cam.viewport), cam, cfg, FrameStats(-1, 0))
+            f += 1
+        else:
+            time.sleep(0.01)
+    stop.set()
+    thread.join()
+    return done[0] / (time.perf_counter() - t0)
 
 
 def worker(args) -> int:
