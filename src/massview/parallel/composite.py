@@ -267,7 +267,8 @@ def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: 
     members, factors, extra = _plan(n, method, k)
     box = outbox if outbox is not None else Outbox(comm, stats)
     if me < 2 * extra and me % 2:  # fold pairs (2i, 2i+1) so that P ranks remain, in order
-        _encode_to(box, me - 1, img, img.viewport, codec, _FOLD_TAG, stats)
+        for chunk in _chunks(img.viewport):  # the partner combines one while the next is encoded
+            _encode_to(box, me - 1, img, chunk, codec, _FOLD_TAG, stats)
         piece = Image(img.color[:0, :0], img.depth[:0, :0], Viewport(0, 0, 0, 0))
     else:
         piece = _fold_and_rounds(comm, img, members, factors, extra, stats, codec, box)
@@ -283,7 +284,8 @@ def _fold_and_rounds(comm, img: Image, members, factors, extra: int, stats, code
     me = comm.Get_rank()
     if me < 2 * extra:
         img = _owned(img, False, stats)
-        _merge_part(img, comm, me + 1, _FOLD_TAG, False, stats)
+        for chunk in _chunks(img.viewport):
+            _merge_part(_band(img, chunk), comm, me + 1, _FOLD_TAG, False, stats)
     return _radix_rounds(comm, img, members, factors, stats, codec, box, owned=me < 2 * extra)
 
 
@@ -378,6 +380,7 @@ _CHUNK_PIXELS = 1 << 18
 
 
 def _chunks(part: Viewport) -> list[Viewport]:
-    """The row bands a part for a display rank travels in (each ≤ ~256 k pixels; both sides
-    compute the same): the display rank pastes one while the sender encodes the next."""
+    """The row bands a large part travels in (each ≤ ~256 k pixels; both sides compute the
+    same): a whole image folded onto a partner, a final region delivered to a display rank.
+    The receiver combines or pastes one while the sender encodes the next."""
     return split_rows(part, max(1, -(-part.area // _CHUNK_PIXELS)))
