@@ -8,9 +8,10 @@ from hypothesis import strategies as st
 import reference_kernels as ref
 from massview.core.camera import Viewport
 from massview.core.errors import ParallelError
-from massview.core.image import Image, blank_image
-from massview.parallel.codec import CODECS, decode_image, encode_image, encode_region, merge_into, paste_into
-from massview.parallel.composite import _merge_round
+from massview.core.image import BACKGROUND_RGBA, Image, blank_image
+from massview.parallel import kernels
+from massview.parallel.codec import CODECS, decode_image, decode_runs, encode_image, encode_region, merge_into, paste_into
+from massview.parallel.composite import _TILES, _merge_round, _tile_buffer
 
 
 def contract_image(rng, vp, fill, levels=None):
@@ -94,3 +95,44 @@ def test_corrupt_runs_are_refused_not_written_out_of_bounds():
         merge_into(blank_image(img.viewport), bytes(msg), front=False)
     with pytest.raises(ParallelError, match="inside the tile"):
         paste_into(blank_image(Viewport(0, 0, 4, 4)), encode_image(img, "none"))
+
+
+@given(st.integers(0, 2**31), st.booleans(), st.sampled_from([0.0, 0.3, 0.9, 1.0]))
+@settings(max_examples=60, deadline=None)
+def test_index_kernels_equal_the_mask_kernels_on_contiguous_and_strided_views(seed, front, fill):
+    """merge/paste by active-pixel index (contiguous accumulators) and by mask (strided crops)
+    give the old kernels' pixels; the index list is the mask's nonzero positions."""
+    rng = np.random.default_rng(seed)
+    w, h = int(rng.integers(1, 40)), int(rng.integers(1, 30))
+    part = contract_image(rng, Viewport(0, 0, w, h), fill, levels=4)
+    acc = contract_image(rng, Viewport(0, 0, w, h), 0.6, levels=4)
+    _, runs, c, d = decode_runs(encode_image(part, "none"))
+    assert np.array_equal(kernels.active_index(runs, d.size), np.flatnonzero(kernels.active_mask(runs, (h, w))))
+    old = ref.combine(part, acc) if front else ref.combine(acc, part)
+    wide = contract_image(rng, Viewport(0, 0, w + 5, h), 0.5)  # acc as a strided crop of a wider image
+    wide.color[:, 2:2 + w], wide.depth[:, 2:2 + w] = acc.color, acc.depth
+    for color, depth in ((acc.color.copy(), acc.depth.copy()), (wide.color[:, 2:2 + w], wide.depth[:, 2:2 + w])):
+        kernels.merge_runs(runs, c, d, color.view(np.uint32)[..., 0], depth, front)
+        assert same(Image(np.ascontiguousarray(color), np.ascontiguousarray(depth), acc.viewport), old)
+    pasted = blank_image(Viewport(0, 0, w + 5, h))
+    kernels.paste_runs(runs, c, d, pasted.color[:, 2:2 + w].view(np.uint32)[..., 0], pasted.depth[:, 2:2 + w])
+    assert same(pasted.crop(Viewport(2, 0, w, h)), Image(part.color, part.depth, Viewport(2, 0, w, h)))
+
+
+def test_a_pooled_tile_is_reused_only_when_nothing_holds_it():
+    vp = Viewport(0, 0, 31, 17)
+    _TILES.clear()
+    first = _tile_buffer(vp, blank=True)
+    second = _tile_buffer(vp, blank=False)
+    assert not np.shares_memory(first.color, second.color)  # the first is still held
+    kept = first.color[..., :3]  # a view of a part keeps the whole buffer
+    del first
+    third = _tile_buffer(vp, blank=True)
+    assert not np.shares_memory(third.color, kept)
+    assert np.all(third.depth == 1) and np.all(third.color == np.array(BACKGROUND_RGBA, np.uint8))
+    del kept, third
+    again = _tile_buffer(vp, blank=False)
+    assert len(_TILES) == 3 and any(np.shares_memory(again.color, c) for c, _ in _TILES)  # a released buffer comes back
+    del again
+    other = _tile_buffer(Viewport(0, 0, 8, 8), blank=False)  # a new size replaces a free buffer
+    assert len(_TILES) == 3 and any(np.shares_memory(other.color, c) for c, _ in _TILES)

@@ -28,7 +28,8 @@ from ..core.errors import ConfigError, ParallelError
 from ..core.image import BACKGROUND_RGBA, Image, blank_image
 from . import kernels
 
-__all__ = ["CODECS", "encode_image", "encode_region", "decode_image", "decode_runs", "merge_into", "paste_into"]
+__all__ = ["CODECS", "encode_image", "encode_region", "decode_image", "decode_runs", "message_counts", "merge_into",
+           "merge_decoded", "paste_into", "paste_decoded"]
 
 _HEADER = struct.Struct("<4s4i3I")
 _MAGIC = b"MVI1"
@@ -90,6 +91,12 @@ def encode_image(img: Image, codec: str = "blosc2") -> bytes:
     return encode_region(img, img.viewport, codec)
 
 
+def message_counts(data) -> tuple[int, int]:
+    """(pixels of the viewport, active pixels) of a message, from its header alone."""
+    _, _, _, w, h, _, _, nact = _HEADER.unpack_from(memoryview(data).cast("B"))
+    return w * h, nact
+
+
 def decode_runs(data) -> tuple[Viewport, np.ndarray, np.ndarray, np.ndarray]:
     """(viewport, runs uint32, active colors uint32, active depths float32) of a message; the
     arrays are views of one decompressed buffer."""
@@ -103,7 +110,7 @@ def decode_runs(data) -> tuple[Viewport, np.ndarray, np.ndarray, np.ndarray]:
     if len(raw) != nruns * 4 + nact * 8:
         raise ParallelError(f"image message body is {len(raw)} bytes, header says {nruns * 4 + nact * 8}")
     runs = np.frombuffer(raw, np.uint32, nruns)
-    if int(runs.sum(dtype=np.int64)) != w * h or int(runs[1::2].sum(dtype=np.int64)) != nact:
+    if int(runs.sum(dtype=np.int64)) != w * h or int(runs[1::2].sum(dtype=np.int64)) != nact or (nruns > 1 and not runs[1::2].all()):
         raise ParallelError("image message runs do not cover its viewport (corrupt message)")
     off = nruns * 4
     return Viewport(x, y, w, h), runs, np.frombuffer(raw, np.uint32, nact, off), np.frombuffer(raw, np.float32, nact, off + nact * 4)
@@ -120,7 +127,12 @@ def merge_into(acc: Image, data, front: bool) -> None:
     """Depth-combine the message ``data`` (same viewport as ``acc``) into ``acc`` in place:
     ``combine(part, acc)`` when ``front`` (the part is from a lower rank), else
     ``combine(acc, part)`` — bit for bit, without decoding to a full image."""
-    vp, runs, color, depth = decode_runs(data)
+    merge_decoded(acc, decode_runs(data), front)
+
+
+def merge_decoded(acc: Image, part: tuple, front: bool) -> None:
+    """:func:`merge_into` of a message already taken apart by :func:`decode_runs`."""
+    vp, runs, color, depth = part
     if vp != acc.viewport:
         raise ParallelError(f"cannot combine a {vp} sub-image into {acc.viewport}")
     kernels.merge_runs(runs, color, depth, acc.color.view(np.uint32)[..., 0], acc.depth, front)
@@ -129,7 +141,12 @@ def merge_into(acc: Image, data, front: bool) -> None:
 def paste_into(out: Image, data, fill: bool = False) -> None:
     """Write the message's pixels into ``out`` (its viewport must lie inside ``out``'s): the
     active ones, and with ``fill`` the background ones too (else those are left as they are)."""
-    vp, runs, color, depth = decode_runs(data)
+    paste_decoded(out, decode_runs(data), fill)
+
+
+def paste_decoded(out: Image, part: tuple, fill: bool = False) -> None:
+    """:func:`paste_into` of a message already taken apart by :func:`decode_runs`."""
+    vp, runs, color, depth = part
     if vp.empty:
         return
     if vp.intersect(out.viewport) != vp:

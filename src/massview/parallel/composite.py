@@ -16,32 +16,60 @@ and combines one band from all members, in rank order.
 * ``radix-k``: N factored into digits ≤ k (a prime factor larger than k is one digit).
 
 Kernels work in place (issue 20): bands are encoded from views of the image, received
-messages are combined into this rank's own band by their active-pixel runs without being
-decoded to images (lower ranks' parts in front, nearest first, then higher ranks' — the same
-pixels as combining in rank order), and the band lives in a per-thread scratch buffer reused
-frame after frame. ``combine`` itself stays the reference the tests compare with.
+messages are combined into this rank's own band by their active pixels without being decoded
+to images (lower ranks' parts in front, nearest first, then higher ranks' — the same pixels as
+combining in rank order), and the band lives in a per-thread scratch buffer reused frame
+after frame. ``combine`` itself stays the reference the tests compare with. A rank never
+waits where it has work of its own: each band is sent the moment it is encoded
+(:class:`~.exchange.Outbox`), the own band is copied while those fly, each part is received
+just before it is combined, and sends are completed only at the end of :func:`deliver`.
 
 Each rank ends with the final pixels of one region (maybe empty). ``deliver`` then moves
 regions to display tiles: the destination rank (one tile covering the frame) or the ranks of
-a display wall, each receiving only the pixels of its own tile.
+a display wall, each receiving only the pixels of its own tile, in row chunks so that a
+display rank pastes one while its sender encodes the next, into a pooled tile buffer.
 """
 
 from __future__ import annotations
 
+import sys
 import threading
+import time
+from contextlib import contextmanager
 
 import numpy as np
 
 from ..core.camera import Viewport
 from ..core.errors import ConfigError
-from ..core.image import Image, blank_image
+from ..core.image import BACKGROUND_RGBA, Image
 from ..core.stats import FrameStats
-from .codec import encode_image, encode_region, merge_into, paste_into
-from .exchange import exchange
+from .codec import decode_runs, encode_region, merge_decoded, merge_into, message_counts, paste_decoded
+from .exchange import Outbox, receive
 
-__all__ = ["COMPOSITORS", "combine", "split_rows", "radix_factors", "composite", "final_regions", "deliver"]
+__all__ = ["COMPOSITORS", "PIECES", "combine", "split_rows", "radix_factors", "composite", "final_regions", "deliver"]
 
 COMPOSITORS = ("direct-send", "binary-swap", "radix-k")
+
+# Where a rank's compositing time goes, recorded as ``piece.<name>`` in FrameStats.times_ms on
+# top of the stages encode / transfer / composite (``bench composite`` prints them): encode
+# (pack + compress), wait (for a peer's message or for peers to take this rank's), decode
+# (decompress + check), combine (depth-merge, or paste into the tile), copy (the own band into
+# the accumulator, the own part into the tile, a tile's background fill).
+PIECES = ("encode", "wait", "decode", "combine", "copy")
+_STAGE_OF = {"encode": "encode", "wait": "transfer", "decode": "composite", "combine": "composite", "copy": "composite"}
+
+
+@contextmanager
+def _timed(stats: FrameStats, piece: str):
+    """Add the body's wall time to the piece and to the stage it belongs to."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        dt, times = (time.perf_counter() - t0) * 1e3, stats.times_ms
+        stage, key = _STAGE_OF[piece], "piece." + piece
+        times[stage] = times.get(stage, 0.0) + dt
+        times[key] = times.get(key, 0.0) + dt
 
 
 def combine(front: Image, back: Image) -> Image:
@@ -95,27 +123,61 @@ def _scratch(vp: Viewport) -> Image:
     return Image(buf[0][: 4 * need].reshape(vp.h, vp.w, 4), buf[1][:need].reshape(vp.h, vp.w), vp)
 
 
-def _owned(img: Image, owned: bool) -> Image:
+def _owned(img: Image, owned: bool, stats: FrameStats) -> Image:
     """``img`` itself when this rank owns its pixels, else a copy in the scratch buffer."""
     if owned:
         return img
-    out = _scratch(img.viewport)
-    np.copyto(out.color, img.color)
-    np.copyto(out.depth, img.depth)
+    with _timed(stats, "copy"):
+        out = _scratch(img.viewport)
+        np.copyto(out.color, img.color)
+        np.copyto(out.depth, img.depth)
+    _count_touched(stats, "composite", 2 * img.nbytes)
     return out
+
+
+def _encode_to(box: Outbox, dest: int, img: Image, vp: Viewport, codec: str, tag: int, stats: FrameStats) -> None:
+    """Encode the pixels of ``vp`` and start sending them to ``dest`` at once."""
+    with _timed(stats, "encode"):
+        msg = encode_region(img, vp, codec)
+        box.send(dest, msg, tag)
+    pixels, nact = message_counts(msg)
+    _count_touched(stats, "encode", 4 * pixels + 4 * nact + len(msg))
+
+
+def _merge_order(k: int, digit: int) -> list[int]:
+    """The order parts are combined in: lower ranks nearest first (each in front of all so far),
+    then higher ranks (each behind all so far) — the same pixels as combining in rank order."""
+    return [*range(digit - 1, -1, -1), *range(digit + 1, k)]
+
+
+def _receive(comm, source: int, tag: int, stats: FrameStats) -> tuple:
+    """The next message from ``source``, taken apart (:func:`decode_runs`), and its size."""
+    with _timed(stats, "wait"):
+        msg = receive(comm, source, tag, stats)
+    with _timed(stats, "decode"):
+        return decode_runs(msg), msg.size
+
+
+def _merge_part(own: Image, comm, source: int, tag: int, front: bool, stats: FrameStats) -> None:
+    part, size = _receive(comm, source, tag, stats)
+    with _timed(stats, "combine"):
+        merge_decoded(own, part, front)
+    nact = part[3].size
+    _count_touched(stats, "composite", size + 4 * nact)
 
 
 def _merge_round(own: Image, parts: list, digit: int) -> Image:
     """Combine received messages ``parts`` (rank order, ``parts[digit]`` unused) into ``own``
-    in place: those of lower ranks in front (nearest first), then those of higher ranks."""
-    for j in range(digit - 1, -1, -1):
-        merge_into(own, parts[j], front=True)
-    for j in range(digit + 1, len(parts)):
-        merge_into(own, parts[j], front=False)
+    in place (see :func:`_merge_order`)."""
+    for j in _merge_order(len(parts), digit):
+        merge_into(own, parts[j], front=j < digit)
     return own
 
 
-def _radix_rounds(comm, img: Image, members: list[int], factors: list[int], stats, codec, tag0: int, owned: bool = False) -> Image:
+def _radix_rounds(comm, img: Image, members: list[int], factors: list[int], stats, codec, box: Outbox, owned: bool = False) -> Image:
+    """The rounds of radix-k over ``members``. Per round: encode each outgoing band and send it
+    at once (nearest peers first: they combine this rank's part first), copy the own band while
+    those fly, then receive each part just before combining it, in merge order."""
     idx = members.index(comm.Get_rank())
     current = img
     stride = 1
@@ -123,23 +185,49 @@ def _radix_rounds(comm, img: Image, members: list[int], factors: list[int], stat
         digit = (idx // stride) % k
         group = [members[idx + (j - digit) * stride] for j in range(k)]
         bands = split_rows(current.viewport, k)
-        with stats.stage("encode"):
-            sends = {group[j]: encode_region(current, bands[j], codec) for j in range(k) if j != digit}
-        with stats.stage("transfer"):
-            got = exchange(comm, sends, [g for j, g in enumerate(group) if j != digit], stats, tag0 + rnd)
-        with stats.stage("composite"):
-            current = _owned(_band(current, bands[digit]), owned or rnd > 0)
-            _merge_round(current, [got.get(g) for g in group], digit)
-        _count_touched(stats, "encode", (k - 1) * current.nbytes + sum(len(m) for m in sends.values()))
-        _count_touched(stats, "composite", 2 * current.nbytes + sum(m.size for m in got.values()))
+        for j in sorted((j for j in range(k) if j != digit), key=lambda j: abs(j - digit)):
+            _encode_to(box, group[j], current, bands[j], codec, rnd, stats)
+        current = _owned(_band(current, bands[digit]), owned or rnd > 0, stats)
+        for j in _merge_order(k, digit):
+            _merge_part(current, comm, group[j], rnd, j < digit, stats)
         stride *= k
     return current
 
 
+_TILES: list[tuple[np.ndarray, np.ndarray]] = []
+_TILES_LOCK = threading.Lock()
+_TILES_KEPT = 3
+
+
+def _refcounts(pool: list) -> list[int]:
+    """The larger reference count of each pooled pair's two arrays, as this code sees it."""
+    return [max(sys.getrefcount(c), sys.getrefcount(d)) for c, d in pool]
+
+
+_FREE_REFS = _refcounts([(np.empty(1), np.empty(1))])[0]  # what a pair only the pool holds shows here
+
+
 def _tile_buffer(vp: Viewport, blank: bool) -> Image:
+    """A display tile's buffer: a pooled one nobody holds any more (its arrays referenced only
+    by the pool: every view numpy hands out keeps a reference to the array it came from, so a
+    tile, or any part of one, still held by a caller is never reused), else a new one. Reusing
+    pages saves the page faults of a fresh tile every frame (~1 ms at 1280×1024)."""
+    with _TILES_LOCK:
+        free = [i for i, refs in enumerate(_refcounts(_TILES)) if refs == _FREE_REFS]
+        same = [i for i in free if _TILES[i][0].shape == (vp.h, vp.w, 4)]
+        if same:
+            color, depth = _TILES[same[0]]
+        else:
+            color, depth = np.empty((vp.h, vp.w, 4), np.uint8), np.empty((vp.h, vp.w), np.float32)
+            if free and len(_TILES) >= _TILES_KEPT:  # the tile size changed: forget a free one of another size
+                del _TILES[free[0]]
+            if len(_TILES) < _TILES_KEPT:
+                _TILES.append((color, depth))
+        out = Image(color, depth, vp)
     if blank:
-        return blank_image(vp)
-    return Image(np.empty((vp.h, vp.w, 4), np.uint8), np.empty((vp.h, vp.w), np.float32), vp)
+        out.color[...] = BACKGROUND_RGBA
+        out.depth.fill(np.float32(1.0))
+    return out
 
 
 def _copy_region(out: Image, src: Image, vp: Viewport) -> None:
@@ -153,36 +241,55 @@ def _copy_region(out: Image, src: Image, vp: Viewport) -> None:
 def _count_touched(stats, stage: str, nbytes: int) -> None:
     """Count the bytes a stage must read and write at the least into ``touched_<stage>``: the
     memory term of the floors of ``massview bench composite`` and ``bench frame``. Pixels are
-    8 B each. encode: the pixels sent are read, the messages written; composite: the own
-    band read and the result written, the messages read."""
+    8 B (color 4 + depth 4). Encoding a region: its depths read (4 B a pixel), the colors of
+    its active pixels read (4 B each), the message written. Combining a message into the own
+    band: the message read and the band's depths at its active pixels (4 B each); copying the
+    own band into the accumulator (first round only): 8 B a pixel read and 8 written. A
+    display tile: every pixel written once (8 B), the own region's pixels read (8 B), the
+    messages read. Temporaries (masks, indices, decompressed bodies) are not counted: they are
+    above the floor."""
     stats.count(f"touched_{stage}", nbytes)
 
 
-def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: FrameStats | None = None, codec: str = "blosc2") -> Image:
+def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: FrameStats | None = None, codec: str = "blosc2",
+              outbox: Outbox | None = None) -> Image:
     """Sort-last depth compositing of every rank's full-frame ``img`` (left unchanged). Returns
     the final pixels of the region this rank ends up owning (an empty viewport for ranks that own
     none) as a view of this thread's scratch buffer: valid until the next call on this thread
-    (hand it to :func:`deliver` or copy it)."""
+    (hand it to :func:`deliver` or copy it). With ``outbox`` this rank's sends may still be in
+    flight on return (pass the same outbox to :func:`deliver`, which waits for all of them at
+    its end: a rank need not wait for its peers to take its parts before it starts encoding
+    its final region); without, they are completed here."""
     stats = stats if stats is not None else FrameStats(frame=-1, rank=comm.Get_rank())
     n, me = comm.Get_size(), comm.Get_rank()
     if n == 1:
         return img
     members, factors, extra = _plan(n, method, k)
-    if me < 2 * extra:  # fold pairs (2i, 2i+1) so that P ranks remain, in order
-        if me % 2:
-            with stats.stage("encode"):
-                msg = {me - 1: encode_image(img, codec)}
-            _count_touched(stats, "encode", img.nbytes + len(msg[me - 1]))
-            with stats.stage("transfer"):
-                exchange(comm, msg, [], stats, 100)
-            return Image(img.color[:0, :0], img.depth[:0, :0], Viewport(0, 0, 0, 0))
-        with stats.stage("transfer"):
-            got = exchange(comm, {}, [me + 1], stats, 100)
-        with stats.stage("composite"):
-            img = _owned(img, False)
-            merge_into(img, got[me + 1], front=False)
-        _count_touched(stats, "composite", 2 * img.nbytes + got[me + 1].size)
-    return _radix_rounds(comm, img, members, factors, stats, codec, 0, owned=me < 2 * extra)
+    box = outbox if outbox is not None else Outbox(comm, stats)
+    if me < 2 * extra and me % 2:  # fold pairs (2i, 2i+1) so that P ranks remain, in order
+        for chunk in _chunks(img.viewport):  # the partner combines one while the next is encoded
+            _encode_to(box, me - 1, img, chunk, codec, _FOLD_TAG, stats)
+        piece = Image(img.color[:0, :0], img.depth[:0, :0], Viewport(0, 0, 0, 0))
+    else:
+        piece = _fold_and_rounds(comm, img, members, factors, extra, stats, codec, box)
+    if outbox is None:
+        with _timed(stats, "wait"):
+            box.wait()
+    return piece
+
+
+def _fold_and_rounds(comm, img: Image, members, factors, extra: int, stats, codec, box: Outbox) -> Image:
+    """A rank that takes part in the rounds: the lower of a folded pair first combines its
+    partner's whole image into a copy of its own."""
+    me = comm.Get_rank()
+    if me < 2 * extra:
+        img = _owned(img, False, stats)
+        for chunk in _chunks(img.viewport):
+            _merge_part(_band(img, chunk), comm, me + 1, _FOLD_TAG, False, stats)
+    return _radix_rounds(comm, img, members, factors, stats, codec, box, owned=me < 2 * extra)
+
+
+_FOLD_TAG, _DELIVER_TAG = 100, 200
 
 
 def _plan(n: int, method: str, k: int) -> tuple[list[int], list[int], int]:
@@ -216,39 +323,64 @@ def final_regions(n: int, method: str, k: int, vp: Viewport) -> list[Viewport]:
 
 
 def deliver(comm, piece: Image, tiles: list[tuple[int, Viewport]], stats: FrameStats | None = None, codec: str = "blosc2",
-            regions: list[Viewport] | None = None) -> Image | None:
+            regions: list[Viewport] | None = None, outbox: Outbox | None = None) -> Image | None:
     """Move final pixels to display tiles. ``piece`` is the region this rank holds (regions of
     all ranks partition the frame); ``tiles`` lists (display rank, tile viewport); ``regions``
     every rank's region when the caller knows them (:func:`final_regions`), else they are
     allgathered. Returns the assembled tile on display ranks, None elsewhere (on one rank whose
-    one tile is the piece's viewport: the piece itself)."""
+    one tile is the piece's viewport: the piece itself).
+
+    Each part for another rank travels in row chunks (:func:`_chunks`), each sent the moment
+    it is encoded; a display rank prepares its tile (a pooled buffer) and copies its own part
+    while those messages fly, and pastes each chunk as it takes it. At the end it waits for every send of ``outbox`` (the
+    one :func:`composite` left in flight) and its own."""
     stats = stats if stats is not None else FrameStats(frame=-1, rank=comm.Get_rank())
     me = comm.Get_rank()
     if comm.Get_size() == 1 and tiles == [(0, piece.viewport)]:
         return piece  # one rank, one tile: the image is the tile (no copy)
     if regions is None:
         regions = [Viewport.from_json(v) for v in comm.allgather(piece.viewport.to_json())]
-    with stats.stage("encode"):
-        sends = {}
-        for rank, tile in tiles:
-            part = piece.viewport.intersect(tile)
-            if not part.empty:
-                sends[rank] = encode_region(piece, part, codec) if rank != me else part
+    box, local = outbox if outbox is not None else Outbox(comm, stats), None
+    for rank, tile in tiles:
+        part = piece.viewport.intersect(tile)
+        if part.empty:
+            continue
+        if rank == me:
+            local = part
+            continue
+        for chunk in _chunks(part):
+            _encode_to(box, rank, piece, chunk, codec, _DELIVER_TAG, stats)
     my_tile = next((t for r, t in tiles if r == me), None)
-    sources = [] if my_tile is None else [r for r, reg in enumerate(regions) if not reg.intersect(my_tile).empty]
-    local = sends.pop(me, None)
-    with stats.stage("transfer"):
-        got = exchange(comm, sends, [s for s in sources if s != me], stats, 200)
-    _count_touched(stats, "encode", piece.nbytes + sum(len(m) for m in sends.values()))
-    if my_tile is None:
-        return None
-    with stats.stage("composite"):
-        covered = sum(regions[r].intersect(my_tile).area for r in sources) == my_tile.area
-        out = _tile_buffer(my_tile, blank=not covered)  # regions partition the frame: each pixel written once
+    out = None if my_tile is None else _assemble(comm, my_tile, piece, local, regions, stats)
+    with _timed(stats, "wait"):
+        box.wait()
+    return out
+
+
+def _assemble(comm, tile: Viewport, piece: Image, local: Viewport | None, regions: list[Viewport], stats: FrameStats) -> Image:
+    """The display tile: the own part copied, every other rank's part received and pasted."""
+    me = comm.Get_rank()
+    sources = [r for r, reg in enumerate(regions) if r != me and not reg.intersect(tile).empty]
+    covered = sum(regions[r].intersect(tile).area for r in [*sources, me]) == tile.area
+    with _timed(stats, "copy"):
+        out = _tile_buffer(tile, blank=not covered)  # regions partition the frame: each pixel written once
         if local is not None:
             _copy_region(out, piece, local)
-        for s in sources:
-            if s != me:
-                paste_into(out, got[s], fill=covered)
-    _count_touched(stats, "composite", out.nbytes + sum(m.size for m in got.values()))
+    _count_touched(stats, "composite", (0 if covered else out.nbytes) + (16 * local.area if local is not None else 0))
+    for s in sources:
+        for _ in _chunks(regions[s].intersect(tile)):
+            part, size = _receive(comm, s, _DELIVER_TAG, stats)
+            with _timed(stats, "combine"):
+                paste_decoded(out, part, fill=covered)
+            _count_touched(stats, "composite", size + (8 * part[0].area if covered else 0))
     return out
+
+
+_CHUNK_PIXELS = 1 << 18
+
+
+def _chunks(part: Viewport) -> list[Viewport]:
+    """The row bands a large part travels in (each ≤ ~256 k pixels; both sides compute the
+    same): a whole image folded onto a partner, a final region delivered to a display rank.
+    The receiver combines or pastes one while the sender encodes the next."""
+    return split_rows(part, max(1, -(-part.area // _CHUNK_PIXELS)))

@@ -1,9 +1,14 @@
 """Point-to-point exchange of variable-size byte messages with mpi4py buffer calls.
 
-``exchange(comm, sends, sources)`` sends ``sends[dest]`` to each destination and receives one
-message from each source as uint8 numpy buffers (uppercase Isend, matched probe and receive:
-one message per pair, its size read from the probe). Messages to self are handed over
-without MPI. Bytes on the wire (payloads) are counted into a :class:`FrameStats`.
+Messages are uint8 buffers sent with uppercase ``Isend`` and received one per pair with a
+matched probe (``Mprobe``: its size comes from the status, so there is no size round) and
+``Recv`` into a buffer of that size. :class:`Outbox` sends each message the moment it is
+encoded and waits for all of them once, at the end, so a rank never blocks on a send while it
+has work of its own; :func:`receive` / :func:`receive_any` take one message where the caller
+needs it (a rank does its local work first and waits for a peer only when it has nothing else
+to do). :func:`exchange` is the one-call form. Bytes on the wire (payloads) are counted into a
+:class:`FrameStats`. A wait is where a rank gives its core to a peer on a shared machine (see
+:func:`massview.parallel.runtime.launch_env`).
 """
 
 from __future__ import annotations
@@ -13,35 +18,66 @@ from mpi4py import MPI
 
 from ..core.stats import FrameStats
 
-__all__ = ["exchange", "measure_bandwidth", "measure_memory_bandwidth", "max_over_ranks", "agree_all", "any_rank"]
+__all__ = ["Outbox", "receive", "receive_any", "exchange", "measure_bandwidth", "measure_memory_bandwidth", "max_over_ranks",
+           "agree_all", "any_rank"]
 
 _TAG_DATA = 0x4D57
 
 
+def _tag(tag: int) -> int:
+    return _TAG_DATA + 2 * tag
+
+
+class Outbox:
+    """This rank's messages in flight: :meth:`send` starts each at once (``Isend``; the buffer
+    is kept alive here), :meth:`wait` completes them all."""
+
+    def __init__(self, comm, stats: FrameStats | None = None):
+        self.comm, self.stats = comm, stats
+        self._reqs: list = []
+        self._bufs: list = []
+
+    def send(self, dest: int, data, tag: int) -> None:
+        buf = np.frombuffer(data, np.uint8)
+        self._bufs.append(buf)
+        self._reqs.append(self.comm.Isend(buf, dest=dest, tag=_tag(tag)))
+        if self.stats is not None:
+            self.stats.bytes_sent += buf.size
+
+    def wait(self) -> None:
+        MPI.Request.Waitall(self._reqs)
+        self._reqs, self._bufs = [], []
+
+
+def receive(comm, source: int, tag: int, stats: FrameStats | None = None) -> np.ndarray:
+    """The next message from ``source`` with ``tag`` (as sent by :class:`Outbox`), uint8."""
+    return receive_any(comm, tag, stats, source)[1]
+
+
+def receive_any(comm, tag: int, stats: FrameStats | None = None, source: int = MPI.ANY_SOURCE) -> tuple[int, np.ndarray]:
+    """(source, message) of the first message with ``tag`` to arrive from any rank (or from
+    ``source``): matched probe, sized from its status, received into a new uint8 buffer."""
+    status = MPI.Status()
+    msg = comm.Mprobe(source=source, tag=_tag(tag), status=status)
+    buf = np.empty(status.Get_count(MPI.BYTE), np.uint8)
+    msg.Recv(buf)
+    if stats is not None:
+        stats.bytes_recv += buf.size
+    return status.Get_source(), buf
+
+
 def exchange(comm, sends: dict[int, bytes], sources: list[int], stats: FrameStats | None = None, tag: int = 0) -> dict[int, np.ndarray]:
     """Send ``sends[dest]`` to each destination and receive one message from each of
-    ``sources``; returns {source: uint8 array}. One message per pair and no size round: the
-    payloads go out first (``Isend``), then each source's message is matched with ``Mprobe``,
-    sized from its status and received with ``Mrecv`` into a buffer of that size. A wait is
-    where a rank gives its core to a peer on a shared machine (see
-    :func:`massview.parallel.runtime.launch_env`), so one wait per peer instead of two halves
-    the scheduling delays of a round."""
+    ``sources``; returns {source: uint8 array}. Messages to self are handed over without MPI."""
     me = comm.Get_rank()
-    out: dict[int, np.ndarray] = {}
-    payloads = {d: np.frombuffer(b, np.uint8) for d, b in sends.items() if d != me}
-    reqs = [comm.Isend(p, dest=d, tag=_TAG_DATA + 2 * tag) for d, p in payloads.items()]
-    status = MPI.Status()
-    for s in (s for s in sources if s != me):
-        msg = comm.Mprobe(source=s, tag=_TAG_DATA + 2 * tag, status=status)
-        buf = np.empty(status.Get_count(MPI.BYTE), np.uint8)
-        msg.Recv(buf)
-        out[s] = buf
-    MPI.Request.Waitall(reqs)
+    box = Outbox(comm, stats)
+    for d, b in sends.items():
+        if d != me:
+            box.send(d, b, tag)
+    out = {s: receive(comm, s, tag, stats) for s in sources if s != me}
+    box.wait()
     if me in sends and me in sources:
         out[me] = np.frombuffer(sends[me], np.uint8)
-    if stats is not None:
-        stats.bytes_sent += sum(p.size for p in payloads.values())
-        stats.bytes_recv += sum(b.size for s, b in out.items() if s != me)
     return out
 
 

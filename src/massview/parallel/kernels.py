@@ -2,10 +2,16 @@
 
 Images are handled as 2-D views — depth ``(h, w) float32`` and color ``(h, w) uint32`` (one
 RGBA8 pixel per word) — so row bands and tile crops are never copied first. Every kernel
-writes straight into a preallocated destination: the wire buffer when packing (runs, colors
-and depths land in their final places with ``np.compress(out=)``), the accumulating band when
-merging, the display tile when pasting. The only temporaries are one boolean mask per image
-(1 B a pixel) and the gathered active pixels of a received part.
+writes straight into a preallocated destination: the wire buffer when packing, the
+accumulating band when merging, the display tile when pasting. Work is by active-pixel index
+(issue 20): packing scans the depths once (``!= 1``, then the flat indices of the active
+pixels) and everything after that — run lengths from the breaks between consecutive indices,
+colors and depths gathered with ``np.take(out=)`` — costs in proportion to the active pixels;
+merging and pasting rebuild those indices from the runs (:func:`active_index`, a cumulative
+sum) and read and write the destination only there (merging writes only where the part
+wins). The temporaries are the depth mask (1 B a pixel) when packing and a few arrays of
+the active pixels' size. Strided crops (a tile narrower than the band) go through a boolean
+mask instead; both paths give the same bytes.
 
 A received sub-image is its run list (``uint32``, alternating background/active starting with
 background, over the row-major pixels of its viewport; see :mod:`.codec`) and the color and
@@ -29,27 +35,67 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["pack_runs", "active_mask", "merge_runs", "paste_runs"]
+__all__ = ["pack_runs", "active_index", "active_mask", "merge_runs", "paste_runs"]
 
 _ONE = np.float32(1.0)
 
 
+def _gather(src: np.ndarray, idx: np.ndarray, mask: np.ndarray, out: np.ndarray) -> None:
+    """``out[:] = src`` at the active pixels: by flat index when ``src`` is contiguous (cost ∝
+    active pixels), else by the boolean ``mask`` (a strided crop)."""
+    if src.flags.c_contiguous:
+        np.take(src.reshape(-1), idx, out=out, mode="clip")
+    else:
+        out[:] = src[mask]
+
+
 def pack_runs(depth: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, int, int]:
     """The body of a wire message for a 2-D view: ``runs uint32 | color uint32[active] |
-    depth float32[active]`` in one new uint8 buffer; returns (buffer, run count, active count)."""
+    depth float32[active]`` in one new uint8 buffer; returns (buffer, run count, active count).
+
+    One pass over the depths finds the active pixels' flat indices; runs come from the breaks
+    in those indices and colors/depths are gathered by index: every step after the first costs
+    in proportion to the active pixels, not the region."""
     active = depth != _ONE
-    flat = active.reshape(-1)
-    nact = int(np.count_nonzero(flat))
-    edges = np.flatnonzero(flat[1:] != flat[:-1]) + 1
-    lead = int(flat.size > 0 and bool(flat[0]))  # an empty background run first
-    nruns = edges.size + 1 + lead
+    idx = np.flatnonzero(active)
+    nact, size = idx.size, active.size
+    if nact == 0:  # one background run (also for an empty region: a run of 0)
+        raw = np.empty(4, np.uint8)
+        raw.view(np.uint32)[0] = size
+        return raw, 1, 0
+    brk = np.flatnonzero(np.diff(idx) != 1)  # last index of every active run but the last
+    na = brk.size + 1
+    tail = int(idx[-1] + 1 < size)  # a background run after the last active one
+    nruns = 2 * na + tail
     raw = np.empty(nruns * 4 + nact * 8, np.uint8)
-    bounds = np.concatenate(([0] * (1 + lead), edges, [flat.size]))
-    np.subtract(bounds[1:], bounds[:-1], out=raw[: nruns * 4].view(np.uint32), casting="unsafe")
+    runs = raw[: nruns * 4].view(np.uint32)
+    starts, ends = np.empty(na, np.intp), np.empty(na, np.intp)
+    starts[0], ends[-1] = idx[0], idx[-1]
+    np.take(idx, brk + 1, out=starts[1:])
+    np.take(idx, brk, out=ends[:-1])
+    ends += 1
+    runs[0] = starts[0]
+    np.subtract(starts[1:], ends[:-1], out=runs[2: 2 * na: 2], casting="unsafe")  # background runs
+    np.subtract(ends, starts, out=runs[1: 2 * na: 2], casting="unsafe")  # active runs
+    if tail:
+        runs[-1] = size - ends[-1]
     a, b = nruns * 4, nruns * 4 + nact * 4
-    np.compress(flat, color.reshape(-1), out=raw[a:b].view(np.uint32))
-    np.compress(flat, depth.reshape(-1), out=raw[b:].view(np.float32))
+    _gather(color, idx, active, raw[a:b].view(np.uint32))
+    _gather(depth, idx, active, raw[b:].view(np.float32))
     return raw, nruns, nact
+
+
+def active_index(runs: np.ndarray, nact: int) -> np.ndarray:
+    """Flat (row-major) indices, ``intp[nact]``, of the active pixels a run list describes
+    (active runs non-empty, as :func:`pack_runs` writes them); cost ∝ active pixels + runs:
+    a step of 1 between neighbours, of 1 + the background run at each run's first pixel, summed."""
+    na = runs.size // 2
+    steps = np.ones(nact, np.intp)
+    if nact == 0:
+        return steps
+    steps[0] = runs[0]
+    steps[np.cumsum(runs[1: 2 * na - 2: 2], dtype=np.intp)] += runs[2: 2 * na: 2]
+    return np.cumsum(steps, out=steps)
 
 
 def active_mask(runs: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -59,24 +105,44 @@ def active_mask(runs: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return np.repeat(flags, runs).reshape(shape)
 
 
+def _flat(view: np.ndarray) -> np.ndarray | None:
+    """A 1-D view of a 2-D array sharing its memory, or None when it is a strided crop."""
+    return view.reshape(-1) if view.flags.c_contiguous else None
+
+
 def merge_runs(runs, c_in, d_in, acc_color, acc_depth, front: bool) -> None:
     """Depth-combine a run-coded part into the 2-D ``acc_*`` views in place, at its active
-    pixels only. ``front``: the part comes from a lower rank (it wins ties)."""
+    pixels only (read by index, written only where the part wins). ``front``: the part comes
+    from a lower rank (it wins ties)."""
     if not d_in.size:
         return
-    mask = active_mask(runs, acc_depth.shape)
-    depth, color = acc_depth[mask], acc_color[mask]
-    take = ~(depth < d_in) if front else d_in < depth
-    np.copyto(depth, d_in, where=take)
-    np.copyto(color, c_in, where=take)
-    acc_depth[mask] = depth
-    acc_color[mask] = color
+    fd, fc = _flat(acc_depth), _flat(acc_color)
+    if fd is None or fc is None:  # a strided crop: through the mask
+        mask = active_mask(runs, acc_depth.shape)
+        depth, color = acc_depth[mask], acc_color[mask]
+        take = ~(depth < d_in) if front else d_in < depth
+        np.copyto(depth, d_in, where=take)
+        np.copyto(color, c_in, where=take)
+        acc_depth[mask], acc_color[mask] = depth, color
+        return
+    idx = active_index(runs, d_in.size)
+    cur = fd.take(idx, mode="clip")
+    take = ~(cur < d_in) if front else np.less(d_in, cur)
+    win = idx[take]
+    fd[win] = d_in[take]
+    fc[win] = c_in[take]
 
 
 def paste_runs(runs, c_in, d_in, out_color, out_depth) -> None:
     """Write a run-coded part's active pixels into the 2-D ``out_*`` views; background
     pixels are left as they are."""
-    if d_in.size:
+    if not d_in.size:
+        return
+    fd, fc = _flat(out_depth), _flat(out_color)
+    if fd is None or fc is None:
         mask = active_mask(runs, out_depth.shape)
-        out_depth[mask] = d_in
-        out_color[mask] = c_in
+        out_depth[mask], out_color[mask] = d_in, c_in
+        return
+    idx = active_index(runs, d_in.size)
+    fd[idx] = d_in
+    fc[idx] = c_in

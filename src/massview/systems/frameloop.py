@@ -23,6 +23,7 @@ from ..core.image import Image
 from ..core.stats import FrameStats
 from ..parallel.composite import composite, deliver, final_regions
 from ..parallel.decompose import parse_decomposition, parse_wall
+from ..parallel.exchange import Outbox
 from ..render.meshes import rank_tint
 
 __all__ = ["FrameResult", "display_tiles", "render_frame", "render_frames"]
@@ -79,12 +80,13 @@ def _finish(comm, system, cfg: RenderConfig, camera: Camera, image: Image, stats
     ``comm``."""
     kind, _ = parse_decomposition(cfg.decomposition, system.sort_last_modes)
     regions = None  # sort-first: each rank's tile, allgathered by deliver
+    box = Outbox(comm, stats)  # compositing's sends stay in flight until deliver's end
     if kind == "sort-last":
-        piece = composite(comm, image, cfg.compositor, cfg.radix_k, stats, cfg.codec)
+        piece = composite(comm, image, cfg.compositor, cfg.radix_k, stats, cfg.codec, box)
         regions = final_regions(comm.Get_size(), cfg.compositor, cfg.radix_k, image.viewport)
     else:
         piece = image
-    tile = deliver(comm, piece, display_tiles(cfg, comm.Get_size()), stats, cfg.codec, regions)
+    tile = deliver(comm, piece, display_tiles(cfg, comm.Get_size()), stats, cfg.codec, regions, box)
     if tile is not None and hasattr(system, "finish"):
         with stats.stage("finish"):
             tile = system.finish(camera, cfg, tile)

@@ -5,13 +5,19 @@
 For each rank count, a job under ``mpiexec`` renders one sort-last partial image per rank of
 ``--scene`` (default ``builtin:objects``; range R_i, full frame), then composites and delivers
 the final image to rank 0 with each algorithm, ``--repeat`` times. Printed per case: time per
-frame (max over ranks, best of the repeats), bytes moved (all ranks' sends), and the ratio to
-the floor measured in the same job, and the CPU time of the slowest rank (its thread time: what the
-kernels cost apart from waiting for a core or a peer on a shared machine). The floor of a rank is
+frame (max over ranks, best of the repeats), bytes moved (all ranks' sends), the ratio to the
+floor measured in the same job, and the CPU time of the slowest rank (its thread time: what the
+kernels cost apart from waiting for a core or a peer on a shared machine); then, per rank of
+the best repeat, where its time went (the compositing pieces of
+:data:`massview.parallel.composite.PIECES`: encode, wait, decode, combine, copy; "other" is
+the rest: Python and MPI call overhead) beside the two terms of its floor. The floor of a rank is
 
     bytes it receives ÷ point-to-point bandwidth (every pair of ranks swapping 8 MiB at once)
-  + bytes it must read and write (``touched_*`` counters: pixels 8 B each of the bands it sends and
-    keeps and of the result, plus its messages) ÷ memory bandwidth (every rank copying at once)
+  + bytes it must read and write (``touched_*`` counters, see
+    :func:`massview.parallel.composite._count_touched`) ÷ memory bandwidth (every rank copying
+    at once; the higher of a frame-sized copy — the compositor's own working set, which may sit
+    in the last-level cache — and a 64 MiB one, so the floor is never set by DRAM for data that
+    lives in cache)
 
 and a case's floor is the largest over its ranks. Both bandwidths are measured in the job
 itself, with its rank count, from a common barrier until the last rank is done: what each
@@ -26,15 +32,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 from ...core.config import RenderConfig, parse_size
 from ...core.paths import load_path
 from ...core.stats import FrameStats
 from ...core.task import Task
-from ...parallel.composite import COMPOSITORS, composite, deliver, final_regions
+from ...parallel.composite import COMPOSITORS, PIECES, composite, deliver, final_regions
 from ...parallel.decompose import sort_last_ranges
-from ...parallel.exchange import max_over_ranks, measure_bandwidth, measure_memory_bandwidth
+from ...parallel.exchange import Outbox, max_over_ranks, measure_bandwidth, measure_memory_bandwidth
 from ...parallel.runtime import relaunch, world
 
 __all__ = ["add_arguments", "run", "worker"]
@@ -63,30 +67,52 @@ def worker(args) -> int:
     system = open_system(args.scene, cfg)
     cam = load_path("orbit", *system.bounds).camera(0.15, w, h)
     image = _render_part(comm, system, cam, cfg)
-    bw, mem_bw = measure_bandwidth(comm), measure_memory_bandwidth(comm)
+    bw = measure_bandwidth(comm, repeat=10)  # best of 10: a low figure would inflate the floor
+    mem_frame, mem_big = measure_memory_bandwidth(comm, image.nbytes, repeat=10), measure_memory_bandwidth(comm, repeat=10)
+    mem_bw = max(mem_frame, mem_big)
     rows = []
     for method in COMPOSITORS:
-        best, best_stats = float("inf"), None
-        for _ in range(args.repeat):
-            st = FrameStats(0, rank)
-            comm.Barrier()
-            t0, c0 = time.perf_counter(), time.thread_time()
-            piece = composite(comm, image, method, 4, st, args.codec)
-            deliver(comm, piece, [(0, cam.viewport)], st, args.codec, final_regions(n, method, 4, cam.viewport))
-            cpu = max_over_ranks(comm, time.thread_time() - c0)
-            dt = max_over_ranks(comm, time.perf_counter() - t0)
-            if dt < best:
-                best, best_cpu, best_stats = dt, cpu, st
-        sent = comm.allreduce(best_stats.bytes_sent)
-        floor = max_over_ranks(comm, best_stats.bytes_recv / bw + (best_stats.counters.get("touched_encode", 0) + best_stats.counters.get("touched_composite", 0)) / mem_bw)
-        stages = comm.gather(best_stats.times_ms, root=0)
+        best = _best_repeat(comm, image, method, cam.viewport, args)
+        mine = _rank_record(best, bw, mem_bw)
+        per_rank = comm.gather(mine, root=0)
+        sent = comm.allreduce(best["stats"].bytes_sent)
         if rank == 0:
-            mean_stage = {k: float(np.mean([s.get(k, 0.0) for s in stages])) for k in ("encode", "transfer", "composite")}
-            rows.append({"algorithm": method, "ranks": n, "ms": best * 1e3, "bytes": sent, "floor_ms": floor * 1e3,
-                         "ratio": best / floor, "cpu_ms": best_cpu * 1e3, "bandwidth_MBps": bw / 1e6, "mem_MBps": mem_bw / 1e6, **mean_stage})
+            floor = max(r["floor_net"] + r["floor_mem"] for r in per_rank)
+            rows.append({"algorithm": method, "ranks": n, "ms": best["ms"], "bytes": sent, "floor_ms": floor,
+                         "ratio": best["ms"] / floor, "cpu_ms": max(r["cpu"] for r in per_rank), "bandwidth_MBps": bw / 1e6,
+                         "mem_MBps": mem_bw / 1e6, "mem_frame_MBps": mem_frame / 1e6, "mem_64MiB_MBps": mem_big / 1e6, "per_rank": per_rank})
     if rank == 0:
         Path(args.worker).write_text(json.dumps(rows))
     return 0
+
+
+def _best_repeat(comm, image, method: str, vp, args) -> dict:
+    """The repeat with the smallest time (max over ranks) of composite + deliver to rank 0."""
+    n, best = comm.Get_size(), None
+    for _ in range(args.repeat):
+        st = FrameStats(0, comm.Get_rank())
+        comm.Barrier()
+        t0, c0 = time.perf_counter(), time.thread_time()
+        box = Outbox(comm, st)
+        piece = composite(comm, image, method, 4, st, args.codec, box)
+        t1 = time.perf_counter()
+        deliver(comm, piece, [(0, vp)], st, args.codec, final_regions(n, method, 4, vp), box)
+        t2, cpu = time.perf_counter(), time.thread_time() - c0
+        dt = max_over_ranks(comm, t2 - t0)
+        if best is None or dt < best["ms"] / 1e3:
+            best = {"ms": dt * 1e3, "own": (t2 - t0) * 1e3, "composite": (t1 - t0) * 1e3, "deliver": (t2 - t1) * 1e3, "cpu": cpu * 1e3, "stats": st}
+    return best
+
+
+def _rank_record(best: dict, bw: float, mem_bw: float) -> dict:
+    """One rank's time split into pieces (ms) beside the two terms of its floor (ms)."""
+    st = best["stats"]
+    pieces = {p: st.times_ms.get("piece." + p, 0.0) for p in PIECES}
+    touched = st.counters.get("touched_encode", 0) + st.counters.get("touched_composite", 0)
+    return {"rank": st.rank, "ms": best["own"], "composite": best["composite"], "deliver": best["deliver"], "cpu": best["cpu"],
+            **pieces, "other": best["own"] - sum(pieces.values()), "recv_bytes": st.bytes_recv, "touched_bytes": touched,
+            "floor_net": st.bytes_recv / bw * 1e3, "floor_mem": touched / mem_bw * 1e3,
+            "mean_stage": {k: st.times_ms.get(k, 0.0) for k in ("encode", "transfer", "composite")}}
 
 
 def _render_part(comm, system, cam, cfg):
@@ -103,14 +129,9 @@ def run(args) -> int:
     if args.worker is not None:  # one MPI job of the benchmark (started by run below)
         return worker(args)
     from rich.console import Console
-    from rich.table import Table
 
     counts = [int(v) for v in args.ranks.split(",") if v.strip()]
-    w, h = parse_size(args.size)
-    console = Console(width=None if Console().is_terminal else 150)
-    table = Table(title=f"sort-last compositing, {w}x{h}, {args.scene}, codec {args.codec}, best of {args.repeat}")
-    for col in ("algorithm", "ranks", "ms/frame", "MB moved", "p2p MB/s", "mem MB/s", "floor ms", "ratio to floor", "CPU ms", "encode ms", "transfer ms", "combine ms"):
-        table.add_column(col, justify="right")
+    console = Console(width=None if Console().is_terminal else 170)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for n in counts:
@@ -123,8 +144,27 @@ def run(args) -> int:
                 console.print(f"[red]the {n}-rank job failed (exit {rc})[/]")
                 return rc
             results += json.loads(out.read_text())
-    for r in results:
-        table.add_row(r["algorithm"], str(r["ranks"]), f"{r['ms']:.1f}", f"{r['bytes'] / 1e6:.2f}", f"{r['bandwidth_MBps']:.0f}", f"{r['mem_MBps']:.0f}",
-                      f"{r['floor_ms']:.2f}", f"{r['ratio']:.1f}", f"{r['cpu_ms']:.1f}", f"{r['encode']:.1f}", f"{r['transfer']:.1f}", f"{r['composite']:.1f}")
-    console.print(table)
+    _print(console, results, args)
     return 0
+
+
+def _print(console, results: list[dict], args) -> None:
+    from rich.table import Table
+
+    w, h = parse_size(args.size)
+    table = Table(title=f"sort-last compositing + delivery to rank 0, {w}x{h}, {args.scene}, codec {args.codec}, best of {args.repeat}")
+    for col in ("algorithm", "ranks", "ms/frame", "MB moved", "p2p MB/s", "mem MB/s (frame / 64 MiB)", "floor ms", "ratio to floor", "CPU ms"):
+        table.add_column(col, justify="right")
+    for r in results:
+        table.add_row(r["algorithm"], str(r["ranks"]), f"{r['ms']:.2f}", f"{r['bytes'] / 1e6:.2f}", f"{r['bandwidth_MBps']:.0f}",
+                      f"{r['mem_frame_MBps']:.0f} / {r['mem_64MiB_MBps']:.0f}", f"{r['floor_ms']:.2f}", f"{r['ratio']:.2f}", f"{r['cpu_ms']:.1f}")
+    console.print(table)
+    pieces = Table(title="per rank, best repeat: where the time goes (ms) against the floor's two terms (ms)")
+    for col in ("algorithm", "ranks", "rank", "ms", "compositing", "delivery", *PIECES, "other", "CPU", "MB in", "MB touched", "floor net", "floor mem"):
+        pieces.add_column(col, justify="right")
+    for r in results:
+        for p in r["per_rank"]:
+            pieces.add_row(r["algorithm"], str(r["ranks"]), str(p["rank"]), f"{p['ms']:.2f}", f"{p['composite']:.2f}", f"{p['deliver']:.2f}",
+                           *(f"{p[k]:.2f}" for k in PIECES), f"{p['other']:.2f}", f"{p['cpu']:.2f}", f"{p['recv_bytes'] / 1e6:.2f}",
+                           f"{p['touched_bytes'] / 1e6:.1f}", f"{p['floor_net']:.2f}", f"{p['floor_mem']:.2f}")
+    console.print(pieces)

@@ -8,7 +8,8 @@ its ranks at once — the conditions the frames run under —
 
 * the draw rate of one plain mesh (a coarse level of the same store as one VBO and one draw
   call, the way VTK draws a surface) with the same camera: triangles/s;
-* the memory bandwidth (every rank copying at once) and the point-to-point bandwidth.
+* the memory bandwidth (every rank copying at once; the higher of a frame-sized and a 64 MiB copy,
+  as in ``bench composite``) and the point-to-point bandwidth.
 
 Per stage, the floor of a rank (the slowest rank's floor is the stage's floor) is:
 
@@ -24,8 +25,11 @@ Per stage, the floor of a rank (the slowest rank's floor is the stage's floor) i
   outside its ``lod`` stage); no floor.
 
 Printed: per rank count, each stage's mean (over frames, slowest rank) and its ratio to the
-floor, the frame time, the share of the frame that is not drawing, and pipelined vs
-synchronous throughput and latency. ``--png`` draws the stage breakdown. Ranks share the
+floor, the frame time, the share of the frame that is not drawing, pipelined vs synchronous
+throughput and latency, and how busy the cores were in each loop (CPU time of all threads of
+all ranks ÷ wall time × cores: overlapping frames can only fill cores the synchronous loop
+leaves idle); the first job also probes how fast a compositing thread runs while the main
+thread draws (the GIL during GL calls, see :func:`_gil_probe`). ``--png`` draws the stage breakdown. Ranks share the
 cores with llvmpipe's raster threads: ``--lp-threads`` sets ``LP_NUM_THREADS`` per case
 (``auto``: :func:`massview.parallel.runtime.raster_threads`, the launcher's default; ``default``:
 Mesa's own choice, one thread per CPU in every rank). Nothing here asserts a time.
@@ -68,6 +72,7 @@ def add_arguments(p) -> None:
     p.add_argument("--workdir", default="out/bench", help="where the demo terrain is generated when it is not cached")
     p.add_argument("--png", type=Path, default=None, help="write the stage breakdown plot here")
     p.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--gil-probe", action="store_true", help=argparse.SUPPRESS)
 
 
 def demo_store(workdir: str) -> Path:
@@ -132,7 +137,7 @@ def _loop(comm, system, cfg, cams, pixels, bw, mem, rate) -> dict:
 
     stages, floors, totals, tris = [], [], [], []
     comm.Barrier()
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     for res in render_frames(comm, system, cfg, cams):
         st = res.stats
         mine = [st.times_ms.get(s, 0.0) / 1e3 for s in _TIMED]
@@ -142,8 +147,65 @@ def _loop(comm, system, cfg, cams, pixels, bw, mem, rate) -> dict:
         totals.append(max_over_ranks(comm, st.times_ms["total"] / 1e3))
         tris.append(comm.allreduce(st.triangles))
     wall = max_over_ranks(comm, time.perf_counter() - t0)
+    cpu = comm.allreduce(time.process_time() - cpu0)  # every thread of every rank, llvmpipe's raster threads included
     return {"stage_ms": (np.mean(stages, 0) * 1e3).tolist(), "floor_ms": (np.mean(floors, 0) * 1e3).tolist(),
-            "latency_ms": float(np.mean(totals) * 1e3), "throughput_fps": cfg.frames / wall, "triangles": float(np.mean(tris))}
+            "latency_ms": float(np.mean(totals) * 1e3), "throughput_fps": cfg.frames / wall, "triangles": float(np.mean(tris)),
+            "busy": cpu / (wall * _cores())}
+
+
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _gil_probe(system, cams, cfg, seconds: float = 0.6) -> float:
+    """How fast a second thread runs Python + numpy compositing work (encode the top band of a
+    rendered frame and merge it into a copy of itself) while this thread draws frames, relative
+    to while this thread sleeps: what the pipelined loop's communication thread gets during a
+    draw. A GL call that keeps the GIL (moderngl's draws and its ``finish``, which waits for
+    llvmpipe's raster threads) stops that thread for its whole duration. Best of three
+    alternating windows each (a shared machine's load comes and goes)."""
+    from ...core.image import Image
+    from ...core.task import Task
+    from ...parallel.composite import split_rows
+
+    img = system.render(Task(0, cams[0].viewport), cams[0], cfg, FrameStats(-1, 0))
+    top = split_rows(img.viewport, 2)[0]
+    acc = Image(img.color[: top.h].copy(), img.depth[: top.h].copy(), top)
+    alone = drawing = 0.0
+    for _ in range(3):
+        alone = max(alone, _probe_rate(system, cams, cfg, img, acc, False, seconds))
+        drawing = max(drawing, _probe_rate(system, cams, cfg, img, acc, True, seconds))
+    return drawing / alone if alone else float("nan")
+
+
+def _probe_rate(system, cams, cfg, img, acc, draw: bool, seconds: float) -> float:
+    """Work items/s of the probe's thread while this thread draws (``draw``) or sleeps."""
+    import threading
+
+    from ...core.task import Task
+    from ...parallel.codec import encode_region, merge_into
+
+    stop, done = threading.Event(), [0]
+
+    def work():
+        while not stop.is_set():
+            merge_into(acc, encode_region(img, acc.viewport, "blosc2"), front=False)
+            done[0] += 1
+
+    thread = threading.Thread(target=work, daemon=True)
+    t0 = time.perf_counter()
+    thread.start()
+    f = 0
+    while time.perf_counter() - t0 < seconds:
+        if draw:
+            cam = cams[f % len(cams)]
+            system.render(Task(0, cam.viewport), cam, cfg, FrameStats(-1, 0))
+            f += 1
+        else:
+            time.sleep(0.01)
+    stop.set()
+    thread.join()
+    return done[0] / (time.perf_counter() - t0)
 
 
 def worker(args) -> int:
@@ -160,12 +222,16 @@ def worker(args) -> int:
     for f in range(args.frames):  # warm up along the whole path: loads, GL buffers, caches
         render_frame(comm, system, cfg, cams[f] if rank == 0 else None, -1)
     rate = _plain_rate(system, cams[0])
-    bw, mem = measure_bandwidth(comm), measure_memory_bandwidth(comm)
+    bw = measure_bandwidth(comm)
+    mem = max(measure_memory_bandwidth(comm, 8 * w * h), measure_memory_bandwidth(comm))  # as bench composite
+    comm.Barrier()
+    gil = _gil_probe(system, cams, cfg) if args.gil_probe and rank == 0 else None
+    comm.Barrier()
     pixels = w * h  # sort-last: every rank reads back the full frame; sort-first: its tile
     if not args.decomposition.startswith("sort-last"):
         pixels = -(-w * h // n)
     out = {"ranks": n, "lp_threads": os.environ.get("LP_NUM_THREADS", "Mesa default"), "plain_Mtri_s": rate / 1e6,
-           "p2p_MBps": bw / 1e6, "mem_MBps": mem / 1e6}
+           "p2p_MBps": bw / 1e6, "mem_MBps": mem / 1e6, "gil_probe": gil}
     out["sync"] = _loop(comm, system, replace(cfg, pipeline="off"), cams if rank == 0 else None, pixels, bw, mem, rate)
     out["pipelined"] = _loop(comm, system, replace(cfg, pipeline="on"), cams if rank == 0 else None, pixels, bw, mem, rate)
     system.close()
@@ -179,10 +245,10 @@ def _cases(args) -> list[tuple[int, str]]:
     return [(n, lp.strip()) for n in counts for lp in args.lp_threads.split(",") if lp.strip()]
 
 
-def _launch(args, store: Path, n: int, lp: str, tmp: str) -> dict | None:
+def _launch(args, store: Path, n: int, lp: str, tmp: str, probe: bool = False) -> dict | None:
     out = Path(tmp) / f"frame{n}_{lp}.json"
     argv = ["bench", "frame", str(store), "--worker", str(out), "--size", args.size, "--frames", str(args.frames),
-            "--decomposition", args.decomposition, "--compositor", args.compositor]
+            "--decomposition", args.decomposition, "--compositor", args.compositor, *(["--gil-probe"] if probe else [])]
     saved = os.environ.get("LP_NUM_THREADS")
     # "default": Mesa's own choice, one raster thread per CPU in every rank (set explicitly,
     # since the launcher would otherwise put its own default in)
@@ -207,9 +273,9 @@ def run(args) -> int:
     store = Path(args.store) if args.store else demo_store(args.workdir)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
-        for n, lp in _cases(args):
+        for i, (n, lp) in enumerate(_cases(args)):
             console.print(f"[dim]{n} rank(s), LP_NUM_THREADS {lp} ...[/]")
-            r = _launch(args, store, n, lp, tmp)
+            r = _launch(args, store, n, lp, tmp, probe=i == 0)
             if r is None:
                 console.print(f"[red]the {n}-rank job failed[/]")
                 return 1
@@ -228,7 +294,8 @@ def _print(console, results, args, store) -> None:
 
     t = Table(title=f"frame per stage vs floor (ms, slowest rank, mean of {args.frames} frames): {store.name}, {args.size}, "
                     f"{args.decomposition}, {args.compositor}")
-    for c in ("ranks", "LP thr", "Mtri/s plain", *STAGES, "frame ms", "floor ms", "not drawing", "pipelined fps", "sync fps", "latency ms on/off"):
+    for c in ("ranks", "LP thr", "Mtri/s plain", *STAGES, "frame ms", "floor ms", "not drawing", "pipelined fps", "sync fps", "latency ms on/off",
+              "cores busy sync/pipe"):
         t.add_column(c, justify="right")
     for r in results:
         s, p = r["sync"], r["pipelined"]
@@ -236,5 +303,12 @@ def _print(console, results, args, store) -> None:
         not_drawing = 1 - s["stage_ms"][1] / s["latency_ms"]
         t.add_row(str(r["ranks"]), r["lp_threads"], f"{r['plain_Mtri_s']:.1f}", *cells, f"{s['latency_ms']:.0f}",
                   f"{sum(s['floor_ms']):.1f}", f"{not_drawing:.0%}", f"{p['throughput_fps']:.2f} ({p['throughput_fps'] / s['throughput_fps']:.2f}×)",
-                  f"{s['throughput_fps']:.2f}", f"{p['latency_ms']:.0f} / {s['latency_ms']:.0f}")
+                  f"{s['throughput_fps']:.2f}", f"{p['latency_ms']:.0f} / {s['latency_ms']:.0f}", f"{s['busy']:.0%} / {p['busy']:.0%}")
     console.print(t)
+    console.print("cores busy: CPU time of every thread of every rank (llvmpipe's raster threads included) ÷ (wall time × cores); "
+                  "a pipelined loop can raise throughput by at most 1 ÷ the synchronous loop's share.")
+    probe = next((r["gil_probe"] for r in results if r.get("gil_probe") is not None), None)
+    if probe is not None:
+        console.print(f"GIL probe: a compositing thread runs at {probe:.2f}× its own speed while the main thread draws "
+                      "(moderngl keeps the GIL through its draw calls and glFinish; the pipelined loop's communication thread "
+                      "waits for the whole draw).")
