@@ -49,7 +49,7 @@ from . import kpatch_walk
 from .kpatch_top import TopBatch
 from .kpatch_cut import Dims, Residency, View
 
-__all__ = ["PatchHierarchy", "Front", "select_front", "visible_patches", "patch_boxes", "lookup_blocks", "refine_uniform",
+__all__ = ["PatchHierarchy", "Lazy", "world_box", "Front", "select_front", "visible_patches", "patch_boxes", "lookup_blocks", "refine_uniform",
            "watertight_problems"]
 
 TOP_LEVELS = 6  # square/edge levels walked as one batch (kpatch_top)
@@ -179,10 +179,7 @@ class PatchHierarchy:
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """World box of the valid (non-padding) terrain."""
-        lay = self.lay
-        lo = np.array([0.0, -(lay.rows - 1) * self.dy, self.zmin[0].min()])
-        hi = np.array([(lay.cols - 1) * self.dx, 0.0, self.zmax[0].max()])
-        return lo, hi
+        return world_box(self.lay, self.zmin[0].src[0], self.zmax[0].src[0], (self.dx, self.dy), self.vs, self.exaggeration)
 
     def _world(self, x, y, z):
         return np.stack([np.asarray(x, np.float64) * self.dx, -np.asarray(y, np.float64) * self.dy, z], axis=-1)
@@ -233,6 +230,20 @@ class PatchHierarchy:
                     d = np.linalg.norm(c[o] - kc[ri, ci], axis=-1) + kr[ri, ci]
                     out[o] = np.maximum(out[o], np.where(ok, d, 0.0))
         return out
+
+
+def world_box(layout: TerrainLayout, zmin0, zmax0, spacing=(1.0, 1.0), vscale: float = 1.0,
+              exaggeration: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """World box (lo, hi), float64 (3,), of the valid terrain from the stored whole-domain height
+    range (``lod/zmin/0``, ``lod/zmax/0``, (1, 1) each): exactly :meth:`PatchHierarchy.bounds`
+    of a hierarchy built with these arguments, without building it (the parent of a job fits
+    paths and clip planes with it)."""
+    dx, dy = (float(v) for v in spacing)
+    vs = float(vscale)
+    H = partial(_heights, float(np.min(zmin0)) * vs, vs, float(exaggeration))
+    lo = np.array([0.0, -(layout.rows - 1) * dy, H(zmin0).min()])
+    hi = np.array([(layout.cols - 1) * dx, 0.0, H(zmax0).max()])
+    return lo, hi
 
 
 @dataclass
