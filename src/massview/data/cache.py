@@ -6,6 +6,7 @@ blocks on it:
 * ``request(key, priority)`` queues a load (higher priority first, e.g. screen-space
   importance) or renews a queued one; it returns at once.
 * ``get(key)`` returns the resident array (and marks it recently used) or None.
+* ``discard(key)`` drops a resident array whose data the caller now keeps elsewhere;
 * ``begin_frame()`` advances the frame clock; queued requests not renewed for ``max_age``
   frames are dropped, so a camera that moved on does not keep stale loads in the queue.
 
@@ -49,7 +50,8 @@ class BlockCache:
         self._seq = itertools.count()
         self._frame = 0
         self._closed = False
-        self.counters = {"hits": 0, "misses": 0, "loads": 0, "bytes_loaded": 0, "evictions": 0, "dropped": 0, "load_seconds": 0.0}
+        self.counters = {"hits": 0, "misses": 0, "loads": 0, "bytes_loaded": 0, "evictions": 0, "dropped": 0, "discarded": 0,
+                         "load_seconds": 0.0}
         self._threads = [threading.Thread(target=self._worker, name=f"massview-load-{i}", daemon=True) for i in range(max(1, workers))]
         for t in self._threads:
             t.start()
@@ -89,6 +91,18 @@ class BlockCache:
             for k in stale:
                 del self._pending[k]
             self.counters["dropped"] += len(stale)
+
+    def discard(self, key) -> bool:
+        """Drop ``key``'s resident array (its bytes leave the budget at once); True if it was
+        resident. For a caller that moved the data into a cache of its own (the terrain GL pool)
+        and would otherwise hold every block twice."""
+        with self._lock:
+            arr = self._resident.pop(key, None)
+            if arr is None:
+                return False
+            self._bytes -= arr.nbytes
+            self.counters["discarded"] += 1
+            return True
 
     def get_blocking(self, key, timeout: float = 60.0):
         """Request and wait (tools and tests; the render loop never calls this)."""

@@ -62,7 +62,9 @@ class BlockPool:
     def __init__(self, ctx: moderngl.Context, M: int, levels: int, top: int, budget_bytes: int, ortho: bool = False):
         self.M, self.has_ortho = M, ortho
         self.vertex_bytes, self.shade_bytes = M * M * 4, M * M * 6
-        self.slot_bytes = self.vertex_bytes + self.shade_bytes + (M * M * 4 if ortho else 0)
+        # what GL holds per slot: 3-channel textures are stored with 4 channels (RGB16F as RGBA16F:
+        # 8 bytes a texel on llvmpipe, measured; RGB8 as RGBA8), so the budget bounds real bytes
+        self.slot_bytes = self.vertex_bytes + M * M * 8 + (M * M * 4 if ortho else 0)
         self.capacity = min(int(budget_bytes // self.slot_bytes), int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256)))
         if self.capacity < 1:
             raise ConfigError(f"GL budget {budget_bytes} bytes is smaller than one block ({self.slot_bytes} bytes); raise --gpu-mb")

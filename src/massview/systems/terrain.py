@@ -39,7 +39,7 @@ from ..data.cache import BlockCache
 from ..data.terrain import TerrainStore
 from ..lod.cull import screen_rects
 from ..lod.blockindex import BlockIndex, KeepSet
-from ..lod.kpatch import Front, PatchHierarchy, patch_boxes, select_front, visible_patches
+from ..lod.kpatch import Front, PatchHierarchy, lookup_blocks, patch_boxes, select_front, visible_patches
 from ..lod.texlod import shading_blocks
 from ..parallel.decompose import parse_decomposition, sort_first_tiles, sort_last_ranges
 from ..parallel.exchange import agree_all, any_rank
@@ -141,12 +141,16 @@ class TerrainSystem:
                 span = (self.lay.M - 1) << key[0]
                 if pool.upload(key, verts, (key[1] * span, key[2] * span), 2 ** key[0], keep):
                     self._wanted.discard(key)
+                    self.cache.discard(key)  # the pool holds it now: RAM keeps only blocks not yet uploaded
                     n += 1
         return n
 
     def _request(self, lv, bi, bj, prio) -> None:
         ids = self._blocks.ids(lv, bi, bj)
         self._want_mask[ids] = True
+        _, pool, _, _ = self._renderers()
+        miss = ~lookup_blocks(pool.resident, np.asarray(lv), np.asarray(bi), np.asarray(bj))  # not agreed, but here
+        ids, prio = ids[miss], np.asarray(prio)[miss]
         for key, p in zip(self._blocks.keys(ids), prio.tolist()):
             self._wanted.add(key)
             self.cache.request(key, p)
