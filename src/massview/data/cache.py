@@ -43,6 +43,7 @@ class BlockCache:
         self._wake = threading.Condition(self._lock)
         self._resident: OrderedDict[Hashable, np.ndarray] = OrderedDict()
         self._bytes = 0
+        self.peak_bytes = 0  # most bytes ever resident (≤ budget)
         self._heap: list = []
         self._pending: dict[Hashable, tuple[float, int]] = {}  # key -> (priority, frame renewed)
         self._loading: set = set()
@@ -129,6 +130,7 @@ class BlockCache:
         with self._lock:
             c = dict(self.counters)
             c["resident_bytes"] = self._bytes
+            c["peak_bytes"] = self.peak_bytes
             c["resident"] = len(self._resident)
             c["queued"] = len(self._pending)
         c["mean_load_ms"] = 1e3 * c["load_seconds"] / c["loads"] if c["loads"] else 0.0
@@ -189,3 +191,4 @@ class BlockCache:
             self.counters["evictions"] += 1
         self._resident[key] = arr
         self._bytes += arr.nbytes
+        self.peak_bytes = max(self.peak_bytes, self._bytes)
