@@ -43,6 +43,7 @@ from ..lod.kpatch import Front, PatchHierarchy, lookup_blocks, patch_boxes, sele
 from ..lod.texlod import shading_blocks
 from ..parallel.decompose import parse_decomposition, sort_first_tiles, sort_last_ranges
 from ..parallel.exchange import agree_all, any_rank
+from ..parallel.runtime import return_free_heap
 from ..render.context import create_context, renderer_string
 from ..render.colormaps import Shading, paint_sky
 from ..render.terrain import BlockPool, TerrainRenderer, pack_payload
@@ -57,6 +58,18 @@ def _morton(i: np.ndarray, j: np.ndarray) -> np.ndarray:
     out = np.zeros_like(i)
     for b in range(32):
         out |= ((j >> b) & 1) << (2 * b) | ((i >> b) & 1) << (2 * b + 1)
+    return out
+
+
+def _mapped(a: np.ndarray) -> np.ndarray:
+    """A copy of uint8 ``a`` in its own anonymous mapping, unmapped when the last reference goes.
+    A staged block's bytes then leave the process when the GL pool takes it, instead of staying
+    in a loader thread's malloc arena (glibc keeps freed blocks below 32 MiB there:
+    :func:`massview.parallel.runtime.reuse_freed_memory`), so the RAM budget bounds resident bytes."""
+    import mmap
+
+    out = np.frombuffer(mmap.mmap(-1, max(a.nbytes, 1)), np.uint8, a.nbytes)
+    out[:] = a.reshape(-1)
     return out
 
 
@@ -85,6 +98,7 @@ class TerrainSystem:
         self.front: Front | None = None
         self._wanted: set = set()
         self._counted = dict(self.cache.counters)  # cache counters at the last frame's report
+        return_free_heap()  # the hierarchy's construction temporaries (~130 MiB at 32769²)
 
     # -- data ---------------------------------------------------------------------------
     def _hierarchy(self, exaggeration: float) -> PatchHierarchy:
@@ -98,7 +112,7 @@ class TerrainSystem:
         lv, i, j = key
         h = self.store.get_block(lv, i, j)
         color, shade = self.store.get_color(lv, i, j), self.store.get_shade(lv, i, j)
-        return pack_payload(h, shade, color)
+        return _mapped(pack_payload(h, shade, color))
 
     def shading(self, cfg: RenderConfig) -> Shading:
         cmap = cfg.colormap
