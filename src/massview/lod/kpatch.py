@@ -47,6 +47,7 @@ from ..core.camera import Camera, Viewport
 from ..data.terrain.layout import TerrainLayout
 from . import kpatch_walk
 from .kpatch_top import TopBatch
+from .columns import Lazy, edge_centre, errors, heights, square_centre
 from .kpatch_cut import Dims, Residency, View
 
 __all__ = ["PatchHierarchy", "Lazy", "world_box", "Front", "select_front", "visible_patches", "patch_boxes", "lookup_blocks", "refine_uniform",
@@ -55,66 +56,6 @@ __all__ = ["PatchHierarchy", "Lazy", "world_box", "Front", "select_front", "visi
 TOP_LEVELS = 6  # square/edge levels walked as one batch (kpatch_top)
 Resident = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (level, bi, bj) -> bool
 Request = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]  # (level, bi, bj, priority)
-
-
-def _heights(base: float, vs: float, Z: float, z) -> np.ndarray:
-    """World heights (float64) of stored heights ``z``: base + Z·(z·vs − base)."""
-    return base + Z * (np.asarray(z, np.float64) * vs - base)
-
-
-def _errors(vs: float, Z: float, e) -> np.ndarray:
-    """World errors (float64) of stored errors ``e``: e·vs·Z."""
-    return np.asarray(e, np.float64) * vs * Z
-
-
-def _square_centre(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    return (lo + hi) / 2
-
-
-def _edge_centre(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    valid = np.isfinite(lo)  # edges outside the lattice have no squares: centre height 0
-    return np.where(valid, (np.where(valid, lo, 0) + np.where(valid, hi, 0)) / 2, 0.0)
-
-
-class Lazy:
-    """One level's float64 column computed on indexing: ``fn(*(s[idx] for s in src))`` over
-    compact arrays ``src`` (stored float32 heights and errors), or over other :class:`Lazy`
-    columns (sphere centre heights from the z-range). The operations are those of the eager
-    float64 arrays it replaces, so every value is bit-identical; a 32769² hierarchy holds
-    ~110 MiB instead of ~290 (issue 20). Supports what the walk and the tests use:
-    ``col[idx]``, ``col.take(idx)``, ``ravel()``, ``shape``, ``len``, ``min()``, ``max()``
-    and ``np.asarray(col)`` (the whole level, float64)."""
-
-    __slots__ = ("fn", "src")
-
-    def __init__(self, fn, *src):
-        self.fn, self.src = fn, src
-
-    def __getitem__(self, idx) -> np.ndarray:
-        return self.fn(*(s[idx] for s in self.src))
-
-    def take(self, idx) -> np.ndarray:
-        return self.fn(*(s.take(idx) for s in self.src))
-
-    def ravel(self) -> "Lazy":
-        return Lazy(self.fn, *(s.ravel() for s in self.src))
-
-    @property
-    def shape(self) -> tuple[int, ...]:
-        return self.src[0].shape
-
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    def __array__(self, dtype=None, copy=None) -> np.ndarray:
-        a = self[...]
-        return a if dtype is None else a.astype(dtype)
-
-    def min(self) -> float:
-        return self[...].min()
-
-    def max(self) -> float:
-        return self[...].max()
 
 
 
@@ -135,7 +76,7 @@ class PatchHierarchy:
         # compact storage (issue 20): the heights and errors stay in their stored dtype (float32)
         # and become float64 world values on indexing (:class:`Lazy`, bit-identical to eager
         # float64 arrays); only the radii, which nest, are float64 arrays
-        H, E = partial(_heights, self.base, self.vs, Z), partial(_errors, self.vs, Z)
+        H, E = partial(heights, self.base, self.vs, Z), partial(errors, self.vs, Z)
         self.sq_err = [Lazy(E, np.asarray(e)) for e in sq_err]
         self.dg_err = [Lazy(E, np.asarray(e)) for e in dg_err]
         self.zmin = [Lazy(H, np.asarray(z)) for z in zmin]
@@ -160,9 +101,9 @@ class PatchHierarchy:
         self.sq_tab, self.dg_tab = [], []
         for j in range(J):
             lo, hi = self.zmin[j].ravel(), self.zmax[j].ravel()
-            self.sq_tab.append((Lazy(_square_centre, lo, hi), self.sq_r[j].ravel(), self.sq_err[j].ravel(), lo, hi))
+            self.sq_tab.append((Lazy(square_centre, lo, hi), self.sq_r[j].ravel(), self.sq_err[j].ravel(), lo, hi))
             lo, hi = self.dg_zmin[j].ravel(), self.dg_zmax[j].ravel()
-            self.dg_tab.append((Lazy(_edge_centre, lo, hi), self.dg_r[j].ravel(), self.dg_err[j].ravel(), lo, hi))
+            self.dg_tab.append((Lazy(edge_centre, lo, hi), self.dg_r[j].ravel(), self.dg_err[j].ravel(), lo, hi))
         self.sq_tab.append((None, None, None, self.zmin[J].ravel(), self.zmax[J].ravel()))
         del self.sq_c, self.dg_c
         self._mark = np.zeros(max(4**J, 2 * (2 ** max(J - 1, 0) + 1) ** 2), np.uint8)
@@ -240,7 +181,7 @@ def world_box(layout: TerrainLayout, zmin0, zmax0, spacing=(1.0, 1.0), vscale: f
     paths and clip planes with it)."""
     dx, dy = (float(v) for v in spacing)
     vs = float(vscale)
-    H = partial(_heights, float(np.min(zmin0)) * vs, vs, float(exaggeration))
+    H = partial(heights, float(np.min(zmin0)) * vs, vs, float(exaggeration))
     lo = np.array([0.0, -(layout.rows - 1) * dy, H(zmin0).min()])
     hi = np.array([(layout.cols - 1) * dx, 0.0, H(zmax0).max()])
     return lo, hi

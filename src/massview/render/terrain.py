@@ -57,10 +57,8 @@ def _program(ctx: moderngl.Context, vert: str, frag: str) -> moderngl.Program:
 
 
 def layer_bytes(M: int, texel: int) -> int:
-    """Bytes GL holds for one M × M layer of a texture array whose texels it stores in ``texel``
-    bytes: 3-channel formats get 4 channels (RGB16F as RGBA16F: 8, RGB8 as RGBA8: 4), rows padded
-    to 64 bytes and the height to 4 rows, as llvmpipe lays them out (measured: 100 layers of
-    257² RGB16F take 52.4 MiB, not the 37.8 of 6 bytes a texel). The pool's budget counts this."""
+    """GL's bytes for an M × M texture-array layer of ``texel``-byte texels (RGB16F is stored as
+    RGBA16F: 8; RGB8 as RGBA8: 4), rows padded to 64 bytes and 4 rows, as llvmpipe measured."""
     return -(-M // 4) * 4 * (-(-M * texel // 64) * 64)
 
 

@@ -106,13 +106,13 @@ def _baseline(comm, args) -> dict:
     """An empty GL rank: a flying rank's imports, MPI, a GL context and one framebuffer."""
     from ...core.config import parse_size
     from ...render.context import create_context
-    from ...render.view import ViewRenderer
+    from ...render.framebuffer import Framebuffer
     from ...systems import terrain  # noqa: F401  (the flying rank's imports)
 
     ctx = create_context()
-    view = ViewRenderer(ctx)
-    view._fb(*parse_size(args.size))
+    fb = Framebuffer(ctx, *parse_size(args.size))
     comm.Barrier()
+    fb.release()
     return {"hwm": status_mib("VmHWM")["VmHWM"]}
 
 
