@@ -37,9 +37,9 @@ class Lazy:
     compact arrays ``src`` (stored float32 heights and errors), or over other :class:`Lazy`
     columns (sphere centre heights from the z-range). The operations are those of the eager
     float64 arrays it replaces, so every value is bit-identical; a 32769² hierarchy holds
-    ~110 MiB instead of ~290 (issue 20). Supports what the walk and the tests use:
-    ``col[idx]``, ``col.take(idx)``, ``ravel()``, ``shape``, ``len``, ``min()``, ``max()``
-    and ``np.asarray(col)`` (the whole level, float64)."""
+    ~118 MiB instead of ~290 (issue 20). Supports what the walk and the tests use:
+    ``col[idx]``, ``col.take(idx, out=, mode=)``, ``dtype`` (float64), ``ravel()``, ``shape``,
+    ``len``, ``min()``, ``max()`` and ``np.asarray(col)`` (the whole level, float64)."""
 
     __slots__ = ("fn", "src")
 
@@ -49,8 +49,15 @@ class Lazy:
     def __getitem__(self, idx) -> np.ndarray:
         return self.fn(*(s[idx] for s in self.src))
 
-    def take(self, idx) -> np.ndarray:
-        return self.fn(*(s.take(idx) for s in self.src))
+    dtype = np.dtype(np.float64)  # what indexing yields
+
+    def take(self, idx, out: np.ndarray | None = None, mode: str = "raise") -> np.ndarray:
+        """``ndarray.take`` semantics (``out``, ``mode``) over the computed float64 values."""
+        v = self.fn(*(s.take(idx, mode=mode) for s in self.src))
+        if out is None:
+            return v
+        out[...] = v
+        return out
 
     def ravel(self) -> "Lazy":
         return Lazy(self.fn, *(s.ravel() for s in self.src))
