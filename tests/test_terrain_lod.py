@@ -162,6 +162,6 @@ def test_small_budgets_never_wait_and_stay_correct(tmp_path, terrain_store):
 
 def test_complete_loading_with_budgets_too_small_says_so(tmp_path, terrain_store):
     proc = run_cli("render", terrain_store, "--path", "zoom", "--frames", 2, "--size", "320x240", "--loading", "complete",
-                   "--cache-mb", 1, "--gpu-mb", 1, "--tau", 0.5, "--out", tmp_path, "-q", check=False, timeout=120)
+                   "--cache-mb", 1, "--gpu-mb", 2, "--tau", 0.5, "--out", tmp_path, "-q", check=False, timeout=120)
     assert proc.returncode != 0
-    assert "do not fit the budgets (--cache-mb 1, --gpu-mb 1)" in proc.stderr and "Traceback" not in proc.stderr
+    assert "do not fit the budgets (--cache-mb 1, --gpu-mb 2)" in proc.stderr and "Traceback" not in proc.stderr

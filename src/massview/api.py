@@ -69,8 +69,8 @@ class Scene:
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         if self._bounds is None:
-            system = self._system if self._system is not None else self.system(RenderConfig())
-            self._bounds = tuple(np.asarray(b, np.float64) for b in system.bounds)
+            b = self._system.bounds if self._system is not None else scene_bounds(self.spec, self.kind)
+            self._bounds = tuple(np.asarray(v, np.float64) for v in b)
         return self._bounds
 
     def system(self, cfg: RenderConfig):
@@ -97,6 +97,36 @@ class Scene:
     def __repr__(self) -> str:
         lo, hi = self.bounds
         return f"Scene({self.spec!r}, {self.kind}, bounds {np.round(lo, 1).tolist()} .. {np.round(hi, 1).tolist()})"
+
+
+def scene_bounds(spec: str, kind: str, system: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """The world box ``(lo, hi)`` (float64 (3,)) the system for ``spec`` reports, from metadata
+    alone: no GL context, no caches, no K-patch hierarchy (the parent of a ``ranks=N`` job calls
+    this to fit paths and clip planes; opening the system cost 560 MiB at 32769²).
+
+    * terrain, T1: the whole-domain height range ``lod/zmin/0``, ``lod/zmax/0`` through
+      :func:`massview.lod.kpatch.world_box`, the hierarchy's own formula;
+    * terrain, ``system="roettger"`` (T2): its layers' attributes (``RoettgerSystem.bounds``
+      before setup reads nothing else);
+    * scene store: the skeleton's boxes; ``builtin:objects``: the generated objects' boxes
+      (the scene is its own metadata; GL is opened only to draw)."""
+    if kind == "terrain" and system == "roettger":
+        from .systems.roettger import RoettgerSystem
+
+        return RoettgerSystem([spec], RenderConfig(system="roettger")).bounds
+    if kind == "terrain":
+        from .data.terrain import TerrainStore
+        from .lod.kpatch import world_box
+
+        st = TerrainStore(spec)
+        return world_box(st.layout, *st.height_ranges(0), st.spacing, st.vertical_scale)
+    if kind == "scene":
+        from .data.scene import SceneStore
+
+        return SceneStore(spec).bounds
+    from .systems.objects import ObjectsSystem
+
+    return ObjectsSystem(spec).bounds
 
 
 def open_scene(spec: str | Path | Scene) -> Scene:

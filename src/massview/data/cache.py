@@ -6,6 +6,7 @@ blocks on it:
 * ``request(key, priority)`` queues a load (higher priority first, e.g. screen-space
   importance) or renews a queued one; it returns at once.
 * ``get(key)`` returns the resident array (and marks it recently used) or None.
+* ``discard(key)`` drops a resident array whose data the caller now keeps elsewhere;
 * ``begin_frame()`` advances the frame clock; queued requests not renewed for ``max_age``
   frames are dropped, so a camera that moved on does not keep stale loads in the queue.
 
@@ -42,6 +43,7 @@ class BlockCache:
         self._wake = threading.Condition(self._lock)
         self._resident: OrderedDict[Hashable, np.ndarray] = OrderedDict()
         self._bytes = 0
+        self.peak_bytes = 0  # most bytes ever resident (≤ budget)
         self._heap: list = []
         self._pending: dict[Hashable, tuple[float, int]] = {}  # key -> (priority, frame renewed)
         self._loading: set = set()
@@ -49,7 +51,8 @@ class BlockCache:
         self._seq = itertools.count()
         self._frame = 0
         self._closed = False
-        self.counters = {"hits": 0, "misses": 0, "loads": 0, "bytes_loaded": 0, "evictions": 0, "dropped": 0, "load_seconds": 0.0}
+        self.counters = {"hits": 0, "misses": 0, "loads": 0, "bytes_loaded": 0, "evictions": 0, "dropped": 0, "discarded": 0,
+                         "load_seconds": 0.0}
         self._threads = [threading.Thread(target=self._worker, name=f"massview-load-{i}", daemon=True) for i in range(max(1, workers))]
         for t in self._threads:
             t.start()
@@ -90,6 +93,18 @@ class BlockCache:
                 del self._pending[k]
             self.counters["dropped"] += len(stale)
 
+    def discard(self, key) -> bool:
+        """Drop ``key``'s resident array (its bytes leave the budget at once); True if it was
+        resident. For a caller that moved the data into a cache of its own (the terrain GL pool)
+        and would otherwise hold every block twice."""
+        with self._lock:
+            arr = self._resident.pop(key, None)
+            if arr is None:
+                return False
+            self._bytes -= arr.nbytes
+            self.counters["discarded"] += 1
+            return True
+
     def get_blocking(self, key, timeout: float = 60.0):
         """Request and wait (tools and tests; the render loop never calls this)."""
         t0 = time.monotonic()
@@ -115,6 +130,7 @@ class BlockCache:
         with self._lock:
             c = dict(self.counters)
             c["resident_bytes"] = self._bytes
+            c["peak_bytes"] = self.peak_bytes
             c["resident"] = len(self._resident)
             c["queued"] = len(self._pending)
         c["mean_load_ms"] = 1e3 * c["load_seconds"] / c["loads"] if c["loads"] else 0.0
@@ -175,3 +191,4 @@ class BlockCache:
             self.counters["evictions"] += 1
         self._resident[key] = arr
         self._bytes += arr.nbytes
+        self.peak_bytes = max(self.peak_bytes, self._bytes)

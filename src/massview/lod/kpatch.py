@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 from typing import Callable
 
 import numpy as np
@@ -46,14 +47,16 @@ from ..core.camera import Camera, Viewport
 from ..data.terrain.layout import TerrainLayout
 from . import kpatch_walk
 from .kpatch_top import TopBatch
+from .columns import Lazy, edge_centre, errors, heights, square_centre
 from .kpatch_cut import Dims, Residency, View
 
-__all__ = ["PatchHierarchy", "Front", "select_front", "visible_patches", "patch_boxes", "lookup_blocks", "refine_uniform",
+__all__ = ["PatchHierarchy", "Lazy", "world_box", "Front", "select_front", "visible_patches", "patch_boxes", "lookup_blocks", "refine_uniform",
            "watertight_problems"]
 
 TOP_LEVELS = 7  # square/edge levels walked as one batch (kpatch_top)
 Resident = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]  # (level, bi, bj) -> bool
 Request = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]  # (level, bi, bj, priority)
+
 
 
 class PatchHierarchy:
@@ -70,16 +73,22 @@ class PatchHierarchy:
         self.exaggeration = Z = float(exaggeration)
         J = layout.J
         self.base = float(np.min(zmin[0])) * self.vs
-        self.sq_err = [np.asarray(e, np.float64) * self.vs * Z for e in sq_err]
-        self.dg_err = [np.asarray(e, np.float64) * self.vs * Z for e in dg_err]
-        self.zmin = [self.base + Z * (np.asarray(z, np.float64) * self.vs - self.base) for z in zmin]
-        self.zmax = [self.base + Z * (np.asarray(z, np.float64) * self.vs - self.base) for z in zmax]
-        # edge-diamond height ranges: the union of the two squares beside the edge
+        # compact storage (issue 20): the heights and errors stay in their stored dtype (float32)
+        # and become float64 world values on indexing (:class:`Lazy`, bit-identical to eager
+        # float64 arrays); only the radii, which nest, are float64 arrays
+        H, E = partial(heights, self.base, self.vs, Z), partial(errors, self.vs, Z)
+        self.sq_err = [Lazy(E, np.asarray(e)) for e in sq_err]
+        self.dg_err = [Lazy(E, np.asarray(e)) for e in dg_err]
+        self.zmin = [Lazy(H, np.asarray(z)) for z in zmin]
+        self.zmax = [Lazy(H, np.asarray(z)) for z in zmax]
+        # edge-diamond height ranges: the union of the two squares beside the edge (taken on the
+        # stored values: the world transform is monotone, increasing for vertical_scale > 0)
+        lo_op, hi_op = (np.minimum, np.maximum) if self.vs >= 0 else (np.maximum, np.minimum)
         self.dg_zmin, self.dg_zmax = [], []
         for j in range(J):
-            lo, hi = self._edge_range(self.zmin[j], np.inf, np.minimum), self._edge_range(self.zmax[j], -np.inf, np.maximum)
-            self.dg_zmin.append(lo)
-            self.dg_zmax.append(hi)
+            zlo, zhi = self.zmin[j].src[0], self.zmax[j].src[0]
+            self.dg_zmin.append(Lazy(H, self._edge_range(zlo, np.inf if lo_op is np.minimum else -np.inf, lo_op)))
+            self.dg_zmax.append(Lazy(H, self._edge_range(zhi, -np.inf if hi_op is np.maximum else np.inf, hi_op)))
         self._spheres()
         self._tables()
 
@@ -91,10 +100,10 @@ class PatchHierarchy:
         J = self.lay.J
         self.sq_tab, self.dg_tab = [], []
         for j in range(J):
-            self.sq_tab.append(tuple(np.ascontiguousarray(a).ravel() for a in
-                                     (self.sq_c[j][..., 2], self.sq_r[j], self.sq_err[j], self.zmin[j], self.zmax[j])))
-            self.dg_tab.append(tuple(np.ascontiguousarray(a).ravel() for a in
-                                     (self.dg_c[j][..., 2], self.dg_r[j], self.dg_err[j], self.dg_zmin[j], self.dg_zmax[j])))
+            lo, hi = self.zmin[j].ravel(), self.zmax[j].ravel()
+            self.sq_tab.append((Lazy(square_centre, lo, hi), self.sq_r[j].ravel(), self.sq_err[j].ravel(), lo, hi))
+            lo, hi = self.dg_zmin[j].ravel(), self.dg_zmax[j].ravel()
+            self.dg_tab.append((Lazy(edge_centre, lo, hi), self.dg_r[j].ravel(), self.dg_err[j].ravel(), lo, hi))
         self.sq_tab.append((None, None, None, self.zmin[J].ravel(), self.zmax[J].ravel()))
         del self.sq_c, self.dg_c
         self._mark = np.zeros(max(4**J, 2 * (2 ** max(J - 1, 0) + 1) ** 2), np.uint8)
@@ -104,17 +113,14 @@ class PatchHierarchy:
     def _edge_range(sq: np.ndarray, fill: float, op) -> np.ndarray:
         n = sq.shape[0]
         p = np.pad(sq, 1, constant_values=fill)
-        out = np.full((2, n + 1, n + 1), fill)
+        out = np.full((2, n + 1, n + 1), fill, sq.dtype if sq.dtype.kind == 'f' else np.float64)
         out[0, :, :n] = op(p[:-1, 1:-1], p[1:, 1:-1])  # horizontal edge v: squares v-1 and v
         out[1, :n, :] = op(p[1:-1, :-1], p[1:-1, 1:])  # vertical edge u: squares u-1 and u
         return out
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """World box of the valid (non-padding) terrain."""
-        lay = self.lay
-        lo = np.array([0.0, -(lay.rows - 1) * self.dy, self.zmin[0].min()])
-        hi = np.array([(lay.cols - 1) * self.dx, 0.0, self.zmax[0].max()])
-        return lo, hi
+        return world_box(self.lay, self.zmin[0].src[0], self.zmax[0].src[0], (self.dx, self.dy), self.vs, self.exaggeration)
 
     def _world(self, x, y, z):
         return np.stack([np.asarray(x, np.float64) * self.dx, -np.asarray(y, np.float64) * self.dy, z], axis=-1)
@@ -128,20 +134,21 @@ class PatchHierarchy:
             n = 2**j
             # edge diamonds (children: the 4 squares of level j+1 meeting at the midpoint)
             idx = np.arange(n + 1)
-            valid = np.isfinite(self.dg_zmin[j])
-            zc = np.where(valid, (np.where(valid, self.dg_zmin[j], 0) + np.where(valid, self.dg_zmax[j], 0)) / 2, 0.0)
+            dg_zmin, dg_zmax, zmin, zmax = (z[...] for z in (self.dg_zmin[j], self.dg_zmax[j], self.zmin[j], self.zmax[j]))
+            valid = np.isfinite(dg_zmin)
+            zc = np.where(valid, (np.where(valid, dg_zmin, 0) + np.where(valid, dg_zmax, 0)) / 2, 0.0)
             xs = np.stack([np.broadcast_to((idx[None, :] + 0.5) * a, (n + 1, n + 1)), np.broadcast_to(idx[None, :] * a, (n + 1, n + 1))])
             ys = np.stack([np.broadcast_to(idx[:, None] * a, (n + 1, n + 1)), np.broadcast_to((idx[:, None] + 0.5) * a, (n + 1, n + 1))])
             c = self._world(xs, ys, zc)
-            r = np.sqrt(half(a) ** 2 + np.where(valid, (np.where(valid, self.dg_zmax[j], 0) - np.where(valid, self.dg_zmin[j], 0)) / 2, 0.0) ** 2)
+            r = np.sqrt(half(a) ** 2 + np.where(valid, (np.where(valid, dg_zmax, 0) - np.where(valid, dg_zmin, 0)) / 2, 0.0) ** 2)
             if j + 1 < J:
                 r = np.maximum(r, self._edge_child_bound(c, n, self.sq_c[j + 1], self.sq_r[j + 1]))
             self.dg_c[j], self.dg_r[j] = c, r
             # square diamonds (children: the edge diamonds on their 4 sides)
             uu, vv = np.meshgrid(np.arange(n), np.arange(n))
-            zc = (self.zmin[j] + self.zmax[j]) / 2
+            zc = (zmin + zmax) / 2
             c = self._world((uu + 0.5) * a, (vv + 0.5) * a, zc)
-            r = np.sqrt(half(a) ** 2 + ((self.zmax[j] - self.zmin[j]) / 2) ** 2)
+            r = np.sqrt(half(a) ** 2 + ((zmax - zmin) / 2) ** 2)
             for o, dv, du in ((0, 0, 0), (0, 1, 0), (1, 0, 0), (1, 0, 1)):
                 cc, rr = self.dg_c[j][o, dv:dv + n, du:du + n], self.dg_r[j][o, dv:dv + n, du:du + n]
                 r = np.maximum(r, np.linalg.norm(c - cc, axis=-1) + rr)
@@ -164,6 +171,20 @@ class PatchHierarchy:
                     d = np.linalg.norm(c[o] - kc[ri, ci], axis=-1) + kr[ri, ci]
                     out[o] = np.maximum(out[o], np.where(ok, d, 0.0))
         return out
+
+
+def world_box(layout: TerrainLayout, zmin0, zmax0, spacing=(1.0, 1.0), vscale: float = 1.0,
+              exaggeration: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """World box (lo, hi), float64 (3,), of the valid terrain from the stored whole-domain height
+    range (``lod/zmin/0``, ``lod/zmax/0``, (1, 1) each): exactly :meth:`PatchHierarchy.bounds`
+    of a hierarchy built with these arguments, without building it (the parent of a job fits
+    paths and clip planes with it)."""
+    dx, dy = (float(v) for v in spacing)
+    vs = float(vscale)
+    H = partial(heights, float(np.min(zmin0)) * vs, vs, float(exaggeration))
+    lo = np.array([0.0, -(layout.rows - 1) * dy, H(zmin0).min()])
+    hi = np.array([(layout.cols - 1) * dx, 0.0, H(zmax0).max()])
+    return lo, hi
 
 
 @dataclass

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..core.errors import MassviewError, ParallelError
 
-__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "raster_threads", "launch_env"]
+__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env"]
 
 _JOB_VARS = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "HYDRA_CONTROL_FD", "MASSVIEW_UNDER_MPI")
 
@@ -110,6 +110,22 @@ def reuse_freed_memory(mmap_max: int = 32 << 20, keep: int = 64 << 20) -> bool:
         return False
     m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's <malloc.h>
     return bool(mallopt(m_mmap_threshold, mmap_max)) and bool(mallopt(m_trim_threshold, keep))
+
+
+def return_free_heap() -> bool:
+    """Give the free pages of every malloc arena back to the kernel (glibc ``malloc_trim(0)``).
+    With :func:`reuse_freed_memory`'s settings glibc keeps freed blocks below 32 MiB for reuse,
+    so a one-off burst of temporaries (a terrain system's open: ~130 MiB at 32769²) would stay
+    resident for the whole run; systems call this once after such a burst, never per frame. A
+    no-op (False) where the C library is not glibc."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        trim = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return False
+    return bool(trim(0))
 
 
 def raster_threads(ranks_here: int, cores: int | None = None) -> int | None:

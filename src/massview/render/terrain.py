@@ -34,7 +34,7 @@ from .context import load_shader
 from .terrain_gbuffer import GBuffers
 from .terrain_plain import VERTEX_BYTES, PlainMeshRenderer, pack_block  # noqa: F401  (re-exported)
 
-__all__ = ["VERTEX_BYTES", "pack_block", "pack_payload", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
+__all__ = ["VERTEX_BYTES", "pack_block", "pack_payload", "layer_bytes", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
 
 
 
@@ -56,14 +56,22 @@ def _program(ctx: moderngl.Context, vert: str, frag: str) -> moderngl.Program:
     return ctx.program(vertex_shader=load_shader(vert), fragment_shader=fs)
 
 
+def layer_bytes(M: int, texel: int) -> int:
+    """GL's bytes for an M × M texture-array layer of ``texel``-byte texels (RGB16F is stored as
+    RGBA16F: 8; RGB8 as RGBA8: 4), rows padded to 64 bytes and 4 rows, as llvmpipe measured."""
+    return -(-M // 4) * 4 * (-(-M * texel // 64) * 64)
+
+
 class BlockPool:
     """Fixed GL slots for resident blocks, LRU; ``resident[level]`` is a (nb, nb) bool grid."""
 
     def __init__(self, ctx: moderngl.Context, M: int, levels: int, top: int, budget_bytes: int, ortho: bool = False):
         self.M, self.has_ortho = M, ortho
         self.vertex_bytes, self.shade_bytes = M * M * 4, M * M * 6
-        self.slot_bytes = self.vertex_bytes + self.shade_bytes + (M * M * 4 if ortho else 0)
-        self.capacity = min(int(budget_bytes // self.slot_bytes), int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256)))
+        self.slot_bytes = self.vertex_bytes + layer_bytes(M, 8) + (layer_bytes(M, 4) if ortho else 0)
+        self._fixed = 0 if ortho else layer_bytes(M, 4)  # the one-layer orthophoto array drawn when there is none
+        per_slot = self.slot_bytes + 16  # + its instance record
+        self.capacity = min(int((budget_bytes - self._fixed) // per_slot), int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256)))
         if self.capacity < 1:
             raise ConfigError(f"GL budget {budget_bytes} bytes is smaller than one block ({self.slot_bytes} bytes); raise --gpu-mb")
         self.vbo = ctx.buffer(reserve=self.capacity * self.vertex_bytes)
@@ -81,7 +89,7 @@ class BlockPool:
 
     @property
     def gpu_bytes(self) -> int:
-        return self.capacity * (self.slot_bytes + 16)
+        return self.capacity * (self.slot_bytes + 16) + self._fixed
 
     def upload(self, key: tuple[int, int, int], payload: np.ndarray, origin: tuple[int, int], step: int, keep: set) -> bool:
         """Put a block (a :func:`pack_payload` array) in a slot, evicting the LRU block not in

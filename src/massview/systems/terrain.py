@@ -39,10 +39,11 @@ from ..data.cache import BlockCache
 from ..data.terrain import TerrainStore
 from ..lod.cull import screen_rects
 from ..lod.blockindex import BlockIndex, KeepSet
-from ..lod.kpatch import Front, PatchHierarchy, patch_boxes, select_front, visible_patches
+from ..lod.kpatch import Front, PatchHierarchy, lookup_blocks, patch_boxes, select_front, visible_patches
 from ..lod.texlod import shading_blocks
 from ..parallel.decompose import parse_decomposition, sort_first_tiles, sort_last_ranges
 from ..parallel.exchange import agree_all, any_rank
+from ..parallel.runtime import return_free_heap
 from ..render.context import create_context, renderer_string
 from ..render.colormaps import Shading, paint_sky
 from ..render.terrain import BlockPool, TerrainRenderer, pack_payload
@@ -57,6 +58,18 @@ def _morton(i: np.ndarray, j: np.ndarray) -> np.ndarray:
     out = np.zeros_like(i)
     for b in range(32):
         out |= ((j >> b) & 1) << (2 * b) | ((i >> b) & 1) << (2 * b + 1)
+    return out
+
+
+def _mapped(a: np.ndarray) -> np.ndarray:
+    """A copy of uint8 ``a`` in its own anonymous mapping, unmapped when the last reference goes.
+    A staged block's bytes then leave the process when the GL pool takes it, instead of staying
+    in a loader thread's malloc arena (glibc keeps freed blocks below 32 MiB there:
+    :func:`massview.parallel.runtime.reuse_freed_memory`), so the RAM budget bounds resident bytes."""
+    import mmap
+
+    out = np.frombuffer(mmap.mmap(-1, max(a.nbytes, 1)), np.uint8, a.nbytes)
+    out[:] = a.reshape(-1)
     return out
 
 
@@ -85,6 +98,7 @@ class TerrainSystem:
         self.front: Front | None = None
         self._wanted: set = set()
         self._counted = dict(self.cache.counters)  # cache counters at the last frame's report
+        return_free_heap()  # the hierarchy's construction temporaries (~130 MiB at 32769²)
 
     # -- data ---------------------------------------------------------------------------
     def _hierarchy(self, exaggeration: float) -> PatchHierarchy:
@@ -98,7 +112,7 @@ class TerrainSystem:
         lv, i, j = key
         h = self.store.get_block(lv, i, j)
         color, shade = self.store.get_color(lv, i, j), self.store.get_shade(lv, i, j)
-        return pack_payload(h, shade, color)
+        return _mapped(pack_payload(h, shade, color))
 
     def shading(self, cfg: RenderConfig) -> Shading:
         cmap = cfg.colormap
@@ -141,12 +155,16 @@ class TerrainSystem:
                 span = (self.lay.M - 1) << key[0]
                 if pool.upload(key, verts, (key[1] * span, key[2] * span), 2 ** key[0], keep):
                     self._wanted.discard(key)
+                    self.cache.discard(key)  # the pool holds it now: RAM keeps only blocks not yet uploaded
                     n += 1
         return n
 
     def _request(self, lv, bi, bj, prio) -> None:
         ids = self._blocks.ids(lv, bi, bj)
         self._want_mask[ids] = True
+        _, pool, _, _ = self._renderers()
+        miss = ~lookup_blocks(pool.resident, np.asarray(lv), np.asarray(bi), np.asarray(bj))  # not agreed, but here
+        ids, prio = ids[miss], np.asarray(prio)[miss]
         for key, p in zip(self._blocks.keys(ids), prio.tolist()):
             self._wanted.add(key)
             self.cache.request(key, p)
@@ -200,7 +218,8 @@ class TerrainSystem:
             if not pool.resident[top[0]][0, 0]:
                 self._wanted.add(top)
                 self.cache.request(top, float("inf"))
-            stats.count("blocks_uploaded", self._upload_ready(KeepSet(self._blocks, self._keep_mask, self._tex_ids)))
+            keep = KeepSet(self._blocks, self._keep_mask, self._tex_ids)
+            stats.count("blocks_uploaded", self._upload_ready(keep))
             grids = self._agree(comm, pool, vp is not None)
             self._want_mask[:] = False
             front = select_front(self.h, camera, cfg.tau, grids, self._request, vp) if grids[top[0]][0, 0] else None
@@ -212,7 +231,7 @@ class TerrainSystem:
                 if have <= self._tex_have:
                     return front, grids
                 self._tex_have = have
-                self._wait_for_loads()
+                stats.count("blocks_uploaded", self._wait_for_loads(keep))
                 continue
             # complete loading: wait for the requested blocks; give up when the fronts stop
             # growing (blocks only cycle through budgets too small for this view)
@@ -222,7 +241,7 @@ class TerrainSystem:
             if stalled > 5:
                 raise ConfigError("--loading complete: the blocks this view needs do not fit the budgets "
                                   f"(--cache-mb {self.cache.budget >> 20}, --gpu-mb {self.gpu_bytes >> 20}); raise them or --tau")
-            self._wait_for_loads()
+            stats.count("blocks_uploaded", self._wait_for_loads(keep))
 
     def _agree(self, comm, pool, tiles: bool) -> list[np.ndarray]:
         """Blocks resident on every rank, as per-level grids. With per-tile cuts the same
@@ -261,12 +280,18 @@ class TerrainSystem:
     def _shading_missing(self, grids) -> bool:
         return self._shading_count(grids) < len(self._tex_ids)
 
-    def _wait_for_loads(self) -> None:
+    def _wait_for_loads(self, keep) -> int:
+        """Wait until the cache has loaded what was requested (at most 60 s), uploading blocks
+        to the pool as they arrive: the RAM cache then stages a few blocks at a time instead of
+        all a view needs (which was 160-190 MiB per rank on the 32769² flyover). Returns the
+        blocks uploaded."""
         import time
 
-        t0 = time.monotonic()
+        t0, n = time.monotonic(), 0
         while not self.cache.idle() and time.monotonic() - t0 < 60:
             time.sleep(0.002)
+            n += self._upload_ready(keep)
+        return n
 
     # -- plan and render ----------------------------------------------------------------
     def _visible(self, camera: Camera, vp=None) -> np.ndarray:

@@ -8,7 +8,7 @@ this registry (the first docstring line of a module is its help text).
 
 from __future__ import annotations
 
-from . import composite, dmmr, frame, ingest, lod, paraview, reliefboards, roettger, scene, scene_ingest, terrain
+from . import composite, dmmr, frame, ingest, lod, memory, paraview, reliefboards, roettger, scene, scene_ingest, terrain
 
 __all__ = ["BENCHES"]
 
@@ -24,4 +24,5 @@ BENCHES = {
     "reliefboards": reliefboards,
     "dmmr": dmmr,
     "lod": lod,
+    "memory": memory,
 }

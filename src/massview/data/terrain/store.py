@@ -233,6 +233,11 @@ class TerrainStore:
     def block_error(self, level: int) -> np.ndarray:
         return np.asarray(self.group[f"blocks/{level}/error"][...])
 
+    def height_ranges(self, j: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """(zmin, zmax) float32 (2^j, 2^j) of the level-j squares (``lod/zmin/<j>``,
+        ``lod/zmax/<j>``); level 0 is the whole domain's range (what the world box needs)."""
+        return np.asarray(self.group[f"lod/zmin/{j}"][...]), np.asarray(self.group[f"lod/zmax/{j}"][...])
+
     def lod_arrays(self):
         """(square_error[j], edge_error[j], zmin[j], zmax[j]) lists for the patch LOD."""
         J = self.layout.J
