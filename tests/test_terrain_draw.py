@@ -98,22 +98,33 @@ def test_new_draw_path_equals_old(small_store, colormap):
         sysm.close()
 
 
-def test_serial_wrap_zeroes_gbuffers(small_store):
-    """At the float32 serial limit the G-buffers are zeroed, so a stale pixel never matches."""
+def test_second_draw_shades_only_its_pixels(small_store):
+    """Two draws into one target (the second over part of the first, another tint): the
+    deferred pass of each shades only the pixels it wrote (the G-buffer is cleared per draw),
+    so the target equals the forward path's, after a different view filled the G-buffer."""
+    from massview.render.framebuffer import Framebuffer
+
     sysm = TerrainSystem(small_store, loading="complete")
     try:
         lo, hi = sysm.bounds
-        cam = load_path("flyover", lo, hi).camera(0.5, 200, 150)
-        far = load_path("zoom", lo, hi).camera(0.0, 200, 150)
         cfg = RenderConfig(width=200, height=150, loading="complete")
-        _, _, terrain, _ = sysm.renderers()
-        for c in (cam, far):  # fill the G-buffer with a different view first
-            sysm.prepare_frame(self_comm(), c, cfg, FrameStats(0, 0))
-            ref = _render(sysm, c, cfg, False)
-        terrain._gbuffers.serial = (1 << 24) - 1
-        got = _render(sysm, far, cfg, True)
-        assert terrain._gbuffers.serial == 1
-        assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1])
+        cam, far = (load_path(p, lo, hi).camera(t, 200, 150) for p, t in (("flyover", 0.5), ("zoom", 0.0)))
+        ctx, _, terrain, _ = sysm.renderers()
+        fb = Framebuffer(ctx, 200, 150)
+        out = []
+        for deferred in (False, True):
+            terrain.deferred = deferred
+            for c in (far, cam):
+                sysm.prepare_frame(self_comm(), c, cfg, FrameStats(0, 0))
+                fb.begin()
+                terrain.draw(sysm.front, c.view_projection(), eye=c.position)
+            part = sysm.front.take(np.arange(len(sysm.front) // 3))
+            terrain.draw(part, cam.view_projection(), (0.9, 0.1, 0.1, 0.5), cam.position)
+            ctx.finish()
+            out.append(fb.read(cam.viewport))
+        tinted = np.abs(out[0].color.astype(int) - out[0].color[..., ::-1].astype(int)).max() > 0
+        assert tinted and np.array_equal(out[0].color, out[1].color) and np.array_equal(out[0].depth, out[1].depth)
+        fb.release()
     finally:
         sysm.close()
 

@@ -30,8 +30,8 @@ import numpy as np
 from ..core.errors import ConfigError
 from ..lod.kpatch import lookup_blocks, refine_uniform
 from .colormaps import Shading
-from .context import load_shader
 from .terrain_gbuffer import GBuffers
+from .terrain_programs import TerrainPrograms, program
 from .terrain_plain import VERTEX_BYTES, PlainMeshRenderer, pack_block  # noqa: F401  (re-exported)
 
 __all__ = ["VERTEX_BYTES", "pack_block", "pack_payload", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
@@ -45,15 +45,6 @@ def pack_payload(heights: np.ndarray, shade: np.ndarray, ortho: np.ndarray | Non
     if ortho is not None:
         parts.append(np.ascontiguousarray(ortho, np.uint8).ravel())
     return np.concatenate(parts)
-
-
-def _program(ctx: moderngl.Context, vert: str, frag: str) -> moderngl.Program:
-    fs = load_shader(frag)
-    if "vec4 terrain_color(" in fs:
-        fs += load_shader("terrain_shading.glsl")
-    if "sky_color" in fs:
-        fs += load_shader("sky.glsl")
-    return ctx.program(vertex_shader=load_shader(vert), fragment_shader=fs)
 
 
 class BlockPool:
@@ -145,19 +136,18 @@ class TerrainRenderer:
                  base: float = 0.0, world_size: float = 1.0, deferred: bool = True, merge: bool = True):
         self.ctx, self.pool, self.k, self.deferred, self.merge = ctx, pool, k, bool(deferred), bool(merge)
         self.vscale, self.base, self.world_size = float(vscale), float(base), float(world_size)
-        self.prog = _program(ctx, "terrain.vert.glsl", "terrain.frag.glsl")
-        self._gprog = _program(ctx, "terrain.vert.glsl", "terrain_gbuffer.frag.glsl")
-        self._sprog = _program(ctx, "fullscreen.vert.glsl", "terrain_shade.frag.glsl")
-        self._shade_vao = ctx.vertex_array(self._sprog, [])
-        self._gbuffers = GBuffers(ctx)
-        self._uniform("u_M", pool.M)
-        self._uniform("u_scale", (float(spacing[0]), float(spacing[1]), float(vscale)))
-        self._uniform("u_extent", (float(extent[1] - 1), float(extent[0] - 1)))
         top = len(pool.slot_of) - 1
+        side = (pool.M - 1) * 2**top + 1  # samples a side, padding included
+        self.programs = TerrainPrograms(ctx, pool.M, padded=extent[0] < side or extent[1] < side)
+        self._shade_vao = ctx.vertex_array(self.programs.shade, [])
+        self._gbuffers = GBuffers(ctx)
+        self._uniform("u_scale", (float(spacing[0]), float(spacing[1]), float(vscale)))
+        self._uniform("u_spacing", (float(spacing[0]), float(spacing[1])))
+        self._uniform("u_extent", (float(extent[1] - 1), float(extent[0] - 1)))
         self._uniform("u_top", top)
         rows = np.cumsum([0] + [g.shape[0] for g in pool.slot_of])[:-1]
         self._uniform("u_pagerow", tuple(int(v) for v in rows) + (0,) * (16 - len(rows)))
-        for name, unit in (("u_shade", 0), ("u_ortho", 1), ("u_pages", 2), ("u_ramp", 3), ("u_g0", 4), ("u_g1", 5), ("u_g2", 6)):
+        for name, unit in (("u_shade", 0), ("u_ortho", 1), ("u_pages", 2), ("u_ramp", 3), ("u_g0", 4)):
             self._uniform(name, unit)
         nb0 = pool.slot_of[0].shape[0]
         self._pages = ctx.texture((nb0, sum(g.shape[0] for g in pool.slot_of)), 1, dtype="i4")
@@ -193,30 +183,28 @@ class TerrainRenderer:
         u("u_slope_scale", self.vscale * float(sh.exaggeration))
         u("u_sun", sh.sun_vector())
         u("u_light", (0.30, 0.95))
-        u("u_mode", 1 if sh.colormap == "ortho" and self.pool.has_ortho else (2 if sh.colormap in ("none", "ortho") else 0))
+        if self.programs.set_mode(1 if sh.colormap == "ortho" and self.pool.has_ortho else (2 if sh.colormap in ("none", "ortho") else 0)):
+            self._shade_vao.release()
+            self._shade_vao = self.ctx.vertex_array(self.programs.shade, [])
+            if getattr(self, "_ibo", None) is not None:
+                self._rebuild()
         u("u_haze", 0.35 * float(sh.haze) / max(self.world_size, 1e-9))  # haze 1: 30 % at the diagonal
         self._ramp.write(ramp(sh.colormap).tobytes())
         u("u_sky_horizon", SKY_HORIZON)
         u("u_sky_zenith", SKY_ZENITH)
 
     def _uniform(self, name: str, value) -> None:
-        """Set a uniform in every program that has it (forward, G-buffer, shading pass);
-        bytes are written raw (matrices)."""
-        for p in (self.prog, self._gprog, self._sprog):
-            if name in p:
-                if isinstance(value, bytes):
-                    p[name].write(value)
-                else:
-                    p[name].value = value
+        """Set a uniform in every program that has it (:class:`.terrain_programs.TerrainPrograms`)."""
+        self.programs.set(name, value)
 
     def world_vertices(self, key: tuple[int, int, int]) -> np.ndarray:
         """(M·M, 3) float32 world positions the vertex stage gives the samples of resident block
         ``key`` (transform feedback through terrain.vert.glsl with the current uniforms)."""
         pool, M = self.pool, self.pool.M
         s = pool.slots[key]
-        prog = self.ctx.program(vertex_shader=load_shader("terrain.vert.glsl"), varyings=["v_world"])
-        for name in ("u_M", "u_scale", "u_exag"):
-            prog[name].value = self.prog[name].value
+        prog = program(self.ctx, "terrain.vert.glsl", None, self.programs.defines, varyings=["v_world"])
+        for name in ("u_scale", "u_exag"):
+            prog[name].value = self.programs.get(name)
         inst = self.ctx.buffer(np.frombuffer(pool.inst.read(16, offset=s * 16), np.int32).tobytes())
         vao = self.ctx.vertex_array(prog, [(pool.vbo, "f", "in_h"), (inst, "4i/i", "in_slot")])
         out = self.ctx.buffer(reserve=M * M * 12)
@@ -254,8 +242,8 @@ class TerrainRenderer:
         sizes = np.array([len(d) for d in self._merged_data], np.int64)
         self._merged_first = len(self._pattern_data) * 3 * self.tris_per_patch + np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
         attrs = [(self.pool.vbo, "f", "in_h"), (self.pool.inst, "4i/i", "in_slot")]
-        self.vao = self.ctx.vertex_array(self.prog, attrs, index_buffer=self._ibo, index_element_size=4)
-        self._gvao = self.ctx.vertex_array(self._gprog, attrs, index_buffer=self._ibo, index_element_size=4)
+        self.vao = self.ctx.vertex_array(self.programs.forward, attrs, index_buffer=self._ibo, index_element_size=4)
+        self._gvao = self.ctx.vertex_array(self.programs.gbuffer, attrs, index_buffer=self._ibo, index_element_size=4)
 
     def _placement(self, front):
         """Per patch: its block's GL slot, index-pattern id, and its anchor's (row, col) inside
@@ -377,9 +365,7 @@ class TerrainRenderer:
         pass 1 wrote into the target's colour (:mod:`.terrain_gbuffer`)."""
         ctx = self.ctx
         target = ctx.fbo
-        self._uniform("u_serial", self._gbuffers.next_serial())
-        gfbo = self._gbuffers.for_target(target)
-        gfbo.use()
+        gfbo = self._gbuffers.begin(target)
         self._gvao.render_indirect(self._indirect, mode=moderngl.TRIANGLES, count=n)
         target.use()
         for unit, tex in enumerate(self._gbuffers.textures(gfbo), start=4):
@@ -390,7 +376,7 @@ class TerrainRenderer:
 
     def release(self) -> None:
         self._gbuffers.release()
-        for o in (self.vao, self._gvao, self._ibo, self._indirect, self._shade_vao, self.prog, self._gprog, self._sprog,
-                  self._pages, self._ramp):
+        for o in (self.vao, self._gvao, self._ibo, self._indirect, self._shade_vao, self._pages, self._ramp):
             if o is not None:
                 o.release()
+        self.programs.release()
