@@ -62,9 +62,10 @@ def test_renders_match_pre_change_golden(small_store):
 
 
 def _render(sysm, cam, cfg, new, vp=None, tint=(0, 0, 0, 0)):
-    """``new``: deferred shading and whole-block draws (the default); else the path before."""
+    """``new``: deferred shading and whole-block draws; False: the path before (forward, a
+    command per patch); None: the default (shading chosen per draw, whole-block draws)."""
     _, _, terrain, _ = sysm.renderers()
-    terrain.deferred = terrain.merge = new
+    terrain.deferred, terrain.merge = new, new is not False
     img = sysm.render(Task(0, vp or cam.viewport), cam, cfg, FrameStats(0, 0), tint=tint)
     return img.color.copy(), img.depth.copy()
 
@@ -146,5 +147,38 @@ def test_front_triangles_are_the_drawn_patches(small_store):
         r, c = (got // cols).astype(np.int64), (got % cols).astype(np.int64)  # every triangle faces up (culling)
         cross = (c[:, 1] - c[:, 0]) * (r[:, 2] - r[:, 0]) - (r[:, 1] - r[:, 0]) * (c[:, 2] - c[:, 0])
         assert (cross < 0).all()
+    finally:
+        sysm.close()
+
+
+def test_shading_path_follows_triangles_per_pixel(small_store):
+    """deferred=None (the default) shades deferred above DEFERRED_ABOVE triangles per pixel of
+    the target's scissor, forward below; either way the same bytes."""
+    from massview.render.terrain import DEFERRED_ABOVE
+
+    sysm = TerrainSystem(small_store, loading="complete")
+    try:
+        lo, hi = sysm.bounds
+        cam = load_path("flyover", lo, hi).camera(0.5, 160, 120)
+        cfg = RenderConfig(width=160, height=120, tau=0.3, loading="complete")
+        sysm.prepare_frame(self_comm(), cam, cfg, FrameStats(0, 0))
+        _, _, terrain, _ = sysm.renderers()
+        assert terrain.deferred is None
+        tris = len(sysm.front) * terrain.tris_per_patch
+        assert tris > DEFERRED_ABOVE * 160 * 120
+        for vp, want in ((None, True), (Viewport(0, 0, 160, 120), True)):
+            got = _render(sysm, cam, cfg, None, vp)
+            assert terrain.used_deferred is want
+        full = sysm.front
+        sysm.front = full.take(sysm.select(Task(0, cam.viewport), cam, cfg)[:8])  # a sparse share of the frame
+        try:
+            auto = _render(sysm, cam, cfg, None)
+            assert terrain.used_deferred is False
+            forced = _render(sysm, cam, cfg, True)
+            assert terrain.used_deferred is True
+            assert np.array_equal(auto[0], forced[0]) and np.array_equal(auto[1], forced[1])
+        finally:
+            sysm.front = full
+        assert got[0].shape == (120, 160, 4)
     finally:
         sysm.close()

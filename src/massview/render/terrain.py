@@ -15,9 +15,11 @@
   instead of 131 072 on a 4097² DEM; llvmpipe pays state, mapping and a pipeline flush per
   command). Shading is per pixel and independent of the geometric LOD: a page table (one
   texel per block of every level: its slot, or -1) lets the fragment stage read the shading
-  pyramid at the level matching the pixel footprint (terrain_shading.glsl). It is deferred
-  (:mod:`.terrain_gbuffer`): the geometry pass writes the shading's inputs, one full-screen
-  pass shades each pixel once, bit-identical to forward shading (kept: ``deferred=False``).
+  pyramid at the level matching the pixel footprint (terrain_shading.glsl). Shading is
+  forward or deferred (:mod:`.terrain_gbuffer`: the geometry pass writes the shading's inputs,
+  one full-screen pass shades each pixel once), bit-identical either way, chosen per draw by
+  triangles per target pixel (:data:`DEFERRED_ABOVE`).
+* Back faces are culled when the eye is above the terrain (:meth:`TerrainRenderer._cull`).
 """
 
 from __future__ import annotations
@@ -35,7 +37,14 @@ from .terrain_gbuffer import GBuffers
 from .terrain_programs import TerrainPrograms, program
 from .terrain_plain import VERTEX_BYTES, PlainMeshRenderer, pack_block  # noqa: F401  (re-exported)
 
-__all__ = ["VERTEX_BYTES", "pack_block", "pack_payload", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
+# Deferred shading pays a full-screen pass and a G-buffer; forward shading pays the shading on
+# every 4×4 stamp a triangle touches. Measured on llvmpipe (issue 20, CPU-ms of a draw, demo
+# flyover cameras, 1280×1024 and 1280×720, whole fronts and sort-last shares of them): deferred
+# ÷ forward 0.79–0.82 at 0.41–0.51 triangles a pixel, 0.99–1.25 at 0.20–0.26, 1.2–2.1 at
+# 0.10–0.17, 0.96 at full resolution (25 a pixel). Deferred above this many triangles a pixel.
+DEFERRED_ABOVE = 0.3
+
+__all__ = ["DEFERRED_ABOVE", "VERTEX_BYTES", "pack_block", "pack_payload", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
 
 
 
@@ -139,14 +148,18 @@ class BlockPool:
 class TerrainRenderer:
     """Draws fronts from ``pool`` with per-pixel shading. ``base`` is the lowest scaled height
     (exaggeration pivots on it), ``world_size`` the terrain's horizontal diagonal (haze scale).
-    ``deferred`` (default) shades in a second, per-pixel pass (:mod:`.terrain_gbuffer`);
-    ``False`` keeps the forward path, the reference it reproduces bit for bit. ``merge``
+    ``deferred``: True shades in a second, per-pixel pass (:mod:`.terrain_gbuffer`), False
+    per fragment (forward; the same bytes), None (default) picks per draw: deferred above
+    :data:`DEFERRED_ABOVE` triangles per pixel of the target's scissor (or viewport);
+    ``used_deferred`` tells what the last draw did. ``merge``
     (default) draws every block the front covers whole with one command (:meth:`_commands`);
     ``False`` keeps one command per patch."""
 
     def __init__(self, ctx: moderngl.Context, pool: BlockPool, k: int, spacing, vscale: float, extent: tuple[int, int],
-                 base: float = 0.0, world_size: float = 1.0, deferred: bool = True, merge: bool = True, peak: float = math.inf):
-        self.ctx, self.pool, self.k, self.deferred, self.merge = ctx, pool, k, bool(deferred), bool(merge)
+                 base: float = 0.0, world_size: float = 1.0, deferred: bool | None = None, merge: bool = True,
+                 peak: float = math.inf):
+        self.ctx, self.pool, self.k, self.deferred, self.merge = ctx, pool, k, deferred, bool(merge)
+        self.used_deferred = False
         self.vscale, self.base, self.world_size, self.peak = float(vscale), float(base), float(world_size), float(peak)
         self._footprint = ((extent[1] - 1) * float(spacing[0]), (extent[0] - 1) * float(spacing[1]))
         top = len(pool.slot_of) - 1
@@ -316,13 +329,21 @@ class TerrainRenderer:
         if self._cull(eye):
             self.ctx.enable(moderngl.CULL_FACE)
             self.ctx.cull_face, self.ctx.front_face = "back", "ccw"
-        if self.deferred:
+        self.used_deferred = self._use_deferred(n * self.tris_per_patch)
+        if self.used_deferred:
             self._draw_deferred(len(cmds))
         else:
             self.vao.render_indirect(self._indirect, mode=moderngl.TRIANGLES, count=len(cmds))
         self.ctx.disable(moderngl.CULL_FACE)
         self.draws = len(cmds)
         return n * self.tris_per_patch
+
+    def _use_deferred(self, triangles: int) -> bool:
+        if self.deferred is not None:
+            return bool(self.deferred)
+        fbo = self.ctx.fbo
+        w, h = fbo.scissor[2:]  # the viewport when no scissor is set
+        return triangles > DEFERRED_ABOVE * max(w * h, 1)
 
     def _cull(self, eye) -> bool:
         """Whether back faces can be culled without changing the image: the eye is above the
