@@ -45,6 +45,29 @@ def test_sky_matches_whole_image_reference(seed):
     assert np.array_equal(out.color[depth < 1], color[depth < 1])  # geometry untouched
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_sky_with_whole_sky_rows_matches_reference(seed, monkeypatch):
+    """A terrain view's mask: whole rows of sky above a wavy horizon, gaps below it (the dense
+    whole-row path, in blocks of rows, and the gathered partial rows together)."""
+    from massview.render import colormaps as cm
+
+    monkeypatch.setattr(cm, "_BLOCK", 320 * 7)  # several blocks of rows, the last one short
+    rng = np.random.default_rng(seed)
+    W, H = 320, 240
+    cam = Camera(position=(0, 0, 100), orientation=tuple(rng.normal(size=4)), fovy=float(rng.uniform(20, 80)),
+                 width=W, height=H)
+    vp = Viewport(0, 0, W, H) if seed % 2 == 0 else Viewport(40, 60, 200, 120)
+    edge = vp.h * (0.4 + 0.1 * np.sin(np.arange(vp.w) / rng.uniform(5, 40)))
+    depth = np.where(np.arange(vp.h)[:, None] < edge[None, :], 1.0, 0.4).astype(np.float32)
+    depth[vp.h // 2:, : vp.w // 5] = 1.0
+    depth[vp.h - 3:] = 1.0  # whole sky rows at the bottom too
+    color = rng.integers(0, 256, (vp.h, vp.w, 4), dtype=np.uint8)
+    img = Image(color, depth, vp)
+    out = paint_sky(cam, img)
+    assert (np.count_nonzero(depth >= 1, axis=1) == vp.w).sum() > 10
+    assert np.array_equal(out.color, _reference(cam, img))
+
+
 def test_no_background_returns_the_image():
     vp = Viewport(0, 0, 8, 8)
     img = Image(np.zeros((8, 8, 4), np.uint8), np.zeros((8, 8), np.float32), vp)

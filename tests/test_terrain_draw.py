@@ -62,9 +62,10 @@ def test_renders_match_pre_change_golden(small_store):
 
 
 def _render(sysm, cam, cfg, new, vp=None, tint=(0, 0, 0, 0)):
-    """``new``: deferred shading and whole-block draws (the default); else the path before."""
+    """``new``: deferred shading and whole-block draws; False: the path before (forward, a
+    command per patch); None: the default (shading chosen per draw, whole-block draws)."""
     _, _, terrain, _ = sysm.renderers()
-    terrain.deferred = terrain.merge = new
+    terrain.deferred, terrain.merge = new, new is not False
     img = sysm.render(Task(0, vp or cam.viewport), cam, cfg, FrameStats(0, 0), tint=tint)
     return img.color.copy(), img.depth.copy()
 
@@ -98,22 +99,33 @@ def test_new_draw_path_equals_old(small_store, colormap):
         sysm.close()
 
 
-def test_serial_wrap_zeroes_gbuffers(small_store):
-    """At the float32 serial limit the G-buffers are zeroed, so a stale pixel never matches."""
+def test_second_draw_shades_only_its_pixels(small_store):
+    """Two draws into one target (the second over part of the first, another tint): the
+    deferred pass of each shades only the pixels it wrote (the G-buffer is cleared per draw),
+    so the target equals the forward path's, after a different view filled the G-buffer."""
+    from massview.render.framebuffer import Framebuffer
+
     sysm = TerrainSystem(small_store, loading="complete")
     try:
         lo, hi = sysm.bounds
-        cam = load_path("flyover", lo, hi).camera(0.5, 200, 150)
-        far = load_path("zoom", lo, hi).camera(0.0, 200, 150)
         cfg = RenderConfig(width=200, height=150, loading="complete")
-        _, _, terrain, _ = sysm.renderers()
-        for c in (cam, far):  # fill the G-buffer with a different view first
-            sysm.prepare_frame(self_comm(), c, cfg, FrameStats(0, 0))
-            ref = _render(sysm, c, cfg, False)
-        terrain._gbuffers.serial = (1 << 24) - 1
-        got = _render(sysm, far, cfg, True)
-        assert terrain._gbuffers.serial == 1
-        assert np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1])
+        cam, far = (load_path(p, lo, hi).camera(t, 200, 150) for p, t in (("flyover", 0.5), ("zoom", 0.0)))
+        ctx, _, terrain, _ = sysm.renderers()
+        fb = Framebuffer(ctx, 200, 150)
+        out = []
+        for deferred in (False, True):
+            terrain.deferred = deferred
+            for c in (far, cam):
+                sysm.prepare_frame(self_comm(), c, cfg, FrameStats(0, 0))
+                fb.begin()
+                terrain.draw(sysm.front, c.view_projection(), eye=c.position)
+            part = sysm.front.take(np.arange(len(sysm.front) // 3))
+            terrain.draw(part, cam.view_projection(), (0.9, 0.1, 0.1, 0.5), cam.position)
+            ctx.finish()
+            out.append(fb.read(cam.viewport))
+        tinted = np.abs(out[0].color.astype(int) - out[0].color[..., ::-1].astype(int)).max() > 0
+        assert tinted and np.array_equal(out[0].color, out[1].color) and np.array_equal(out[0].depth, out[1].depth)
+        fb.release()
     finally:
         sysm.close()
 
@@ -131,6 +143,42 @@ def test_front_triangles_are_the_drawn_patches(small_store):
         tri = refine_uniform(f.ax, f.ay, f.lx, f.ly, f.rx, f.ry, 2 * sysm.lay.k)  # (n·4^k, 3, 2) (x, y)
         want = (tri[..., 1] * cols + tri[..., 0]).astype(np.uint32)
         assert len(f) > 50 and len(np.unique(f.level)) > 1
-        assert np.array_equal(got, want)
+        assert np.array_equal(got[:, 0], want[:, 0]) and np.array_equal(np.sort(got, 1), np.sort(want, 1))
+        r, c = (got // cols).astype(np.int64), (got % cols).astype(np.int64)  # every triangle faces up (culling)
+        cross = (c[:, 1] - c[:, 0]) * (r[:, 2] - r[:, 0]) - (r[:, 1] - r[:, 0]) * (c[:, 2] - c[:, 0])
+        assert (cross < 0).all()
+    finally:
+        sysm.close()
+
+
+def test_shading_path_follows_triangles_per_pixel(small_store):
+    """deferred=None (the default) shades deferred above DEFERRED_ABOVE triangles per pixel of
+    the target's scissor, forward below; either way the same bytes."""
+    from massview.render.terrain import DEFERRED_ABOVE
+
+    sysm = TerrainSystem(small_store, loading="complete")
+    try:
+        lo, hi = sysm.bounds
+        cam = load_path("flyover", lo, hi).camera(0.5, 160, 120)
+        cfg = RenderConfig(width=160, height=120, tau=0.3, loading="complete")
+        sysm.prepare_frame(self_comm(), cam, cfg, FrameStats(0, 0))
+        _, _, terrain, _ = sysm.renderers()
+        assert terrain.deferred is None
+        tris = len(sysm.front) * terrain.tris_per_patch
+        assert tris > DEFERRED_ABOVE * 160 * 120
+        for vp, want in ((None, True), (Viewport(0, 0, 160, 120), True)):
+            got = _render(sysm, cam, cfg, None, vp)
+            assert terrain.used_deferred is want
+        full = sysm.front
+        sysm.front = full.take(sysm.select(Task(0, cam.viewport), cam, cfg)[:8])  # a sparse share of the frame
+        try:
+            auto = _render(sysm, cam, cfg, None)
+            assert terrain.used_deferred is False
+            forced = _render(sysm, cam, cfg, True)
+            assert terrain.used_deferred is True
+            assert np.array_equal(auto[0], forced[0]) and np.array_equal(auto[1], forced[1])
+        finally:
+            sysm.front = full
+        assert got[0].shape == (120, 160, 4)
     finally:
         sysm.close()

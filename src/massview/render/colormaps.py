@@ -63,9 +63,13 @@ def paint_sky(camera, img):
 
     The ray terms are separable (one vector per row, one per column), so they are evaluated
     only at the background pixels: the same float64 operations in the same order as a
-    whole-image evaluation, hence the same bytes, at a cost proportional to the sky's area."""
-    rows, cols = np.nonzero(img.depth >= 1.0)
-    if rows.size == 0:
+    whole-image evaluation, hence the same bytes, at a cost proportional to the sky's area.
+    Rows that are all sky (most of it in a terrain view) are evaluated densely by broadcasting
+    the row and column terms, in blocks of about ``_BLOCK`` pixels that stay in cache, and
+    written as whole rows; only rows the horizon crosses gather their background pixels."""
+    bg = img.depth >= 1.0
+    count = np.count_nonzero(bg, axis=1)
+    if not count.any():
         return img
     vp = img.viewport
     t = math.tan(math.radians(camera.fovy) / 2)
@@ -73,15 +77,35 @@ def paint_sky(camera, img):
     py = 1 - (vp.y + np.arange(vp.h) + 0.5) / camera.height * 2
     rot = np.asarray(camera.view_matrix())[:3, :3].T  # camera-to-world
     col_x = px * t * camera.width / camera.height
-    dz = (py * t * rot[2, 1])[rows] + (col_x * rot[2, 0])[cols]
-    dz -= rot[2, 2]
-    norm = (col_x ** 2)[cols] + ((py * t) ** 2)[rows]
+    terms = (py * t * rot[2, 1], col_x * rot[2, 0], (py * t) ** 2, col_x ** 2, rot[2, 2])
+    color = img.color.copy()
+    step = max(1, _BLOCK // vp.w)
+    full = np.flatnonzero(count == vp.w)
+    for a in range(0, full.size, step):  # whole rows of sky, a block of rows at a time
+        rows = full[a:a + step]
+        dz = _elevation(terms, rows[:, None], slice(None))
+        color[rows] = _sky_rgba(dz.ravel()).reshape(len(rows), vp.w, 4)
+    partial = (count > 0) & (count < vp.w)
+    if partial.any():
+        rows, cols = np.nonzero(bg & partial[:, None])
+        color[rows, cols] = _sky_rgba(_elevation(terms, rows, cols))
+    return type(img)(color, img.depth, vp)
+
+
+_BLOCK = 1 << 16  # pixels per block of whole sky rows (float64 temporaries of 512 KiB)
+
+
+def _elevation(terms, rows, cols) -> np.ndarray:
+    """Sines of the view rays' elevation (float64) at ``rows`` × ``cols`` (index arrays that
+    broadcast): (row term + column term − r22) / √(column² + row² + 1), in this order."""
+    a_row, a_col, n_row, n_col, r22 = terms
+    dz = a_row[rows] + a_col[cols]
+    dz -= r22
+    norm = n_col[cols] + n_row[rows]
     norm += 1.0
     np.sqrt(norm, out=norm)
-    dz /= norm  # sine of the ray's elevation
-    color = img.color.copy()
-    color[rows, cols] = _sky_rgba(dz)
-    return type(img)(color, img.depth, vp)
+    dz /= norm
+    return dz
 
 
 def _sky_rgba(e: np.ndarray) -> np.ndarray:

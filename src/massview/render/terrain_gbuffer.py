@@ -1,16 +1,18 @@
-"""Deferred terrain shading: G-buffers that share the target's depth, and the two passes.
+"""Deferred terrain shading: a G-buffer that shares the target's depth, and the two passes.
 
 Why: on llvmpipe a triangle that covers any pixel centre runs the fragment shader on a whole
-4×4 stamp. At full resolution (33.5 M triangles on 1.3 M pixels) nearly every triangle is
-sub-pixel, so the forward path ran the per-pixel shading (page table, two pyramid fetches,
-haze, sky) ~16× per triangle instead of once per pixel. Here pass 1 draws the geometry with
-a trivial shader writing the shading's inputs (terrain_gbuffer.frag.glsl); pass 2 shades each
-written pixel once (terrain_shade.frag.glsl). Both passes call the same ``terrain_color()``
-(terrain_shading.glsl) on the same float32 values the forward shader interpolates and
-differentiates, so images are the forward path's bit for bit (tests/test_terrain_draw.py).
+4×4 stamp. With small triangles (a LOD front at one pixel of error: ~1 pixel each; full
+resolution: sub-pixel) the forward path ran the per-pixel shading (page table, two pyramid
+fetches, haze, sky) many times per pixel. Here pass 1 draws the geometry with a trivial shader
+writing the shading's inputs (terrain_gbuffer.frag.glsl); pass 2 shades each written pixel once
+(terrain_shade.frag.glsl). Both passes use the same ``terrain_lod()`` and ``terrain_color()``
+(terrain_lod.glsl, terrain_shading.glsl) on the same float32 values as the forward shader, so
+images are the forward path's bit for bit (tests/test_terrain_draw.py).
 
-G-buffer per target (``W×H``): ``g0`` RGBA32F (grid.xy, dFdx grid.xy), ``g1`` RGBA32F (dFdy
-grid.xy, world.xy), ``g2`` RG32F (world.z, draw serial): 40 bytes per pixel.
+G-buffer per target (``W×H``): one RGBA32F texture (grid.xy, world z, pyramid level): 16 bytes
+a pixel, one render target (the geometry pass's cost per 4×4 stamp grows with the targets it
+writes). It is cleared to level −1 before each draw (colour only; the depth is the target's),
+so pass 2 shades exactly the pixels pass 1 wrote in this draw.
 """
 
 from __future__ import annotations
@@ -18,9 +20,7 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
-__all__ = ["GBuffers", "SERIAL_LIMIT"]
-
-SERIAL_LIMIT = 1 << 24  # serials stay exact in float32
+__all__ = ["GBuffers"]
 
 
 def _alive(obj) -> bool:
@@ -34,22 +34,10 @@ class GBuffers:
     def __init__(self, ctx: moderngl.Context, keep: int = 4):
         self.ctx, self.keep = ctx, keep
         self._entries: list[tuple] = []  # (target, depth, fbo, textures)
-        self.serial = 0
 
-    def next_serial(self) -> float:
-        """A serial for the next draw; at the float32 limit every G-buffer is zeroed first, so
-        no stale pixel can carry a reused serial."""
-        self.serial += 1
-        if self.serial >= SERIAL_LIMIT:
-            for *_, texs in self._entries:
-                for t in texs:
-                    t.write(np.zeros(t.width * t.height * t.components, np.float32).tobytes())
-            self.serial = 1
-        return float(self.serial)
-
-    def for_target(self, target: moderngl.Framebuffer) -> moderngl.Framebuffer:
+    def begin(self, target: moderngl.Framebuffer) -> moderngl.Framebuffer:
         """The G-buffer framebuffer of ``target`` (created on first use), with ``target``'s
-        viewport and scissor."""
+        viewport and scissor, cleared to level −1 inside the scissor (colour only) and bound."""
         depth = target.depth_attachment
         if depth is None:
             raise RuntimeError("deferred terrain shading needs a target with a depth attachment")
@@ -59,13 +47,18 @@ class GBuffers:
             if len(self._entries) >= self.keep:
                 self._drop(self._entries.pop(0))
             w, h = target.size
-            texs = [self.ctx.texture((w, h), c, np.zeros(w * h * c, np.float32).tobytes(), dtype="f4") for c in (4, 4, 2)]
+            texs = [self.ctx.texture((w, h), 4, dtype="f4")]
             for t in texs:
                 t.filter = (moderngl.NEAREST, moderngl.NEAREST)
             entry = (target, depth, self.ctx.framebuffer(color_attachments=texs, depth_attachment=depth), texs)
             self._entries.append(entry)
         fbo = entry[2]
         fbo.viewport, fbo.scissor = target.viewport, target.scissor
+        fbo.depth_mask = False  # clear the colour only: the depth is the target's
+        fbo.use()
+        fbo.clear(0.0, 0.0, 0.0, -1.0)
+        fbo.depth_mask = True
+        fbo.use()
         return fbo
 
     def textures(self, fbo: moderngl.Framebuffer) -> list[moderngl.Texture]:

@@ -130,7 +130,8 @@ class TerrainSystem:
             pool = BlockPool(ctx, self.lay.M, self.lay.levels, self.lay.L, self.gpu_bytes, ortho=self.store.has_color)
             lo, hi = self.h.bounds()
             terrain = TerrainRenderer(ctx, pool, self.lay.k, self.store.spacing, self.store.vertical_scale,
-                                      (self.lay.rows, self.lay.cols), base=self.h.base, world_size=float(np.hypot(*(hi - lo)[:2])))
+                                      (self.lay.rows, self.lay.cols), base=self.h.base, world_size=float(np.hypot(*(hi - lo)[:2])),
+                                      peak=float(np.max(self._lod[3][0])) * self.store.vertical_scale)  # back-face culling above it
             self._gl = (ctx, pool, terrain, ViewRenderer(ctx))
         return self._gl
 

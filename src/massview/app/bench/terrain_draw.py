@@ -10,7 +10,9 @@ For each case the same triangles are drawn (every path draws the front's own tri
 the front's order) by
 
 * ``K-patch`` — :class:`~massview.render.terrain.TerrainRenderer` as the system draws
-  (deferred shading, one multi-draw-indirect call: a command per whole block, else per patch);
+  (forward or deferred shading by triangles per pixel, back faces culled with the eye above
+  the terrain, one multi-draw-indirect call: a command per whole block, else per patch);
+* ``K-patch, forward`` / ``K-patch, deferred`` — the same with the shading forced;
 * ``K-patch, a draw per patch`` — the same without merging whole blocks into one command;
 * ``K-patch before`` — forward per-fragment shading and a draw per patch: the path before
   issue 20 (kept selectable as the reference the new one reproduces bit for bit);
@@ -142,14 +144,17 @@ def _case(sysm, st, heights, color, name, cam, tau, reps, mesh: Path | None, con
             return terrain.draw(front, mvp, eye=cam.position)
         return fn
 
-    paths = {"K-patch": kpatch(True, True), "K-patch, a draw per patch": kpatch(True, False),
-             "K-patch before (forward, a draw per patch)": kpatch(False, False), "plain mesh": lambda: plain.draw(mvp)}
+    paths = {"K-patch": kpatch(None, True), "K-patch, forward": kpatch(False, True), "K-patch, deferred": kpatch(True, True),
+             "K-patch, a draw per patch": kpatch(None, False), "K-patch before (forward, a draw per patch)": kpatch(False, False),
+             "plain mesh": lambda: plain.draw(mvp)}
     times: dict[str, list] = {k: [] for k in paths}
     counts: dict[str, list] = {k: [] for k in paths}
     draws = {}
     for k, fn in paths.items():  # warm-up (shader variants, buffer residency, merged patterns)
         _time(fb, ctx, fn, [], [])
         draws[k] = terrain.draws
+        if k == "K-patch":
+            auto = "deferred" if terrain.used_deferred else "forward"
     for _ in range(reps):
         for k, fn in paths.items():
             _time(fb, ctx, fn, times[k], counts[k])
@@ -164,6 +169,7 @@ def _case(sysm, st, heights, color, name, cam, tau, reps, mesh: Path | None, con
     fb.release()
     console.print(f"{name}: {cam.width}x{cam.height}, τ = {tau:g}, {len(front)} patches (per level {levels.tolist()}), "
                   f"draw commands {draws['K-patch']} merged / {draws['K-patch, a draw per patch']} per patch, "
+                  f"K-patch shading {auto} ({counts['K-patch'][0] / (cam.width * cam.height):.2f} triangles a pixel), "
                   f"readback (colour + depth) {np.median(rb) * 1e3:.1f} ms")
     return rows
 

@@ -1,15 +1,16 @@
 // Per-pixel terrain shading (included by terrain.frag.glsl, forward, and terrain_shade.frag.glsl,
-// deferred): the colour of the terrain at finest-sample coordinates `grid` with screen
-// derivatives gx = dFdx(grid), gy = dFdy(grid) and world position `world`.
+// deferred): the colour of the terrain at finest-sample coordinates `grid`, shading pyramid
+// level `lod` (terrain_lod.glsl, included with it: u_top) and world height `z` (world x, y are
+// the grid's: x = col·dx, y = −row·dy). MODE (a compile-time constant, one program per colour
+// mode) picks the base colour: 0 the ramp, 1 the orthophoto, 2 grey; only its fetches run.
 uniform vec4 u_tint;
 uniform sampler2DArray u_shade;
 uniform sampler2DArray u_ortho;
 uniform isampler2D u_pages;   // slot of block (level, i, j) at (j, row0[level] + i), -1 if absent
 uniform sampler2D u_ramp;     // 256 × 1 colour ramp over the height range
-uniform int u_M;
-uniform int u_top;            // top pyramid level L
+const int u_M = BLOCK_M;       // samples per block side
 uniform int u_pagerow[16];
-uniform int u_mode;           // 0 ramp, 1 orthophoto, 2 grey
+uniform vec2 u_spacing;       // dx, dy: metres per finest sample
 uniform float u_slope_scale;  // vertical scale × exaggeration
 uniform vec3 u_sun;           // unit vector towards the sun
 uniform vec2 u_light;         // sky (ambient) and sun weights
@@ -28,7 +29,11 @@ void fetch(int lv, vec2 g, out vec3 shade, out vec3 rgb) {
         if (slot >= 0) {
             vec3 uvw = vec3(((g - vec2(b * span)) / float(1 << lv) + 0.5) / float(u_M), float(slot));
             shade = texture(u_shade, uvw).rgb;
-            rgb = u_mode == 1 ? texture(u_ortho, uvw).rgb : vec3(0.0);
+#if MODE == 1
+            rgb = texture(u_ortho, uvw).rgb;
+#else
+            rgb = vec3(0.0);
+#endif
             return;
         }
     }
@@ -36,8 +41,7 @@ void fetch(int lv, vec2 g, out vec3 shade, out vec3 rgb) {
     rgb = vec3(0.5);
 }
 
-vec4 terrain_color(vec2 grid, vec2 gx, vec2 gy, vec3 world) {
-    float lod = clamp(log2(max(max(length(gx), length(gy)), 1e-6)), 0.0, float(u_top));
+vec4 terrain_color(vec2 grid, float lod, float z) {
     int l0 = int(floor(lod));
     vec3 s, rgb;
     fetch(l0, grid, s, rgb);
@@ -49,11 +53,16 @@ vec4 terrain_color(vec2 grid, vec2 gx, vec2 gy, vec3 world) {
         rgb = mix(rgb, rgb1, fr);
     }
     vec3 n = normalize(vec3(-u_slope_scale * s.x, -u_slope_scale * s.y, 1.0));
-    vec3 base = u_mode == 0 ? texture(u_ramp, vec2(clamp(s.z, 0.0, 1.0) * (255.0 / 256.0) + 0.5 / 256.0, 0.5)).rgb
-              : (u_mode == 1 ? rgb : vec3(0.82));
+#if MODE == 0
+    vec3 base = texture(u_ramp, vec2(clamp(s.z, 0.0, 1.0) * (255.0 / 256.0) + 0.5 / 256.0, 0.5)).rgb;
+#elif MODE == 1
+    vec3 base = rgb;
+#else
+    vec3 base = vec3(0.82);
+#endif
     float light = u_light.x * (0.5 + 0.5 * n.z) + u_light.y * max(dot(n, u_sun), 0.0);
     vec3 c = base * light;
-    vec3 view = world - u_eye;
+    vec3 view = vec3(grid.x * u_spacing.x, -grid.y * u_spacing.y, z) - u_eye;
     float fog = 1.0 - exp(-u_haze * length(view));
     c = mix(c, sky_color(view), fog);
     return vec4(mix(c, u_tint.rgb, u_tint.a), 1.0);
