@@ -7,13 +7,14 @@ is missing.
 
 from __future__ import annotations
 
+import ctypes
 import importlib.resources
 
 import moderngl
 
 from ..core.errors import GLUnavailableError
 
-__all__ = ["create_context", "renderer_string", "load_shader"]
+__all__ = ["create_context", "renderer_string", "load_shader", "finish"]
 
 _INSTALL_HINT = (
     "massview renders headless through EGL. Install the EGL loader and an OpenGL driver: "
@@ -44,3 +45,34 @@ def renderer_string(ctx: moderngl.Context) -> str:
 def load_shader(name: str) -> str:
     """GLSL source shipped in ``massview/render/shaders``."""
     return importlib.resources.files("massview.render").joinpath("shaders").joinpath(name).read_text()
+
+
+def _gl_finish():
+    """``glFinish`` through ctypes from the GL dispatch library the context's calls go through
+    (glvnd's libGL, or libOpenGL), or None. ctypes releases the GIL for the call; moderngl's
+    ``ctx.finish()`` keeps it while llvmpipe's raster threads draw the frame, which stops every
+    other Python thread of the rank (the pipelined loop's compositing thread) for most of a
+    frame (issue 20: a compositing thread ran at 0.05–0.07× its speed during draws)."""
+    for name in ("libGL.so.1", "libOpenGL.so.0"):
+        try:
+            fn = ctypes.CDLL(name).glFinish
+        except (OSError, AttributeError):
+            continue
+        fn.restype, fn.argtypes = None, []
+        return fn
+    return None
+
+
+_FINISH: list = []
+
+
+def finish(ctx: moderngl.Context) -> None:
+    """Wait until ``ctx`` (the current context) has executed every GL command, letting other
+    Python threads run meanwhile; falls back to ``ctx.finish()``."""
+    if not _FINISH:
+        _FINISH.append(_gl_finish())
+    fn = _FINISH[0]
+    if fn is None:
+        ctx.finish()
+    else:
+        fn()

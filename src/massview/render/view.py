@@ -23,6 +23,7 @@ import numpy as np
 from ..core.camera import Camera, Viewport
 from ..core.image import Image, blank_image
 from ..core.stats import FrameStats
+from .context import finish
 from .framebuffer import Framebuffer
 
 __all__ = ["ViewRenderer"]
@@ -57,7 +58,7 @@ class ViewRenderer:
                 full = vp == camera.viewport
                 fb.begin(scissor=None if full else vp)
                 stats.triangles += draw(camera.view_projection())
-            self.ctx.finish()
+            finish(self.ctx)  # releases the GIL while the raster threads draw
         with stats.stage("readback"):
             return fb.read(vp, origin=vp if tile_target else None)
 

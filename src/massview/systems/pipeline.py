@@ -8,13 +8,12 @@ on its own duplicate of the communicator — so the two threads' collectives nev
 on one communicator — and hands the tile to the sink. MPI runs at ``MPI_THREAD_MULTIPLE``
 (mpi4py's default; the mpich wheel provides it), mpi4py releases the GIL in blocking calls and
 numpy inside its large loops, so the communication thread runs while the main thread waits in
-MPI or numpy or runs Python. It does not run while the main thread is inside a GL call:
-moderngl keeps the GIL for the whole call, including ``ctx.finish()``, which waits for
-llvmpipe's raster threads to draw the frame — most of a frame's draw stage. ``massview bench
-frame`` measures this (its GIL probe: a compositing thread ran at 0.07× its own speed during
-draws, under load) and how busy the synchronous loop keeps the cores, the two reasons the
-pipelined loop gains little on a 2-core llvmpipe machine; a ``glFinish`` through ctypes
-(which releases the GIL) in ``render/view.py`` would let compositing overlap the raster wait.
+MPI or numpy or runs Python. moderngl keeps the GIL inside its GL calls, so the wait for
+llvmpipe's raster threads to draw the frame — most of a frame's draw stage — goes through
+``render.context.finish`` (``glFinish`` through ctypes, which releases the GIL) instead of
+``ctx.finish()``: the compositing thread runs during that wait. ``massview bench frame``
+measures this (its GIL probe) and how busy the synchronous loop keeps the cores, which bounds
+what the pipelined loop can gain on a 2-core llvmpipe machine.
 
 At most ``in_flight`` frames are between "drawing started" and "delivered" (default 2: one
 being composited, one being drawn); results come back in frame order, and every rank waits at
