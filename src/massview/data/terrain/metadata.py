@@ -41,19 +41,24 @@ class Metadata:
     zhi: float
 
 
-def _row_stats(row: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
-    """(nb, 2) min/max, (nb,) max dropped-sample δ and the δ arrays of a block row (nb, M, M)."""
-    nb = row.shape[0]
+def _row_stats(row: np.ndarray, zacc: DiamondAccumulator | None = None, i: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(nb, 2) min/max and (nb,) max dropped-sample δ (:func:`meta.vertex_deltas`) of a block
+    row (nb, M, M); with ``zacc`` (level 0) also the z-ranges of its squares, all in one
+    compiled pass per block (:func:`rowkernels.block_stats`)."""
+    from .rowkernels import block_stats
+
+    nb, M = row.shape[0], row.shape[1]
+    f = 2**zacc.lay.k if zacc is not None else 0
+    n = (M - 1) // f if f else 0
     mm = np.empty((nb, 2), np.float32)
     dm = np.empty(nb, np.float32)
-    deltas = []
     for j in range(nb):
-        b = row[j]
-        mm[j] = b.min(), b.max()
-        d = vertex_deltas(b)
-        dm[j] = max(float(x.max()) if x.size else 0.0 for x in d)
-        deltas.append(d)
-    return mm, dm, deltas
+        lo, hi = np.empty((n, n), np.float32), np.empty((n, n), np.float32)
+        mn, mx, d = block_stats(np.ascontiguousarray(row[j], np.float32), f, lo, hi)
+        mm[j], dm[j] = (mn, mx), d
+        if zacc is not None:
+            zacc.put_zrange(i, j, lo, hi)
+    return mm, dm
 
 
 def compute_metadata(store: TerrainStore, prog: Progress, write_color: bool = False, ortho: RasterSource | None = None,
@@ -72,18 +77,17 @@ def compute_metadata(store: TerrainStore, prog: Progress, write_color: bool = Fa
     dmax = [np.zeros((lay.blocks(lv), lay.blocks(lv)), np.float32) for lv in range(lay.levels)]
 
     def level0_row(i: int, row: np.ndarray):
-        mm, dm, _ = _row_stats(row)
+        mm, dm = _row_stats(row, acc, i)
         dev = devs.get()
         try:
             for j in range(row.shape[0]):
-                acc.add_zrange(i, j, row[j])
                 dev.add_block(i, j, row[j])
         finally:
             devs.put(dev)
         return 0, i, mm, dm
 
     def other_row(lv: int, i: int, row: np.ndarray):
-        mm, dm, _ = _row_stats(row)
+        mm, dm = _row_stats(row)
         return lv, i, mm, dm
 
     def tasks():

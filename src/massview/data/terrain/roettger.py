@@ -56,6 +56,17 @@ def local_d2(grid: np.ndarray, d: int) -> np.ndarray:
     return dev / np.float32(d)
 
 
+def _local_d2_compiled(grid: np.ndarray, d: int) -> np.ndarray:
+    """:func:`local_d2` in one compiled pass (the same float32 operations; ingest only, so the
+    renderer's use of :func:`table_from_grid` does not load numba)."""
+    from .rowkernels import local_d2 as kernel
+
+    g = np.ascontiguousarray(grid, np.float32)
+    out = np.empty(((g.shape[0] - 1) // 2, (g.shape[1] - 1) // 2), np.float32)
+    kernel(g, d, out)
+    return out
+
+
 def propagate_into(coarse: np.ndarray, fine: np.ndarray, row0: int, K: float) -> None:
     """Max-merge ``K × fine`` into ``coarse`` (in place) for every coarse node that a fine node
     lies in or touches along an edge from outside. ``fine`` holds fine node rows
@@ -137,7 +148,7 @@ def iter_table(store: TerrainStore, C_min: float = DEFAULT_C_MIN,
     for t in range(n - 1, -1, -1):
         d, level = 2 ** (n - t), n - t - 1
         for g0, strip in _grid_strips(store, level):
-            a = local_d2(strip, d)
+            a = _local_d2_compiled(strip, d)
             if t == n - 1:
                 if cur is not None:
                     propagate_into(cur, a, g0 // 2, K)
