@@ -27,6 +27,8 @@ from typing import Callable
 
 import numpy as np
 
+from .store import block_view, wide_row
+
 __all__ = ["shade_block", "write_shading", "horn_slopes", "tent_decimate"]
 
 # elevation fraction → RGB (lowland green, upland ochre, rock grey, snow)
@@ -59,21 +61,6 @@ def tent_decimate(g: np.ndarray) -> np.ndarray:
     g = g.astype(np.float32, copy=False)
     v = g[:-2:2] * 0.25 + g[1:-1:2] * 0.5 + g[2::2] * 0.25
     return v[:, :-2:2] * 0.25 + v[:, 1:-1:2] * 0.5 + v[:, 2::2] * 0.25
-
-
-def _wide(blocks: np.ndarray) -> np.ndarray:
-    """(nb, M, M, ...) blocks of one block row → (M, nb·(M-1)+1, ...) global rows."""
-    nb, M = blocks.shape[0], blocks.shape[1]
-    out = np.empty((M, nb * (M - 1) + 1) + blocks.shape[3:], blocks.dtype)
-    for j in range(nb):
-        out[:, j * (M - 1): j * (M - 1) + M] = blocks[j]
-    return out
-
-
-def _blocks(wide: np.ndarray, nb: int, M: int) -> np.ndarray:
-    """(M, nb·(M-1)+1, ...) global rows → (nb, M, M, ...) blocks, as a view (no copy)."""
-    st = wide.strides
-    return np.lib.stride_tricks.as_strided(wide, (nb, M, M) + wide.shape[2:], ((M - 1) * st[1],) + st, writeable=False)
 
 
 _LUT: list = []
@@ -117,7 +104,7 @@ def _shade0_row(prev, cur, nxt, dx: float, dy: float, zlo: float, rng: float, ds
     """Level-0 shading of block row i (:func:`shade0_wide`); writes ``dst[i]``, returns the row."""
     out = shade0_wide(prev, cur, nxt, dx, dy, zlo, rng)
     M = cur.shape[0]
-    dst.write(i, 0, _blocks(out, (cur.shape[1] - 1) // (M - 1), M))
+    dst.write(i, 0, block_view(out, (cur.shape[1] - 1) // (M - 1), M))
     return out
 
 
@@ -125,7 +112,7 @@ def _tent_row(rows: dict, i: int, dst) -> np.ndarray:
     """Level-l block row i (:func:`tent_wide`); writes ``dst[i]``, returns the row."""
     out = tent_wide(rows, i)
     M = out.shape[0]
-    dst.write(i, 0, _blocks(out, (out.shape[1] - 1) // (M - 1), M))
+    dst.write(i, 0, block_view(out, (out.shape[1] - 1) // (M - 1), M))
     return out
 
 
@@ -152,7 +139,7 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
         rows = {}
         for i in range(nb0 + 1):
             if i < nb0:
-                rows[i] = _wide(store.get_block_row(0, i))
+                rows[i] = wide_row(store.get_block_row(0, i))
             if i >= 1:
                 k = i - 1
                 yield (lambda k=k, p=rows.get(k - 1), c=rows[k], n=rows.get(k + 1):

@@ -52,7 +52,7 @@ from .colors import write_shading
 from .layout import TerrainLayout
 from .metadata import Metadata, compute_metadata, write_metadata
 from .sources import RasterSource
-from .store import ChunkWriter, TerrainStore, create_store
+from .store import ChunkWriter, TerrainStore, block_view, create_store, wide_row
 from .workers import resolve_workers, run_ordered
 
 __all__ = ["prepare_terrain", "PrepareResult", "fill_nodata", "compute_metadata", "write_metadata", "Metadata"]
@@ -171,7 +171,6 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
         if not resumed:  # created by this run, nothing of value in it: leave no store behind
             shutil.rmtree(out, ignore_errors=True)
         raise
-    _coarser_levels(g, lay, prog, workers)
 
     # 3. metadata and colour --------------------------------------------------------------
     store = TerrainStore(out, require_complete=False)
@@ -195,81 +194,59 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
 
 
 def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress, workers: int = 1) -> int:
-    """Phase 1; returns the number of filled samples (all runs). Raises IngestError when no
-    input sample is valid. Strips are read and filled in order here (each needs the row above
-    it); worker threads compress and write them, and a block row is flagged done, in order,
-    only once its chunks are on disk."""
-    nb0 = lay.blocks(0)
-    done0 = g["blocks/0/done"]
-    flags = np.asarray(done0[...])
+    """Phases 1 and 2 in one pass; returns the number of filled samples (all runs). Raises
+    IngestError when no input sample is valid. Strips are read and filled in order here (each
+    needs the row above it), and every coarser level's block row is decimated here, in memory,
+    as soon as its two finer rows exist (every other sample of both: what decimating their
+    2 × 2 child blocks gives); worker threads compress and write the rows, and a block row is
+    flagged done, in order, only once its chunks are on disk. Rows done in an earlier run are
+    read back (level 0) or re-made (coarser levels) to feed the levels above, not rewritten."""
+    M, nlev = lay.M, lay.levels
+    dones = [g[f"blocks/{lv}/done"] for lv in range(nlev)]
+    flags = [np.asarray(d[...]) for d in dones]
     heights0 = g["heights/0"]
-    out = ChunkWriter(g, "heights/0")
+    writers = [ChunkWriter(g, f"heights/{lv}") for lv in range(nlev)]
     state = {"filled": int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0}
 
-    def write(bi: int, strip: np.ndarray, nfill: int):
-        out.write(bi, 0, np.stack([strip[:, bj * (block - 1): bj * (block - 1) + block] for bj in range(nb0)]))
-        return bi, nfill
+    def write(lv: int, i: int, wide: np.ndarray | None, nfill: int):
+        if wide is not None:
+            writers[lv].write(i, 0, block_view(wide, lay.blocks(lv), M))
+        return lv, i, wide is not None, nfill
 
     def tasks():
-        prev_row = None
-        for bi in range(nb0):
-            if flags[bi].all():  # done in an earlier run: rebuild its last row from the stored blocks
-                last = np.asarray(heights0[bi, :, -1, :])  # (nb0, M); neighbours share their border sample
-                prev_row = np.concatenate([last[:, :-1].ravel(), last[-1, -1:]])
-                yield lambda bi=bi: (bi, None)
-                continue
-            strip, nfill = _read_strip(src, lay, bi, prev_row)
+        prev_row, waiting = None, {}  # waiting: level → its even wide row, until the odd one comes
+        for bi in range(lay.blocks(0)):
+            if flags[0][bi].all():  # done in an earlier run: read it back for the levels above
+                strip, nfill = wide_row(np.asarray(heights0[bi])), 0
+                yield lambda bi=bi: write(0, bi, None, 0)
+            else:
+                strip, nfill = _read_strip(src, lay, bi, prev_row)
+                yield lambda bi=bi, strip=strip, nfill=nfill: write(0, bi, strip, nfill)
             prev_row = strip[-1].copy()
-            yield lambda bi=bi, strip=strip, nfill=nfill: write(bi, strip, nfill)
+            lv, i, wide = 0, bi, strip
+            while lv + 1 < nlev and i % 2 == 1:
+                wide = np.concatenate([waiting.pop(lv)[0::2, ::2], wide[2::2, ::2]])  # rows 0..M-1 of 2i, 2..M-1 of 2i+1
+                lv, i = lv + 1, i // 2
+                keep = None if flags[lv][i].all() else wide
+                yield lambda lv=lv, i=i, keep=keep: write(lv, i, keep, 0)
+            if lv + 1 < nlev:
+                waiting[lv] = wide
 
     def done(res) -> None:
-        bi, nfill = res
-        if nfill is not None:
+        lv, i, wrote, nfill = res
+        if wrote:
+            dones[lv][i, :] = 1
+        if wrote and lv == 0:
             state["filled"] += nfill
-            done0[bi, :] = 1
             nod = dict(g.attrs["nodata"])
             nod["filled"] = state["filled"]
             g.attrs["nodata"] = nod
-        prog("level 0", nb0, nb0 * nb0)
+        prog(f"level {lv}", lay.blocks(lv), lay.blocks(lv) ** 2)
 
     run_ordered(workers, tasks(), done)
     if state["filled"] >= src.rows * src.cols:  # (a fresh run fails in the first strip already; this catches resumed ones)
         _first_valid_row(src, src.rows)
     return state["filled"]
 
-
-def _coarser_levels(g, lay: TerrainLayout, prog: Progress, workers: int = 1) -> None:
-    """Phase 2: levels 1..L by decimation of 2 × 2 child blocks (resumable per block row;
-    rows read in order here, decimated and written by worker threads)."""
-    for lv in range(1, lay.levels):
-        nb = lay.blocks(lv)
-        done = g[f"blocks/{lv}/done"]
-        flags = np.asarray(done[...])
-        child, out = g[f"heights/{lv - 1}"], ChunkWriter(g, f"heights/{lv}")
-
-        def make(i: int, two: np.ndarray, nb=nb, out=out) -> int:
-            out.write(i, 0, np.stack([_decimate(two[:, 2 * j: 2 * j + 2]) for j in range(nb)]))
-            return i
-
-        def tasks(nb=nb, flags=flags, child=child, make=make):
-            for i in range(nb):
-                if flags[i].all():
-                    yield lambda i=i: -1 - i
-                else:  # (2, 2nb, M, M): the two child block rows
-                    yield lambda i=i, two=np.asarray(child[2 * i: 2 * i + 2]): make(i, two)
-
-        def finished(i: int, nb=nb, done=done, lv=lv) -> None:
-            if i >= 0:
-                done[i, :] = 1
-            prog(f"level {lv}", nb, nb * nb)
-
-        run_ordered(workers, tasks(), finished)
-
-
-def _decimate(quad: np.ndarray) -> np.ndarray:
-    """The parent block of a (2, 2, M, M) quad of child blocks: every other sample."""
-    top = np.concatenate([quad[0, 0], quad[0, 1][:, 1:]], 1)
-    bottom = np.concatenate([quad[1, 0], quad[1, 1][:, 1:]], 1)
-    return np.concatenate([top, bottom[1:]], 0)[::2, ::2]
 
 
