@@ -116,13 +116,16 @@ def _tent_row(rows: dict, i: int, dst) -> np.ndarray:
     return out
 
 
-def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int, int], None], workers: int | None = None) -> None:
+def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int, int], None], workers: int | None = None,
+                  row_hook: Callable[[int, np.ndarray], None] | None = None) -> None:
     """Compute ``shade/<l>`` for every level of ``store`` into the zarr group ``g``.
 
     Level 0 block rows are computed by worker threads from the wide height rows read in order
     here; each finished row (float16, as stored) feeds the coarser levels in memory — block
     row i of level l is made as soon as rows 2i-1 .. 2i+2 of level l-1 exist — so no level is
-    read back. Every output sample is the same float32 expression as on the whole grid."""
+    read back. Every output sample is the same float32 expression as on the whole grid.
+    ``row_hook(i, blocks)``, when given, also runs on the worker for every level-0 block row
+    (``prepare`` computes the exact errors that need the whole level 0 there)."""
     from .store import ChunkWriter
     from .workers import resolve_workers, run_ordered
 
@@ -142,9 +145,13 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
                 rows[i] = wide_row(store.get_block_row(0, i))
             if i >= 1:
                 k = i - 1
-                yield (lambda k=k, p=rows.get(k - 1), c=rows[k], n=rows.get(k + 1):
-                       (k, _shade0_row(p, c, n, dx, dy, zlo, rng, writers[0], k)))
+                yield lambda k=k, p=rows.get(k - 1), c=rows[k], n=rows.get(k + 1): _level0_task(k, p, c, n)
                 rows.pop(k - 1, None)
+
+    def _level0_task(k: int, p, c, n):
+        if row_hook is not None:
+            row_hook(k, block_view(c, nb0, M))
+        return k, _shade0_row(p, c, n, dx, dy, zlo, rng, writers[0], k)
 
     def done(res) -> None:
         k, wide = res

@@ -49,8 +49,9 @@ import numpy as np
 
 from ...core.errors import IngestError
 from .colors import write_shading
+from .deviation import coarse_lattice
 from .layout import TerrainLayout
-from .metadata import Metadata, compute_metadata, write_metadata
+from .metadata import Metadata, MetadataBuilder, compute_metadata, write_colors, write_metadata
 from .sources import RasterSource
 from .store import ChunkWriter, TerrainStore, block_view, create_store, wide_row
 from .workers import resolve_workers, run_ordered
@@ -165,8 +166,9 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite)
     workers = resolve_workers(workers)
     prog = progress or (lambda phase, adv, total: None)
+    build = MetadataBuilder(lay, workers)
     try:
-        filled = _level0(g, src, lay, block, resumed, prog, workers)
+        filled = _level0(g, src, lay, block, resumed, prog, workers, build)
     except IngestError:
         if not resumed:  # created by this run, nothing of value in it: leave no store behind
             shutil.rmtree(out, ignore_errors=True)
@@ -174,9 +176,16 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
 
     # 3. metadata and colour --------------------------------------------------------------
     store = TerrainStore(out, require_complete=False)
-    meta = compute_metadata(store, prog, write_color=ortho is not None, ortho=ortho, vertical_scale=vertical_scale, workers=workers)
+    zlo, zhi = build.zlo_zhi
+    hook = None
+    if lay.J > lay.m:  # exact errors over lattice squares larger than a block: they need the coarse lattice
+        build.set_coarse(coarse_lattice(store))
+        hook = lambda i, row: build.errors(i, row, "window")  # noqa: E731
+    write_shading(store, g, zlo, zhi, prog, workers, row_hook=hook)
+    meta = build.finish()
+    if ortho is not None:
+        write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
     write_metadata(g, lay, meta)
-    write_shading(store, g, meta.zlo, meta.zhi, prog, workers)
     from .roettger import DEFAULT_C_MIN, iter_table, write_table  # T2's per-node table (Röttger d2)
 
     write_table(g, iter_table(store, DEFAULT_C_MIN, prog), DEFAULT_C_MIN)
@@ -193,7 +202,8 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     return res
 
 
-def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress, workers: int = 1) -> int:
+def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress, workers: int,
+            build: MetadataBuilder) -> int:
     """Phases 1 and 2 in one pass; returns the number of filled samples (all runs). Raises
     IngestError when no input sample is valid. Strips are read and filled in order here (each
     needs the row above it), and every coarser level's block row is decimated here, in memory,
@@ -208,27 +218,28 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
     writers = [ChunkWriter(g, f"heights/{lv}") for lv in range(nlev)]
     state = {"filled": int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0}
 
-    def write(lv: int, i: int, wide: np.ndarray | None, nfill: int):
-        if wide is not None:
-            writers[lv].write(i, 0, block_view(wide, lay.blocks(lv), M))
-        return lv, i, wide is not None, nfill
+    def write(lv: int, i: int, wide: np.ndarray, keep: bool, nfill: int):
+        blocks = block_view(wide, lay.blocks(lv), M)
+        if keep:
+            writers[lv].write(i, 0, blocks)
+        build.row(lv, i, blocks, "grid")
+        return lv, i, keep, nfill
 
     def tasks():
         prev_row, waiting = None, {}  # waiting: level → its even wide row, until the odd one comes
         for bi in range(lay.blocks(0)):
             if flags[0][bi].all():  # done in an earlier run: read it back for the levels above
-                strip, nfill = wide_row(np.asarray(heights0[bi])), 0
-                yield lambda bi=bi: write(0, bi, None, 0)
+                strip = wide_row(np.asarray(heights0[bi]))
+                yield lambda bi=bi, strip=strip: write(0, bi, strip, False, 0)
             else:
                 strip, nfill = _read_strip(src, lay, bi, prev_row)
-                yield lambda bi=bi, strip=strip, nfill=nfill: write(0, bi, strip, nfill)
+                yield lambda bi=bi, strip=strip, nfill=nfill: write(0, bi, strip, True, nfill)
             prev_row = strip[-1].copy()
             lv, i, wide = 0, bi, strip
             while lv + 1 < nlev and i % 2 == 1:
                 wide = np.concatenate([waiting.pop(lv)[0::2, ::2], wide[2::2, ::2]])  # rows 0..M-1 of 2i, 2..M-1 of 2i+1
                 lv, i = lv + 1, i // 2
-                keep = None if flags[lv][i].all() else wide
-                yield lambda lv=lv, i=i, keep=keep: write(lv, i, keep, 0)
+                yield lambda lv=lv, i=i, wide=wide, keep=not flags[lv][i].all(): write(lv, i, wide, keep, 0)
             if lv + 1 < nlev:
                 waiting[lv] = wide
 
