@@ -166,9 +166,11 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite)
     workers = resolve_workers(workers)
     prog = progress or (lambda phase, adv, total: None)
-    build = MetadataBuilder(lay, workers)
+    from .roettger import DEFAULT_C_MIN, TableBuilder, write_table  # T2's per-node table (Röttger d2)
+
+    build, table = MetadataBuilder(lay, workers), TableBuilder(lay, DEFAULT_C_MIN)
     try:
-        filled = _level0(g, src, lay, block, resumed, prog, workers, build)
+        filled = _level0(g, src, lay, block, resumed, prog, workers, (build, table))
     except IngestError:
         if not resumed:  # created by this run, nothing of value in it: leave no store behind
             shutil.rmtree(out, ignore_errors=True)
@@ -186,9 +188,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     if ortho is not None:
         write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
     write_metadata(g, lay, meta)
-    from .roettger import DEFAULT_C_MIN, iter_table, write_table  # T2's per-node table (Röttger d2)
-
-    write_table(g, iter_table(store, DEFAULT_C_MIN, prog), DEFAULT_C_MIN)
+    write_table(g, table.depths(prog), DEFAULT_C_MIN)
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
@@ -203,7 +203,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
 
 
 def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress, workers: int,
-            build: MetadataBuilder) -> int:
+            builders: tuple) -> int:
     """Phases 1 and 2 in one pass; returns the number of filled samples (all runs). Raises
     IngestError when no input sample is valid. Strips are read and filled in order here (each
     needs the row above it), and every coarser level's block row is decimated here, in memory,
@@ -212,6 +212,7 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
     flagged done, in order, only once its chunks are on disk. Rows done in an earlier run are
     read back (level 0) or re-made (coarser levels) to feed the levels above, not rewritten."""
     M, nlev = lay.M, lay.levels
+    build, table = builders  # MetadataBuilder, roettger.TableBuilder: fed every row on the workers
     dones = [g[f"blocks/{lv}/done"] for lv in range(nlev)]
     flags = [np.asarray(d[...]) for d in dones]
     heights0 = g["heights/0"]
@@ -223,6 +224,7 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
         if keep:
             writers[lv].write(i, 0, blocks)
         build.row(lv, i, blocks, "grid")
+        table.strip(lv, i * (M - 1), wide)
         return lv, i, keep, nfill
 
     def tasks():
