@@ -41,7 +41,8 @@ from __future__ import annotations
 import math
 import shutil
 import time
-from dataclasses import dataclass
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -71,6 +72,7 @@ class PrepareResult:
     resumed: bool
     input_bytes: int
     warnings: list[str]
+    stages: dict = field(default_factory=dict)  # {stage: (wall s, CPU s of the whole process)}
 
     @property
     def filled_fraction(self) -> float:
@@ -166,33 +168,21 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite)
     workers = resolve_workers(workers)
     prog = progress or (lambda phase, adv, total: None)
-    from .roettger import DEFAULT_C_MIN, TableBuilder, write_table  # T2's per-node table (Röttger d2)
+    from .roettger import DEFAULT_C_MIN, TableBuilder  # T2's per-node table (Röttger d2)
 
-    build, table = MetadataBuilder(lay, workers), TableBuilder(lay, DEFAULT_C_MIN)
+    build, table, stages = MetadataBuilder(lay, workers), TableBuilder(lay, DEFAULT_C_MIN), {}
     try:
-        filled = _level0(g, src, lay, block, resumed, prog, workers, (build, table))
+        with _stage(stages, "pyramid, metadata, local d2"):
+            filled = _level0(g, src, lay, block, resumed, prog, workers, (build, table))
     except IngestError:
         if not resumed:  # created by this run, nothing of value in it: leave no store behind
             shutil.rmtree(out, ignore_errors=True)
         raise
-
-    # 3. metadata and colour --------------------------------------------------------------
-    store = TerrainStore(out, require_complete=False)
-    zlo, zhi = build.zlo_zhi
-    hook = None
-    if lay.J > lay.m:  # exact errors over lattice squares larger than a block: they need the coarse lattice
-        build.set_coarse(coarse_lattice(store))
-        hook = lambda i, row: build.errors(i, row, "window")  # noqa: E731
-    write_shading(store, g, zlo, zhi, prog, workers, row_hook=hook)
-    meta = build.finish()
-    if ortho is not None:
-        write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
-    write_metadata(g, lay, meta)
-    write_table(g, table.depths(prog), DEFAULT_C_MIN)
+    meta = _shading_and_tables(g, out, lay, build, table, stages, prog, workers, ortho, vertical_scale)
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
-    res = PrepareResult(Path(out), lay, seconds, filled, resumed, src.rows * src.cols * src.dtype.itemsize, [])
+    res = PrepareResult(Path(out), lay, seconds, filled, resumed, src.rows * src.cols * src.dtype.itemsize, [], stages)
     if res.filled_fraction > 0.5:
         res.warnings.append(f"{src.name}: {res.filled_fraction:.0%} of the samples were nodata/NaN/inf and were filled from their "
                             "neighbours; check the nodata value (--nodata) and the extent")
@@ -200,6 +190,38 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
         res.warnings.append(f"{src.name} has no georeference: assumed 1 m sample spacing; pass --spacing DX[,DY] (and --crs) "
                             "if the samples are further apart")
     return res
+
+
+@contextmanager
+def _stage(stages: dict, name: str):
+    """Record the wall time and the process's CPU time (every thread) of a stage."""
+    w, c = time.perf_counter(), time.process_time()
+    yield
+    stages[name] = (time.perf_counter() - w, time.process_time() - c)
+
+
+def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder, table, stages: dict, prog: Progress,
+                        workers: int, ortho, vertical_scale: float) -> Metadata:
+    """Phases 3–5 after the pyramid pass: the shading pyramid (its level-0 pass also computes
+    the exact errors over lattice squares larger than a block, which need the coarse lattice
+    of the finished pyramid), the orthophoto colour, the metadata arrays and the Röttger table."""
+    from .roettger import DEFAULT_C_MIN, write_table
+
+    store = TerrainStore(out, require_complete=False)
+    zlo, zhi = build.zlo_zhi
+    hook = None
+    with _stage(stages, "shading, window errors"):
+        if lay.J > lay.m:
+            build.set_coarse(coarse_lattice(store))
+            hook = lambda i, row: build.errors(i, row, "window")  # noqa: E731
+        write_shading(store, g, zlo, zhi, prog, workers, row_hook=hook)
+    with _stage(stages, "colour, metadata, Röttger table"):
+        meta = build.finish()
+        if ortho is not None:
+            write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
+        write_metadata(g, lay, meta)
+        write_table(g, table.depths(prog), DEFAULT_C_MIN)
+    return meta
 
 
 def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress, workers: int,
