@@ -4,19 +4,24 @@ Phases (each resumable — a block is flagged ``done`` only after it is written,
 is marked ``complete`` last, so an interrupted prepare re-run with the same arguments
 continues where it stopped and a half-written store never opens as a good one):
 
-1. **level 0** in strips of M rows (one block row): windowed read, nodata/NaN filled from
-   valid neighbours (iterative 4-neighbour averaging inside the strip plus a margin; what is
-   still empty takes the mean of the strip's valid samples; a first strip with no valid sample
-   repeats the first valid row below it, never a made-up 0), padded by edge replication at
-   the outer border only, cut into blocks. The shared row between strips is taken from the
-   strip above, so borders are bit-identical in both blocks.
-2. **levels 1..L** by vertex decimation of 2 × 2 child blocks.
-3. **metadata** (:mod:`metadata`; and orthophoto colour): every block is read back once;
-   min/max, dropped-sample errors, square z-ranges (:mod:`meta`) and exact K-patch diamond
-   errors (:mod:`deviation`, whose per-sample loop is compiled: :mod:`kernels`);
-4. **shading pyramid** (:mod:`colors`): slopes and height fractions, seamless and mip-filtered,
-   the coarser levels made in memory from the finer rows.
-5. **Röttger table** (:mod:`roettger`), one depth at a time, written as it is made.
+1. **the pyramid, in one pass over the input**: level 0 in strips of M rows (one block row):
+   windowed read, nodata/NaN filled from valid neighbours (iterative 4-neighbour averaging
+   inside the strip plus a margin; what is still empty takes the mean of the strip's valid
+   samples; a first strip with no valid sample repeats the first valid row below it, never a
+   made-up 0), padded by edge replication at the outer border only, cut into blocks. The
+   shared row between strips is taken from the strip above, so borders are bit-identical in
+   both blocks. Levels 1..L by vertex decimation, in memory, as soon as the two finer block
+   rows exist. Every row, on a worker: compressed and written, its blocks' metadata
+   (:mod:`metadata`: min/max, dropped-sample errors, square z-ranges (:mod:`meta`), the exact
+   K-patch errors a block alone decides (:mod:`deviation`, compiled: :mod:`kernels`)) and its
+   Röttger local d2 (:class:`roettger.TableBuilder`), each in one compiled pass
+   (:mod:`rowkernels`);
+2. **the Röttger table**'s propagation, finest depth first, written as it is made (and freed);
+3. **shading pyramid** (:mod:`colors`): level 0 read back once; slopes and height fractions
+   (they need the data's height range, known only now), seamless and mip-filtered, the coarser
+   levels made in memory from the finer rows; the same workers compute the exact errors over
+   lattice squares larger than a block (they need the finished coarse lattice);
+4. **orthophoto colour** (if any) and the metadata arrays.
    ``height_range`` is the full-resolution (level 0) min/max, i.e. the data's own range.
 
 Every phase runs on ``workers`` threads (:mod:`workers`; default every core): rows are read in
@@ -31,9 +36,10 @@ ahead for a valid row), and the store this run created is removed (a resumed one
 samples filled, or no georeference (1 m spacing assumed), is reported in
 ``PrepareResult.warnings`` (the CLI prints them).
 
-Peak memory is a few block rows per worker (17 MB each at 16385², 34 MB at 32769²), the
-diamond arrays and, at the end, two depths of the Röttger table (80 MiB at 16385², 320 MiB at
-32769²).
+Peak memory: a few block rows per worker (17 MB each at 16385², 34 MB at 32769²; float16
+shading rows 1.5× that), the metadata accumulators and, during the pyramid pass, every depth
+of the Röttger table (4/3 of its finest stored depth: 85 MiB at 16385², 341 MiB at 32769²),
+freed before the shading pass.
 """
 
 from __future__ import annotations
@@ -202,11 +208,14 @@ def _stage(stages: dict, name: str):
 
 def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder, table, stages: dict, prog: Progress,
                         workers: int, ortho, vertical_scale: float) -> Metadata:
-    """Phases 3–5 after the pyramid pass: the shading pyramid (its level-0 pass also computes
-    the exact errors over lattice squares larger than a block, which need the coarse lattice
-    of the finished pyramid), the orthophoto colour, the metadata arrays and the Röttger table."""
+    """Phases 3–5 after the pyramid pass: the Röttger table, the shading pyramid (its level-0
+    pass also computes the exact errors over lattice squares larger than a block, which need
+    the coarse lattice of the finished pyramid), the orthophoto colour and the metadata arrays."""
     from .roettger import DEFAULT_C_MIN, write_table
 
+    with _stage(stages, "Röttger table"):  # first: frees its arrays (341 MiB at 32769²) before the shading pass
+        write_table(g, table.depths(prog), DEFAULT_C_MIN)
+        table.top = None
     store = TerrainStore(out, require_complete=False)
     zlo, zhi = build.zlo_zhi
     hook = None
@@ -215,12 +224,11 @@ def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder
             build.set_coarse(coarse_lattice(store))
             hook = lambda i, row: build.errors(i, row, "window")  # noqa: E731
         write_shading(store, g, zlo, zhi, prog, workers, row_hook=hook)
-    with _stage(stages, "colour, metadata, Röttger table"):
+    with _stage(stages, "colour, metadata"):
         meta = build.finish()
         if ortho is not None:
             write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
         write_metadata(g, lay, meta)
-        write_table(g, table.depths(prog), DEFAULT_C_MIN)
     return meta
 
 
