@@ -78,11 +78,12 @@ def block_stats(b, f, lo, hi):
     into ``lo``/``hi`` ((M-1)/f)²."""
     M = b.shape[0]
     mn, mx, dm = b[0, 0], b[0, 0], np.float32(0.0)
-    for r in range(M):
-        for c in range(M):
-            v = b[r, c]
-            mn = min(mn, v)
-            mx = max(mx, v)
+    if f == 0:  # (with z-ranges, the block's min/max are theirs: every sample lies in a square)
+        for r in range(M):
+            for c in range(M):
+                v = b[r, c]
+                mn = min(mn, v)
+                mx = max(mx, v)
     h = (M - 1) // 2
     for i in range(h + 1):
         for j in range(h + 1):
@@ -106,6 +107,7 @@ def block_stats(b, f, lo, hi):
                         zl = min(zl, b[r, c])
                         zh = max(zh, b[r, c])
                 lo[a, q], hi[a, q] = zl, zh
+                mn, mx = min(mn, zl), max(mx, zh)
     return mn, mx, dm
 
 

@@ -115,13 +115,16 @@ class ChunkWriter:
         self.blosc = codecs[1]._blosc_codec
         self.root = Path(str(group.store.root)) / group.path / name / "c" if group.path else Path(str(group.store.root)) / name / "c"
         self.tail = ["0"] * (arr.ndim - 2)
+        self._made: set = set()
 
     def write(self, i: int, j0: int, blocks: np.ndarray) -> None:
         """Blocks (n, M, M[, 3]) into chunks (i, j0 .. j0+n-1)."""
         for k in range(blocks.shape[0]):
             data = self.blosc.encode(np.ascontiguousarray(blocks[k], self.dtype).reshape(-1).view(np.uint8))
             path = self.root.joinpath(str(i), str(j0 + k), *self.tail)
-            path.parent.mkdir(parents=True, exist_ok=True)
+            if path.parent not in self._made:  # (one mkdir per chunk folder, not per write)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                self._made.add(path.parent)
             path.write_bytes(data)
 
 
