@@ -172,7 +172,8 @@ class TableBuilder:
     :func:`iter_table` does, under a lock because neighbouring strips' pushes share rows; max
     is exact, so the order does not matter — and :meth:`depths` finishes the propagation,
     finest depth first. Holds every depth at once: 4/3 of depth n-2 (85 MiB at 16385²,
-    341 MiB at 32769²)."""
+    341 MiB at 32769²); the propagation runs in bands of 512 rows, so its temporaries stay small
+    (whole-array temporaries were 2× the finest depth)."""
 
     def __init__(self, layout, C_min: float = DEFAULT_C_MIN):
         import threading
@@ -205,8 +206,8 @@ class TableBuilder:
             self.strip(level, 0, np.ascontiguousarray(self.top[::step, ::step]))
         for t in range(n - 2, -1, -1):
             done, self.d2[t] = self.d2[t], None
-            if t >= 1:
-                propagate_into(self.d2[t - 1], done, 0, self.K)
+            for r in range(0, done.shape[0] if t >= 1 else 0, 512):  # in row bands: bounded temporaries, same maxima
+                propagate_into(self.d2[t - 1], done[r: r + 512], r, self.K)
             if progress:
                 progress("roettger", 1, n - 1)
             yield t, done
