@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -102,7 +104,10 @@ def cmd_prepare(args) -> int:
     print(f"{'resumed and completed' if res.resumed else 'wrote'} {res.path}: {res.layout.rows}x{res.layout.cols} samples, "
           f"{res.layout.levels} levels of {res.layout.M}² blocks, {res.filled} nodata samples filled, "
           f"{res.seconds:.1f} s ({mb / max(res.seconds, 1e-9):.1f} MB/s)")
+    print("stages (wall, CPU of all threads): " + "; ".join(f"{k} {w:.1f} s, {c:.1f} s" for k, (w, c) in res.stages.items()))
     _warn(res.warnings)
+    if os.environ.get("MASSVIEW_STAGES_FILE"):  # for `massview bench ingest`
+        Path(os.environ["MASSVIEW_STAGES_FILE"]).write_text(json.dumps(res.stages))
     return 0
 
 

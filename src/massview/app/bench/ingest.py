@@ -22,6 +22,7 @@ compression ratio, the store size, peak RSS and the per-rank peaks. Nothing is a
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -103,7 +104,13 @@ def run(args) -> int:
     if args.no_color:
         cmd.append("--no-color")
     console.print("running: " + " ".join(cmd[2:]))
-    run = run_measured(cmd, work / "prepare.peak_rss")
+    stages_file = work / "prepare.stages.json"
+    stages_file.unlink(missing_ok=True)
+    os.environ["MASSVIEW_STAGES_FILE"] = str(stages_file)
+    try:
+        run = run_measured(cmd, work / "prepare.peak_rss")
+    finally:
+        del os.environ["MASSVIEW_STAGES_FILE"]
     if run.returncode != 0:
         console.print(f"[red]prepare failed (exit {run.returncode})[/]")
         return run.returncode
@@ -116,6 +123,8 @@ def run(args) -> int:
     t.add_row("prepare CPU time (user + system)", f"{run.cpu_s:.1f} s ({run.cpu_s / prep_s:.2f} cores busy)")
     t.add_row("prepare throughput", f"{nbytes / 1e6 / prep_s:.1f} MB/s (target 100)")
     t.add_row("throughput per CPU-second", f"{nbytes / 1e6 / max(run.cpu_s, 1e-9):.1f} MB/s")
+    for name, (w, c) in (json.loads(stages_file.read_text()) if stages_file.exists() else {}).items():
+        t.add_row(f"  stage: {name}", f"{w:.1f} s wall, {c:.1f} CPU-s ({c / max(w, 1e-9):.2f} cores)")
     t.add_row("copy baseline (same bytes)", f"{copy_s:.1f} s, {nbytes / 1e6 / copy_s:.1f} MB/s")
     t.add_row("prepare ÷ copy time", f"{prep_s / copy_s:.1f}×")
     t.add_row("height compression ratio", f"{info['compression_ratio']:.3f}")

@@ -27,6 +27,8 @@ from typing import Callable
 
 import numpy as np
 
+from .store import block_view, wide_row
+
 __all__ = ["shade_block", "write_shading", "horn_slopes", "tent_decimate"]
 
 # elevation fraction → RGB (lowland green, upland ochre, rock grey, snow)
@@ -61,82 +63,69 @@ def tent_decimate(g: np.ndarray) -> np.ndarray:
     return v[:, :-2:2] * 0.25 + v[:, 1:-1:2] * 0.5 + v[:, 2::2] * 0.25
 
 
-def _wide(blocks: np.ndarray) -> np.ndarray:
-    """(nb, M, M, ...) blocks of one block row → (M, nb·(M-1)+1, ...) global rows."""
-    nb, M = blocks.shape[0], blocks.shape[1]
-    out = np.empty((M, nb * (M - 1) + 1) + blocks.shape[3:], blocks.dtype)
-    for j in range(nb):
-        out[:, j * (M - 1): j * (M - 1) + M] = blocks[j]
+_LUT: list = []
+
+
+def shade0_wide(prev: np.ndarray | None, cur: np.ndarray, nxt: np.ndarray | None, dx: float, dy: float, zlo: float,
+                rng: float) -> np.ndarray:
+    """Level-0 shading (M, W, 3) float16 of the wide height rows ``cur`` (M, W) float32, from
+    the block rows above and below (None beyond the border: edge replication): Horn's slopes
+    (:func:`horn_slopes`) and (h − zlo)/rng, the same float32 expressions, in one compiled pass."""
+    from .rowkernels import horn_row
+
+    M = cur.shape[0]
+    above = prev[M - 2] if prev is not None else cur[0]
+    below = nxt[1] if nxt is not None else cur[M - 1]
+    out = np.empty(cur.shape + (3,), np.float16)
+    horn_row(np.ascontiguousarray(above), np.ascontiguousarray(cur, np.float32), np.ascontiguousarray(below),
+             np.float32(8 * dx), np.float32(8 * dy), np.float32(zlo), np.float32(rng), out.view(np.uint16))
     return out
 
 
-def _padded(above: np.ndarray, mid: np.ndarray, below: np.ndarray, c0: int, c1: int) -> np.ndarray:
-    """Rows ``above`` (1 or more), ``mid``, ``below`` of global columns c0 .. c1-1, with one
-    more column on each side (edge-replicated at the domain border)."""
-    W = mid.shape[1]
-    lo, hi = max(c0 - 1, 0), min(c1 + 1, W)
-    parts = [x[:, lo:hi] for x in (above, mid, below)]
-    g = np.concatenate(parts, axis=0)
-    if c0 == 0 or c1 == W:  # replicate the border column
-        g = np.concatenate(([g[:, :1]] if c0 == 0 else []) + [g] + ([g[:, -1:]] if c1 == W else []), axis=1)
-    return g
+def tent_wide(rows: dict, i: int) -> np.ndarray:
+    """Block row i of level l (M, (W-1)/2+1, 3) float16 from the float16 wide rows 2i-1 .. 2i+2
+    of level l-1 (``rows``: a dict, entries beyond the border absent): :func:`tent_decimate`
+    at the kept samples only, in one compiled pass."""
+    from .rowkernels import half_lut, tent_row
 
-
-def _cut(wide: np.ndarray, nb: int, M: int) -> np.ndarray:
-    """(M, nb·(M-1)+1, ...) global rows → (nb, M, M, ...) blocks."""
-    return np.stack([wide[:, j * (M - 1): j * (M - 1) + M] for j in range(nb)])
-
-
-_CHUNK = 16  # blocks per column chunk: bounds the temporaries (≈ 40 MB at M = 257)
-
-
-def _shade0_row(prev: np.ndarray | None, cur: np.ndarray, nxt: np.ndarray | None, dx: float, dy: float, zlo: float,
-                rng: float, dst, i: int) -> np.ndarray:
-    """Level-0 shading of block row i from the wide height rows i-1, i, i+1 (None beyond the
-    border: edge replication); writes ``dst[i]`` and returns the float16 wide row."""
-    M, W = cur.shape[0], cur.shape[1]
-    nb = (W - 1) // (M - 1)
-    above = prev[M - 2: M - 1] if prev is not None else cur[:1]
-    below = nxt[1:2] if nxt is not None else cur[M - 1:]
-    out = np.empty((M, W, 3), np.float16)
-    for j0 in range(0, nb, _CHUNK):
-        j1 = min(j0 + _CHUNK, nb)
-        c0, c1 = j0 * (M - 1), j1 * (M - 1) + 1
-        s = _padded(above, cur, below, c0, c1)  # (M+2, c1-c0+2)
-        sx, sy = horn_slopes(s, dx, dy)
-        for ch, v in enumerate((sx, sy, (s[1:-1, 1:-1] - zlo) / rng)):  # float32 → float16, channel by channel
-            out[:, c0:c1, ch] = v
-        dst.write(i, j0, _cut(out[:, c0:c1], j1 - j0, M))
-    return out
-
-
-def _tent_row(rows: list, nbp: int, i: int, dst) -> np.ndarray:
-    """Level l block row i from the float16 wide rows 2i-1 .. 2i+2 of level l-1 (``rows``: a
-    dict, entries beyond the border absent): the [1 2 1]/4 tent at the kept samples only."""
+    if not _LUT:
+        _LUT.append(half_lut())
     a, m0, m1, b = (rows.get(k) for k in (2 * i - 1, 2 * i, 2 * i + 1, 2 * i + 2))
     M, W = m0.shape[0], m0.shape[1]
-    nb = (W - 1) // (M - 1) // 2
     above = a[M - 2: M - 1] if a is not None else m0[:1]
     below = b[0:2] if b is not None else np.concatenate([m1[M - 1:]] * 2)  # global rows (2i+2)(M-1) + 0, 1
-    mid = np.concatenate([m0[:M - 1], m1[:M - 1]])  # global rows 2i·(M-1) .. (2i+2)·(M-1) - 1
-    out = np.empty((M, nb * (M - 1) + 1, 3), np.float16)
-    for j0 in range(0, nb, _CHUNK):
-        j1 = min(j0 + _CHUNK, nb)
-        c0, c1 = 2 * j0 * (M - 1), 2 * j1 * (M - 1) + 1
-        g = _padded(above, mid, below, c0, c1).astype(np.float32)
-        o0, o1 = j0 * (M - 1), j1 * (M - 1) + 1
-        out[:, o0:o1] = tent_decimate(g)
-        dst.write(i, j0, _cut(out[:, o0:o1], j1 - j0, M))
+    out = np.empty((M, (W - 1) // 2 + 1, 3), np.float16)
+    u = [np.ascontiguousarray(x).view(np.uint16) for x in (above, m0, m1, below)]
+    tent_row(*u, _LUT[0], out.view(np.uint16))
     return out
 
 
-def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int, int], None], workers: int | None = None) -> None:
+def _shade0_row(prev, cur, nxt, dx: float, dy: float, zlo: float, rng: float, dst, i: int) -> np.ndarray:
+    """Level-0 shading of block row i (:func:`shade0_wide`); writes ``dst[i]``, returns the row."""
+    out = shade0_wide(prev, cur, nxt, dx, dy, zlo, rng)
+    M = cur.shape[0]
+    dst.write(i, 0, block_view(out, (cur.shape[1] - 1) // (M - 1), M))
+    return out
+
+
+def _tent_row(rows: dict, i: int, dst) -> np.ndarray:
+    """Level-l block row i (:func:`tent_wide`); writes ``dst[i]``, returns the row."""
+    out = tent_wide(rows, i)
+    M = out.shape[0]
+    dst.write(i, 0, block_view(out, (out.shape[1] - 1) // (M - 1), M))
+    return out
+
+
+def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int, int], None], workers: int | None = None,
+                  row_hook: Callable[[int, np.ndarray], None] | None = None) -> None:
     """Compute ``shade/<l>`` for every level of ``store`` into the zarr group ``g``.
 
     Level 0 block rows are computed by worker threads from the wide height rows read in order
     here; each finished row (float16, as stored) feeds the coarser levels in memory — block
     row i of level l is made as soon as rows 2i-1 .. 2i+2 of level l-1 exist — so no level is
-    read back. Every output sample is the same float32 expression as on the whole grid."""
+    read back. Every output sample is the same float32 expression as on the whole grid.
+    ``row_hook(i, blocks)``, when given, also runs on the worker for every level-0 block row
+    (``prepare`` computes the exact errors that need the whole level 0 there)."""
     from .store import ChunkWriter
     from .workers import resolve_workers, run_ordered
 
@@ -153,12 +142,16 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
         rows = {}
         for i in range(nb0 + 1):
             if i < nb0:
-                rows[i] = _wide(store.get_block_row(0, i))
+                rows[i] = wide_row(store.get_block_row(0, i))
             if i >= 1:
                 k = i - 1
-                yield (lambda k=k, p=rows.get(k - 1), c=rows[k], n=rows.get(k + 1):
-                       (k, _shade0_row(p, c, n, dx, dy, zlo, rng, writers[0], k)))
+                yield lambda k=k, p=rows.get(k - 1), c=rows[k], n=rows.get(k + 1): _level0_task(k, p, c, n)
                 rows.pop(k - 1, None)
+
+    def _level0_task(k: int, p, c, n):
+        if row_hook is not None:
+            row_hook(k, block_view(c, nb0, M))
+        return k, _shade0_row(p, c, n, dx, dy, zlo, rng, writers[0], k)
 
     def done(res) -> None:
         k, wide = res
@@ -176,7 +169,7 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
             need = min(2 * i + 2, nbp - 1)
             if made[lv - 1] <= need:
                 return
-            cache[lv][i] = _tent_row(below, nbp, i, writers[lv])
+            cache[lv][i] = _tent_row(below, i, writers[lv])
             for k in [k for k in below if k < 2 * i + 1]:
                 del below[k]
             made[lv] += 1

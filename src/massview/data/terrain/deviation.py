@@ -67,10 +67,10 @@ class DeviationAccumulator:
     """Local (unsaturated) exact errors ``sq[j]`` (2^j, 2^j) and ``dg[j]`` (2, 2^j+1, 2^j+1),
     float32 height units, filled by :meth:`add_block` over every level-0 block."""
 
-    def __init__(self, layout: TerrainLayout, coarse: np.ndarray):
+    def __init__(self, layout: TerrainLayout, coarse: np.ndarray | None):
         self.lay = layout
         self._eps = np.float32(0)
-        self.coarse = np.asarray(coarse, np.float32)
+        self.coarse = None if coarse is None else np.asarray(coarse, np.float32)
         J = layout.J
         self.sq = [np.zeros((2**j, 2**j), np.float32) for j in range(J)]
         self.dg = [np.zeros((2, 2**j + 1, 2**j + 1), np.float32) for j in range(J)]
@@ -79,8 +79,10 @@ class DeviationAccumulator:
     def _lattice(self, l: int) -> np.ndarray:
         return self.coarse[:: 2 ** (l - self.lay.m), :: 2 ** (l - self.lay.m)]
 
-    def add_block(self, bi: int, bj: int, b: np.ndarray) -> None:
-        """Fold in level-0 block (bi, bj): float32 (M, M) heights."""
+    def add_block(self, bi: int, bj: int, b: np.ndarray, part: str = "all") -> None:
+        """Fold in level-0 block (bi, bj): float32 (M, M) heights. ``part``: "all" levels, or
+        only the "grid" levels (lattice spacing ≤ the block span: the block alone decides them)
+        or the "window" ones (lattice squares larger than a block: they need ``coarse``)."""
         lay = self.lay
         b = np.ascontiguousarray(b, np.float32)
         r = bi * (lay.M - 1) + np.arange(lay.M)
@@ -90,7 +92,8 @@ class DeviationAccumulator:
             valid = None
         self._eps = np.float32(8 * np.finfo(np.float32).eps * float(np.abs(b).max()))  # float32 rounding of z
         for j in range(lay.J):
-            self._add_level(j, b, valid, bi, bj, lay.J - j)
+            if part == "all" or (part == "grid") == (lay.J - j <= lay.m):
+                self._add_level(j, b, valid, bi, bj, lay.J - j)
 
     def _add_level(self, j: int, b: np.ndarray, valid: np.ndarray | None, bi: int, bj: int, l: int) -> None:
         """Square-mesh and centred-mesh errors of patch level j (lattice spacing 2^l) over the

@@ -4,19 +4,24 @@ Phases (each resumable — a block is flagged ``done`` only after it is written,
 is marked ``complete`` last, so an interrupted prepare re-run with the same arguments
 continues where it stopped and a half-written store never opens as a good one):
 
-1. **level 0** in strips of M rows (one block row): windowed read, nodata/NaN filled from
-   valid neighbours (iterative 4-neighbour averaging inside the strip plus a margin; what is
-   still empty takes the mean of the strip's valid samples; a first strip with no valid sample
-   repeats the first valid row below it, never a made-up 0), padded by edge replication at
-   the outer border only, cut into blocks. The shared row between strips is taken from the
-   strip above, so borders are bit-identical in both blocks.
-2. **levels 1..L** by vertex decimation of 2 × 2 child blocks.
-3. **metadata** (:mod:`metadata`; and orthophoto colour): every block is read back once;
-   min/max, dropped-sample errors, square z-ranges (:mod:`meta`) and exact K-patch diamond
-   errors (:mod:`deviation`, whose per-sample loop is compiled: :mod:`kernels`);
-4. **shading pyramid** (:mod:`colors`): slopes and height fractions, seamless and mip-filtered,
-   the coarser levels made in memory from the finer rows.
-5. **Röttger table** (:mod:`roettger`), one depth at a time, written as it is made.
+1. **the pyramid, in one pass over the input**: level 0 in strips of M rows (one block row):
+   windowed read, nodata/NaN filled from valid neighbours (iterative 4-neighbour averaging
+   inside the strip plus a margin; what is still empty takes the mean of the strip's valid
+   samples; a first strip with no valid sample repeats the first valid row below it, never a
+   made-up 0), padded by edge replication at the outer border only, cut into blocks. The
+   shared row between strips is taken from the strip above, so borders are bit-identical in
+   both blocks. Levels 1..L by vertex decimation, in memory, as soon as the two finer block
+   rows exist. Every row, on a worker: compressed and written, its blocks' metadata
+   (:mod:`metadata`: min/max, dropped-sample errors, square z-ranges (:mod:`meta`), the exact
+   K-patch errors a block alone decides (:mod:`deviation`, compiled: :mod:`kernels`)) and its
+   Röttger local d2 (:class:`roettger.TableBuilder`), each in one compiled pass
+   (:mod:`rowkernels`);
+2. **the Röttger table**'s propagation, finest depth first, written as it is made (and freed);
+3. **shading pyramid** (:mod:`colors`): level 0 read back once; slopes and height fractions
+   (they need the data's height range, known only now), seamless and mip-filtered, the coarser
+   levels made in memory from the finer rows; the same workers compute the exact errors over
+   lattice squares larger than a block (they need the finished coarse lattice);
+4. **orthophoto colour** (if any) and the metadata arrays.
    ``height_range`` is the full-resolution (level 0) min/max, i.e. the data's own range.
 
 Every phase runs on ``workers`` threads (:mod:`workers`; default every core): rows are read in
@@ -31,9 +36,10 @@ ahead for a valid row), and the store this run created is removed (a resumed one
 samples filled, or no georeference (1 m spacing assumed), is reported in
 ``PrepareResult.warnings`` (the CLI prints them).
 
-Peak memory is a few block rows per worker (17 MB each at 16385², 34 MB at 32769²), the
-diamond arrays and, at the end, two depths of the Röttger table (80 MiB at 16385², 320 MiB at
-32769²).
+Peak memory: a few block rows per worker (17 MB each at 16385², 34 MB at 32769²; float16
+shading rows 1.5× that), the metadata accumulators and, during the pyramid pass, every depth
+of the Röttger table (4/3 of its finest stored depth: 85 MiB at 16385², 341 MiB at 32769²),
+freed before the shading pass.
 """
 
 from __future__ import annotations
@@ -41,7 +47,8 @@ from __future__ import annotations
 import math
 import shutil
 import time
-from dataclasses import dataclass
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -49,10 +56,11 @@ import numpy as np
 
 from ...core.errors import IngestError
 from .colors import write_shading
+from .deviation import coarse_lattice
 from .layout import TerrainLayout
-from .metadata import Metadata, compute_metadata, write_metadata
+from .metadata import Metadata, MetadataBuilder, compute_metadata, write_colors, write_metadata
 from .sources import RasterSource
-from .store import ChunkWriter, TerrainStore, create_store
+from .store import ChunkWriter, TerrainStore, block_view, create_store, wide_row
 from .workers import resolve_workers, run_ordered
 
 __all__ = ["prepare_terrain", "PrepareResult", "fill_nodata", "compute_metadata", "write_metadata", "Metadata"]
@@ -70,6 +78,7 @@ class PrepareResult:
     resumed: bool
     input_bytes: int
     warnings: list[str]
+    stages: dict = field(default_factory=dict)  # {stage: (wall s, CPU s of the whole process)}
 
     @property
     def filled_fraction(self) -> float:
@@ -165,26 +174,21 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite)
     workers = resolve_workers(workers)
     prog = progress or (lambda phase, adv, total: None)
+    from .roettger import DEFAULT_C_MIN, TableBuilder  # T2's per-node table (Röttger d2)
+
+    build, table, stages = MetadataBuilder(lay, workers), TableBuilder(lay, DEFAULT_C_MIN), {}
     try:
-        filled = _level0(g, src, lay, block, resumed, prog, workers)
+        with _stage(stages, "pyramid, metadata, local d2"):
+            filled = _level0(g, src, lay, block, resumed, prog, workers, (build, table))
     except IngestError:
         if not resumed:  # created by this run, nothing of value in it: leave no store behind
             shutil.rmtree(out, ignore_errors=True)
         raise
-    _coarser_levels(g, lay, prog, workers)
-
-    # 3. metadata and colour --------------------------------------------------------------
-    store = TerrainStore(out, require_complete=False)
-    meta = compute_metadata(store, prog, write_color=ortho is not None, ortho=ortho, vertical_scale=vertical_scale, workers=workers)
-    write_metadata(g, lay, meta)
-    write_shading(store, g, meta.zlo, meta.zhi, prog, workers)
-    from .roettger import DEFAULT_C_MIN, iter_table, write_table  # T2's per-node table (Röttger d2)
-
-    write_table(g, iter_table(store, DEFAULT_C_MIN, prog), DEFAULT_C_MIN)
+    meta = _shading_and_tables(g, out, lay, build, table, stages, prog, workers, ortho, vertical_scale)
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
-    res = PrepareResult(Path(out), lay, seconds, filled, resumed, src.rows * src.cols * src.dtype.itemsize, [])
+    res = PrepareResult(Path(out), lay, seconds, filled, resumed, src.rows * src.cols * src.dtype.itemsize, [], stages)
     if res.filled_fraction > 0.5:
         res.warnings.append(f"{src.name}: {res.filled_fraction:.0%} of the samples were nodata/NaN/inf and were filled from their "
                             "neighbours; check the nodata value (--nodata) and the extent")
@@ -194,82 +198,98 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     return res
 
 
-def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress, workers: int = 1) -> int:
-    """Phase 1; returns the number of filled samples (all runs). Raises IngestError when no
-    input sample is valid. Strips are read and filled in order here (each needs the row above
-    it); worker threads compress and write them, and a block row is flagged done, in order,
-    only once its chunks are on disk."""
-    nb0 = lay.blocks(0)
-    done0 = g["blocks/0/done"]
-    flags = np.asarray(done0[...])
+@contextmanager
+def _stage(stages: dict, name: str):
+    """Record the wall time and the process's CPU time (every thread) of a stage."""
+    w, c = time.perf_counter(), time.process_time()
+    yield
+    stages[name] = (time.perf_counter() - w, time.process_time() - c)
+
+
+def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder, table, stages: dict, prog: Progress,
+                        workers: int, ortho, vertical_scale: float) -> Metadata:
+    """Phases 3–5 after the pyramid pass: the Röttger table, the shading pyramid (its level-0
+    pass also computes the exact errors over lattice squares larger than a block, which need
+    the coarse lattice of the finished pyramid), the orthophoto colour and the metadata arrays."""
+    from .roettger import DEFAULT_C_MIN, write_table
+
+    with _stage(stages, "Röttger table"):  # first: frees its arrays (341 MiB at 32769²) before the shading pass
+        write_table(g, table.depths(prog), DEFAULT_C_MIN)
+        table.top = None
+    store = TerrainStore(out, require_complete=False)
+    zlo, zhi = build.zlo_zhi
+    hook = None
+    with _stage(stages, "shading, window errors"):
+        if lay.J > lay.m:
+            build.set_coarse(coarse_lattice(store))
+            hook = lambda i, row: build.errors(i, row, "window")  # noqa: E731
+        write_shading(store, g, zlo, zhi, prog, workers, row_hook=hook)
+    with _stage(stages, "colour, metadata"):
+        meta = build.finish()
+        if ortho is not None:
+            write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
+        write_metadata(g, lay, meta)
+    return meta
+
+
+def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress, workers: int,
+            builders: tuple) -> int:
+    """Phases 1 and 2 in one pass; returns the number of filled samples (all runs). Raises
+    IngestError when no input sample is valid. Strips are read and filled in order here (each
+    needs the row above it), and every coarser level's block row is decimated here, in memory,
+    as soon as its two finer rows exist (every other sample of both: what decimating their
+    2 × 2 child blocks gives); worker threads compress and write the rows, and a block row is
+    flagged done, in order, only once its chunks are on disk. Rows done in an earlier run are
+    read back (level 0) or re-made (coarser levels) to feed the levels above, not rewritten."""
+    M, nlev = lay.M, lay.levels
+    build, table = builders  # MetadataBuilder, roettger.TableBuilder: fed every row on the workers
+    dones = [g[f"blocks/{lv}/done"] for lv in range(nlev)]
+    flags = [np.asarray(d[...]) for d in dones]
     heights0 = g["heights/0"]
-    out = ChunkWriter(g, "heights/0")
+    writers = [ChunkWriter(g, f"heights/{lv}") for lv in range(nlev)]
     state = {"filled": int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0}
 
-    def write(bi: int, strip: np.ndarray, nfill: int):
-        out.write(bi, 0, np.stack([strip[:, bj * (block - 1): bj * (block - 1) + block] for bj in range(nb0)]))
-        return bi, nfill
+    def write(lv: int, i: int, wide: np.ndarray, keep: bool, nfill: int):
+        blocks = block_view(wide, lay.blocks(lv), M)
+        if keep:
+            writers[lv].write(i, 0, blocks)
+        build.row(lv, i, blocks, "grid")
+        table.strip(lv, i * (M - 1), wide)
+        return lv, i, keep, nfill
 
     def tasks():
-        prev_row = None
-        for bi in range(nb0):
-            if flags[bi].all():  # done in an earlier run: rebuild its last row from the stored blocks
-                last = np.asarray(heights0[bi, :, -1, :])  # (nb0, M); neighbours share their border sample
-                prev_row = np.concatenate([last[:, :-1].ravel(), last[-1, -1:]])
-                yield lambda bi=bi: (bi, None)
-                continue
-            strip, nfill = _read_strip(src, lay, bi, prev_row)
+        prev_row, waiting = None, {}  # waiting: level → its even wide row, until the odd one comes
+        for bi in range(lay.blocks(0)):
+            if flags[0][bi].all():  # done in an earlier run: read it back for the levels above
+                strip = wide_row(np.asarray(heights0[bi]))
+                yield lambda bi=bi, strip=strip: write(0, bi, strip, False, 0)
+            else:
+                strip, nfill = _read_strip(src, lay, bi, prev_row)
+                yield lambda bi=bi, strip=strip, nfill=nfill: write(0, bi, strip, True, nfill)
             prev_row = strip[-1].copy()
-            yield lambda bi=bi, strip=strip, nfill=nfill: write(bi, strip, nfill)
+            lv, i, wide = 0, bi, strip
+            while lv + 1 < nlev and i % 2 == 1:
+                wide = np.concatenate([waiting.pop(lv)[0::2, ::2], wide[2::2, ::2]])  # rows 0..M-1 of 2i, 2..M-1 of 2i+1
+                lv, i = lv + 1, i // 2
+                yield lambda lv=lv, i=i, wide=wide, keep=not flags[lv][i].all(): write(lv, i, wide, keep, 0)
+            if lv + 1 < nlev:
+                waiting[lv] = wide
 
     def done(res) -> None:
-        bi, nfill = res
-        if nfill is not None:
+        lv, i, wrote, nfill = res
+        if wrote:
+            dones[lv][i, :] = 1
+        if wrote and lv == 0:
             state["filled"] += nfill
-            done0[bi, :] = 1
             nod = dict(g.attrs["nodata"])
             nod["filled"] = state["filled"]
             g.attrs["nodata"] = nod
-        prog("level 0", nb0, nb0 * nb0)
+        prog(f"level {lv}", lay.blocks(lv), lay.blocks(lv) ** 2)
 
     run_ordered(workers, tasks(), done)
     if state["filled"] >= src.rows * src.cols:  # (a fresh run fails in the first strip already; this catches resumed ones)
         _first_valid_row(src, src.rows)
     return state["filled"]
 
-
-def _coarser_levels(g, lay: TerrainLayout, prog: Progress, workers: int = 1) -> None:
-    """Phase 2: levels 1..L by decimation of 2 × 2 child blocks (resumable per block row;
-    rows read in order here, decimated and written by worker threads)."""
-    for lv in range(1, lay.levels):
-        nb = lay.blocks(lv)
-        done = g[f"blocks/{lv}/done"]
-        flags = np.asarray(done[...])
-        child, out = g[f"heights/{lv - 1}"], ChunkWriter(g, f"heights/{lv}")
-
-        def make(i: int, two: np.ndarray, nb=nb, out=out) -> int:
-            out.write(i, 0, np.stack([_decimate(two[:, 2 * j: 2 * j + 2]) for j in range(nb)]))
-            return i
-
-        def tasks(nb=nb, flags=flags, child=child, make=make):
-            for i in range(nb):
-                if flags[i].all():
-                    yield lambda i=i: -1 - i
-                else:  # (2, 2nb, M, M): the two child block rows
-                    yield lambda i=i, two=np.asarray(child[2 * i: 2 * i + 2]): make(i, two)
-
-        def finished(i: int, nb=nb, done=done, lv=lv) -> None:
-            if i >= 0:
-                done[i, :] = 1
-            prog(f"level {lv}", nb, nb * nb)
-
-        run_ordered(workers, tasks(), finished)
-
-
-def _decimate(quad: np.ndarray) -> np.ndarray:
-    """The parent block of a (2, 2, M, M) quad of child blocks: every other sample."""
-    top = np.concatenate([quad[0, 0], quad[0, 1][:, 1:]], 1)
-    bottom = np.concatenate([quad[1, 0], quad[1, 1][:, 1:]], 1)
-    return np.concatenate([top, bottom[1:]], 0)[::2, ::2]
 
 

@@ -104,6 +104,15 @@ class DiamondAccumulator:
         squares, so blocks may be added from several threads at once)."""
         self._add_zrange(bi, bj, b)
 
+    def put_zrange(self, bi: int, bj: int, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Fold in the square z-ranges ``lo``/``hi`` (n, n) of level-0 block (bi, bj), computed
+        elsewhere (:func:`rowkernels.block_stats`); thread-safe like :meth:`add_zrange`."""
+        n = lo.shape[0]
+        sl = (slice(bi * n, bi * n + n), slice(bj * n, bj * n + n))
+        J = self.lay.J
+        self.zmin[J][sl] = np.minimum(self.zmin[J][sl], lo)
+        self.zmax[J][sl] = np.maximum(self.zmax[J][sl], hi)
+
     def zranges(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """The z-ranges of every square level (what :meth:`finish` returns, without the errors)."""
         for j in range(self.lay.J - 1, -1, -1):

@@ -19,12 +19,12 @@ import numpy as np
 
 from .deviation import DeviationAccumulator, coarse_lattice
 from .layout import TerrainLayout
-from .meta import DiamondAccumulator, block_errors_from, saturate, vertex_deltas
+from .meta import DiamondAccumulator, block_errors_from, saturate
 from .sources import RasterSource
 from .store import TerrainStore
 from .workers import resolve_workers, run_ordered
 
-__all__ = ["Metadata", "compute_metadata", "write_metadata"]
+__all__ = ["Metadata", "MetadataBuilder", "compute_metadata", "write_metadata"]
 
 Progress = Callable[[str, int, int], None]
 
@@ -41,76 +41,100 @@ class Metadata:
     zhi: float
 
 
-def _row_stats(row: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
-    """(nb, 2) min/max, (nb,) max dropped-sample δ and the δ arrays of a block row (nb, M, M)."""
-    nb = row.shape[0]
+def _row_stats(row: np.ndarray, zacc: DiamondAccumulator | None = None, i: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(nb, 2) min/max and (nb,) max dropped-sample δ (:func:`meta.vertex_deltas`) of a block
+    row (nb, M, M); with ``zacc`` (level 0) also the z-ranges of its squares, all in one
+    compiled pass per block (:func:`rowkernels.block_stats`)."""
+    from .rowkernels import block_stats
+
+    nb, M = row.shape[0], row.shape[1]
+    f = 2**zacc.lay.k if zacc is not None else 0
+    n = (M - 1) // f if f else 0
     mm = np.empty((nb, 2), np.float32)
     dm = np.empty(nb, np.float32)
-    deltas = []
     for j in range(nb):
-        b = row[j]
-        mm[j] = b.min(), b.max()
-        d = vertex_deltas(b)
-        dm[j] = max(float(x.max()) if x.size else 0.0 for x in d)
-        deltas.append(d)
-    return mm, dm, deltas
+        lo, hi = np.empty((n, n), np.float32), np.empty((n, n), np.float32)
+        mn, mx, d = block_stats(np.ascontiguousarray(row[j], np.float32), f, lo, hi)
+        mm[j], dm[j] = (mn, mx), d
+        if zacc is not None:
+            zacc.put_zrange(i, j, lo, hi)
+    return mm, dm
+
+
+class MetadataBuilder:
+    """Every block's metadata, fed block row by block row from any number of threads at once
+    (rows write disjoint entries; each thread takes its own exact-error accumulator from a
+    pool, merged by max at the end — max is exact, so the result does not depend on how rows
+    were shared out). ``part`` splits the exact K-patch errors of a level-0 row into the
+    levels a block alone determines ("grid") and those over lattice squares larger than a
+    block ("window"), which need the coarse lattice (:meth:`set_coarse`)."""
+
+    def __init__(self, lay: TerrainLayout, workers: int, coarse: np.ndarray | None = None):
+        self.lay = lay
+        self.acc = DiamondAccumulator(lay)  # square z-ranges (level 0): each block writes only its own squares
+        self.all_devs = [DeviationAccumulator(lay, coarse) for _ in range(max(workers, 1))]
+        self.devs: queue.SimpleQueue = queue.SimpleQueue()
+        for d in self.all_devs:
+            self.devs.put(d)
+        self.minmax = [np.zeros((lay.blocks(lv), lay.blocks(lv), 2), np.float32) for lv in range(lay.levels)]
+        self.dmax = [np.zeros((lay.blocks(lv), lay.blocks(lv)), np.float32) for lv in range(lay.levels)]
+
+    def set_coarse(self, coarse: np.ndarray) -> None:
+        for d in self.all_devs:
+            d.coarse = np.asarray(coarse, np.float32)
+
+    def row(self, lv: int, i: int, row: np.ndarray, part: str = "all") -> None:
+        """Block row ``i`` of level ``lv`` (nb, M, M) float32: min/max and dropped-sample δ;
+        at level 0 also the square z-ranges and the ``part`` of the exact errors."""
+        self.minmax[lv][i], self.dmax[lv][i] = _row_stats(row, self.acc if lv == 0 else None, i)
+        if lv == 0:
+            self.errors(i, row, part)
+
+    def errors(self, i: int, row: np.ndarray, part: str) -> None:
+        dev = self.devs.get()
+        try:
+            for j in range(row.shape[0]):
+                dev.add_block(i, j, row[j], part)
+        finally:
+            self.devs.put(dev)
+
+    @property
+    def zlo_zhi(self) -> tuple[float, float]:
+        """The data's height range (level 0)."""
+        return float(self.minmax[0][..., 0].min()), float(self.minmax[0][..., 1].max())
+
+    def finish(self) -> Metadata:
+        zmin, zmax = self.acc.zranges()
+        dev = self.all_devs[0]
+        for other in self.all_devs[1:]:
+            for a, b in zip(dev.sq + dev.dg, other.sq + other.dg):
+                np.maximum(a, b, out=a)
+        sq, dg = saturate(dev.sq, dev.dg)
+        return Metadata(self.minmax, block_errors_from(self.dmax), sq, dg, zmin, zmax, *self.zlo_zhi)
 
 
 def compute_metadata(store: TerrainStore, prog: Progress, write_color: bool = False, ortho: RasterSource | None = None,
                      vertical_scale: float = 1.0, workers: int | None = None) -> Metadata:
-    """Read every block once and derive all metadata (also what ``verify`` recomputes)."""
+    """Read every block once and derive all metadata (what ``verify`` and ``upgrade``
+    recompute; ``prepare`` feeds a :class:`MetadataBuilder` during its own passes)."""
     lay = store.layout
     nw = resolve_workers(workers)
-    acc = DiamondAccumulator(lay)  # square z-ranges (level 0): each block writes only its own squares
-    coarse = coarse_lattice(store)
-    devs: queue.SimpleQueue = queue.SimpleQueue()
-    all_devs = [DeviationAccumulator(lay, coarse) for _ in range(nw)]  # exact K-patch errors (level 0)
-    for d in all_devs:
-        devs.put(d)
+    build = MetadataBuilder(lay, nw, coarse_lattice(store))
     total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
-    minmax = [np.zeros((lay.blocks(lv), lay.blocks(lv), 2), np.float32) for lv in range(lay.levels)]
-    dmax = [np.zeros((lay.blocks(lv), lay.blocks(lv)), np.float32) for lv in range(lay.levels)]
-
-    def level0_row(i: int, row: np.ndarray):
-        mm, dm, _ = _row_stats(row)
-        dev = devs.get()
-        try:
-            for j in range(row.shape[0]):
-                acc.add_zrange(i, j, row[j])
-                dev.add_block(i, j, row[j])
-        finally:
-            devs.put(dev)
-        return 0, i, mm, dm
-
-    def other_row(lv: int, i: int, row: np.ndarray):
-        mm, dm, _ = _row_stats(row)
-        return lv, i, mm, dm
 
     def tasks():
         for lv in range(lay.levels):
             for i in range(lay.blocks(lv)):
-                row = store.get_block_row(lv, i)
-                yield (lambda i=i, row=row: level0_row(i, row)) if lv == 0 else (lambda lv=lv, i=i, row=row: other_row(lv, i, row))
+                yield lambda lv=lv, i=i, row=store.get_block_row(lv, i): (build.row(lv, i, row), lv)[1]
 
-    def done(res) -> None:
-        lv, i, mm, dm = res
-        minmax[lv][i], dmax[lv][i] = mm, dm
-        prog("metadata", lay.blocks(lv), total)
-
-    run_ordered(nw, tasks(), done)
-    zmin, zmax = acc.zranges()
-    dev = all_devs[0]
-    for other in all_devs[1:]:
-        for a, b in zip(dev.sq + dev.dg, other.sq + other.dg):
-            np.maximum(a, b, out=a)
-    sq, dg = saturate(dev.sq, dev.dg)
-    zlo, zhi = float(minmax[0][..., 0].min()), float(minmax[0][..., 1].max())  # the data's range (level 0)
+    run_ordered(nw, tasks(), lambda lv: prog("metadata", lay.blocks(lv), total))
+    meta = build.finish()
     if write_color:
-        _write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
-    return Metadata(minmax, block_errors_from(dmax), sq, dg, zmin, zmax, zlo, zhi)
+        write_colors(store, lay, meta.zlo, meta.zhi, ortho, vertical_scale, prog)
+    return meta
 
 
-def _write_colors(store: TerrainStore, lay: TerrainLayout, zlo: float, zhi: float, ortho, vscale: float, prog: Progress) -> None:
+def write_colors(store: TerrainStore, lay: TerrainLayout, zlo: float, zhi: float, ortho, vscale: float, prog: Progress) -> None:
     import zarr
 
     g = zarr.open_group(str(store.path), mode="r+")

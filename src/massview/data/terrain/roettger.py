@@ -29,7 +29,7 @@ from ...core.errors import StoreError
 from .store import TerrainStore
 
 __all__ = ["C_RANGE", "k_factor", "local_d2", "propagate_into", "DEFAULT_C_MIN", "compute_table", "write_table",
-           "prepare_roettger", "RoettgerTable", "has_table", "table_from_grid", "iter_table"]
+           "prepare_roettger", "RoettgerTable", "has_table", "table_from_grid", "iter_table", "TableBuilder"]
 
 DEFAULT_C_MIN = 4.0
 C_RANGE = (2.0, 64.0)  # the C for which the level-difference proof holds (lod/roettger.py)
@@ -54,6 +54,17 @@ def local_d2(grid: np.ndarray, d: int) -> np.ndarray:
     np.maximum(dev, np.abs(ctr - (c00 + c11) * 0.5), out=dev)
     np.maximum(dev, np.abs(ctr - (c01 + c10) * 0.5), out=dev)
     return dev / np.float32(d)
+
+
+def _local_d2_compiled(grid: np.ndarray, d: int) -> np.ndarray:
+    """:func:`local_d2` in one compiled pass (the same float32 operations; ingest only, so the
+    renderer's use of :func:`table_from_grid` does not load numba)."""
+    from .rowkernels import local_d2 as kernel
+
+    g = np.ascontiguousarray(grid, np.float32)
+    out = np.empty(((g.shape[0] - 1) // 2, (g.shape[1] - 1) // 2), np.float32)
+    kernel(g, d, out)
+    return out
 
 
 def propagate_into(coarse: np.ndarray, fine: np.ndarray, row0: int, K: float) -> None:
@@ -137,7 +148,7 @@ def iter_table(store: TerrainStore, C_min: float = DEFAULT_C_MIN,
     for t in range(n - 1, -1, -1):
         d, level = 2 ** (n - t), n - t - 1
         for g0, strip in _grid_strips(store, level):
-            a = local_d2(strip, d)
+            a = _local_d2_compiled(strip, d)
             if t == n - 1:
                 if cur is not None:
                     propagate_into(cur, a, g0 // 2, K)
@@ -152,6 +163,55 @@ def iter_table(store: TerrainStore, C_min: float = DEFAULT_C_MIN,
             del done
         if progress:
             progress("roettger", 1, n)
+
+
+class TableBuilder:
+    """The table built during ``prepare``'s pyramid pass, from the wide block rows of every
+    level as they are made (no read-back): :meth:`strip` (any thread) folds a strip's local d2
+    into its depth — max-merged, or pushed into depth n-2 for the level-0 strips, as
+    :func:`iter_table` does, under a lock because neighbouring strips' pushes share rows; max
+    is exact, so the order does not matter — and :meth:`depths` finishes the propagation,
+    finest depth first. Holds every depth at once: 4/3 of depth n-2 (85 MiB at 16385²,
+    341 MiB at 32769²); the propagation runs in bands of 512 rows, so its temporaries stay small
+    (whole-array temporaries were 2× the finest depth)."""
+
+    def __init__(self, layout, C_min: float = DEFAULT_C_MIN):
+        import threading
+
+        self.lay, self.C_min, self.K = layout, C_min, k_factor(C_min)
+        self.d2: list = [np.zeros((2**t, 2**t), np.float32) for t in range(layout.n - 1)]
+        self.top = None
+        self._lock = threading.Lock()
+
+    def strip(self, level: int, g0: int, wide: np.ndarray) -> None:
+        """The wide rows of one block row of ``level`` (its first grid row ``g0``)."""
+        n = self.lay.n
+        t = n - 1 - level
+        a = _local_d2_compiled(wide, 2 ** (level + 1))
+        with self._lock:
+            if t == n - 1:
+                if n >= 2:
+                    propagate_into(self.d2[n - 2], a, g0 // 2, self.K)
+            else:
+                band = self.d2[t][g0 // 2: g0 // 2 + a.shape[0]]
+                np.maximum(a, band, out=band)
+        if level == self.lay.L:
+            self.top = wide
+
+    def depths(self, progress: Callable[[str, int, int], None] | None = None) -> Iterator[tuple[int, np.ndarray]]:
+        """(depth t, propagated d2) for t = n-2 .. 0, as :func:`iter_table` gives them."""
+        lay, n = self.lay, self.lay.n
+        for level in range(lay.L + 1, n):  # nodes coarser than the top block: its samples, strided
+            step = 2 ** (level - lay.L)
+            self.strip(level, 0, np.ascontiguousarray(self.top[::step, ::step]))
+        for t in range(n - 2, -1, -1):
+            done, self.d2[t] = self.d2[t], None
+            for r in range(0, done.shape[0] if t >= 1 else 0, 512):  # in row bands: bounded temporaries, same maxima
+                propagate_into(self.d2[t - 1], done[r: r + 512], r, self.K)
+            if progress:
+                progress("roettger", 1, n - 1)
+            yield t, done
+            del done
 
 
 def compute_table(store: TerrainStore, C_min: float = DEFAULT_C_MIN,

@@ -36,7 +36,7 @@ import numpy as np
 from ...core.errors import BlockNotFoundError, CorruptBlockError, StoreError
 from .layout import TerrainLayout
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "create_shade_arrays", "dir_size", "ChunkWriter"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "create_shade_arrays", "dir_size", "ChunkWriter", "block_view", "wide_row"]
 
 FORMAT = "massview-terrain"
 FORMAT_VERSION = 2
@@ -115,14 +115,33 @@ class ChunkWriter:
         self.blosc = codecs[1]._blosc_codec
         self.root = Path(str(group.store.root)) / group.path / name / "c" if group.path else Path(str(group.store.root)) / name / "c"
         self.tail = ["0"] * (arr.ndim - 2)
+        self._made: set = set()
 
     def write(self, i: int, j0: int, blocks: np.ndarray) -> None:
         """Blocks (n, M, M[, 3]) into chunks (i, j0 .. j0+n-1)."""
         for k in range(blocks.shape[0]):
             data = self.blosc.encode(np.ascontiguousarray(blocks[k], self.dtype).reshape(-1).view(np.uint8))
             path = self.root.joinpath(str(i), str(j0 + k), *self.tail)
-            path.parent.mkdir(parents=True, exist_ok=True)
+            if path.parent not in self._made:  # (one mkdir per chunk folder, not per write)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                self._made.add(path.parent)
             path.write_bytes(data)
+
+
+def block_view(wide: np.ndarray, nb: int, M: int) -> np.ndarray:
+    """(M, nb·(M-1)+1, ...) global rows → (nb, M, M, ...) blocks sharing their borders, as a
+    read-only view (no copy; :meth:`ChunkWriter.write` copies one block at a time)."""
+    st = wide.strides
+    return np.lib.stride_tricks.as_strided(wide, (nb, M, M) + wide.shape[2:], ((M - 1) * st[1],) + st, writeable=False)
+
+
+def wide_row(blocks: np.ndarray) -> np.ndarray:
+    """(nb, M, M, ...) blocks of one block row → (M, nb·(M-1)+1, ...) global rows (a copy)."""
+    nb, M = blocks.shape[0], blocks.shape[1]
+    out = np.empty((M, nb * (M - 1) + 1) + blocks.shape[3:], blocks.dtype)
+    for j in range(nb):
+        out[:, j * (M - 1): j * (M - 1) + M] = blocks[j]
+    return out
 
 
 def dir_size(path: Path) -> int:
@@ -156,6 +175,7 @@ class TerrainStore:
             raise StoreError(f"{self.path}: store is incomplete (prepare was interrupted); re-run the same `massview prepare terrain` command to finish it")
         self.layout = TerrainLayout(int(self.attrs["rows"]), int(self.attrs["cols"]), int(self.attrs["M"]), int(self.attrs["K"]))
         self._heights = [self.group[f"heights/{lv}"] for lv in range(self.layout.levels)]
+        self._blosc = None  # the heights' blosc codec for direct chunk reads (False: not blosc)
         self.has_color = "color" in self.group and self.attrs.get("color") == "orthophoto"
         self.has_shade = "shade" in self.group and not upgrading
         self._color = [self.group[f"color/{lv}"] for lv in range(self.layout.levels)] if self.has_color else None
@@ -199,6 +219,9 @@ class TerrainStore:
         """All blocks of block row ``i`` at ``level`` (nb, M, M), read in one call (zarr decodes
         the chunks concurrently); failures are re-raised per block with its name."""
         self._check_key(level, i, 0)
+        row = self._direct_row(level, i)
+        if row is not None:
+            return row
         try:
             row = np.asarray(self._heights[level][i])
         except Exception:  # noqa: BLE001 - find and name the bad block
@@ -207,6 +230,32 @@ class TerrainStore:
             j = int(np.argwhere(np.isnan(row).any(axis=(1, 2)))[0, 0])
             self.get_block(level, i, j)  # raises BlockNotFoundError naming it
         return row
+
+    def _direct_row(self, level: int, i: int) -> np.ndarray | None:
+        """Block row ``i`` decoded straight from its chunk files with the array's blosc codec
+        (the inverse of :class:`ChunkWriter`: the same decoded values as zarr's read, without its
+        per-chunk event-loop round trip), or None when any chunk is missing, does not decode to a
+        whole block, or the codecs are not bytes + blosc — the caller then reads through zarr,
+        which names the bad block."""
+        if self._blosc is None:
+            from zarr.codecs import BloscCodec, BytesCodec
+
+            codecs = self._heights[0].metadata.codecs
+            ok = len(codecs) == 2 and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
+            self._blosc = codecs[1]._blosc_codec if ok else False
+        if self._blosc is False:
+            return None
+        M, nb = self.layout.M, self.layout.blocks(level)
+        out = np.empty((nb, M, M), "<f4")
+        try:
+            for j in range(nb):
+                data = self.chunk_path(level, i, j).read_bytes()
+                if len(data) < 16 or int.from_bytes(data[4:8], "little") != out[j].nbytes:  # blosc header: nbytes
+                    return None
+                self._blosc.decode(data, out=out[j].reshape(-1).view(np.uint8))
+        except (OSError, RuntimeError, ValueError, TypeError):  # missing, damaged or wrong-sized chunk
+            return None
+        return out
 
     def get_color(self, level: int, i: int, j: int) -> np.ndarray | None:
         if not self.has_color:

@@ -1,0 +1,198 @@
+"""Compiled per-sample kernels of the ingest's row passes (numba, cached, GIL released).
+
+Each kernel replaces a chain of numpy expressions (and their full-size temporaries) by one
+loop that performs, per sample, exactly the same float32 operations in the same order (no
+fused multiply-add, no fast-math; scalars rounded to float32 first, as numpy 2 does with Python
+floats), so the stores they produce are bit-identical (tests/test_ingest_parallel.py compares
+whole stores with digests recorded before issue 20; tests/test_ingest_kernels.py compares every
+kernel with the numpy expression it replaces):
+
+* :func:`block_stats`: min, max and largest dropped-sample δ of a block
+  (:func:`meta.vertex_deltas`) and the z-ranges of its patch squares (``DiamondAccumulator``);
+* :func:`horn_row` / :func:`tent_row`: level-0 shading (Horn's slopes and the height fraction)
+  and the [1 2 1]/4 mip step of :mod:`colors`, writing float16 with numpy's own rounding
+  (:func:`_half_bits`: numba has no float16 type on the CPU);
+* :func:`local_d2`: Röttger's local roughness (:func:`roettger.local_d2`).
+
+Inputs beyond the domain border are clamped (edge replication), as the numpy versions pad.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .kernels import _jit
+
+__all__ = ["block_stats", "horn_row", "tent_row", "local_d2", "half_lut", "to_half"]
+
+_HALF = np.float32(0.5)
+_QUART = np.float32(0.25)
+_TWO = np.float32(2.0)
+
+
+def half_lut() -> np.ndarray:
+    """float16 bit pattern → float32 value, all 65 536 of them (exact)."""
+    return np.arange(65536, dtype=np.uint32).astype(np.uint16).view(np.float16).astype(np.float32)
+
+
+@_jit
+def _half_bits(f):
+    """IEEE float32 bits (uint32) → float16 bits, rounded to nearest even exactly as numpy's
+    ``npy_floatbits_to_halfbits`` (overflow → ±inf, NaN stays NaN, subnormals rounded)."""
+    f = np.int64(f)  # (signed 64-bit arithmetic throughout: no unsigned/signed promotion)
+    h_sgn = (f & 0x80000000) >> 16
+    f_exp = f & 0x7F800000
+    if f_exp >= 0x47800000:
+        if f_exp == 0x7F800000 and (f & 0x007FFFFF) != 0:
+            ret = 0x7C00 + ((f & 0x007FFFFF) >> 13)
+            return np.uint16(h_sgn + (ret + 1 if ret == 0x7C00 else ret))
+        return np.uint16(h_sgn + 0x7C00)
+    if f_exp <= 0x38000000:
+        if f_exp < 0x33000000:
+            return np.uint16(h_sgn)
+        e = f_exp >> 23
+        sig = (0x00800000 + (f & 0x007FFFFF)) >> (113 - e)
+        if (sig & 0x3FFF) != 0x1000 or (f & 0x7FF) != 0:
+            sig += 0x1000
+        return np.uint16(h_sgn + (sig >> 13))
+    h_exp = (f_exp - 0x38000000) >> 13
+    sig = f & 0x007FFFFF
+    if (sig & 0x3FFF) != 0x1000:
+        sig += 0x1000
+    return np.uint16(h_sgn + ((h_exp + (sig >> 13)) & 0xFFFF))
+
+
+@_jit
+def to_half(src, dst):
+    """float32 array (viewed as uint32) → float16 bits (uint16), element by element."""
+    s, d = src.ravel(), dst.ravel()
+    for k in range(s.shape[0]):
+        d[k] = _half_bits(s[k])
+
+
+@_jit
+def block_stats(b, f, lo, hi):
+    """(min, max, largest δ) of block ``b`` (M, M) float32 — δ of the square centres (parity
+    of the local square index), horizontal and vertical edge midpoints, as
+    :func:`meta.vertex_deltas` — and, when ``f`` > 0, the min/max of every closed f × f square
+    into ``lo``/``hi`` ((M-1)/f)²."""
+    M = b.shape[0]
+    mn, mx, dm = b[0, 0], b[0, 0], np.float32(0.0)
+    if f == 0:  # (with z-ranges, the block's min/max are theirs: every sample lies in a square)
+        for r in range(M):
+            for c in range(M):
+                v = b[r, c]
+                mn = min(mn, v)
+                mx = max(mx, v)
+    h = (M - 1) // 2
+    for i in range(h + 1):
+        for j in range(h + 1):
+            if i < h and j < h:
+                if (i + j) % 2 == 0:
+                    diag = (b[2 * i, 2 * j] + b[2 * i + 2, 2 * j + 2]) * _HALF
+                else:
+                    diag = (b[2 * i, 2 * j + 2] + b[2 * i + 2, 2 * j]) * _HALF
+                dm = max(dm, abs(b[2 * i + 1, 2 * j + 1] - diag))
+            if j < h:
+                dm = max(dm, abs(b[2 * i, 2 * j + 1] - (b[2 * i, 2 * j] + b[2 * i, 2 * j + 2]) * _HALF))
+            if i < h:
+                dm = max(dm, abs(b[2 * i + 1, 2 * j] - (b[2 * i, 2 * j] + b[2 * i + 2, 2 * j]) * _HALF))
+    if f > 0:
+        n = (M - 1) // f
+        for a in range(n):
+            for q in range(n):
+                zl, zh = b[a * f, q * f], b[a * f, q * f]
+                for r in range(a * f, a * f + f + 1):
+                    for c in range(q * f, q * f + f + 1):
+                        zl = min(zl, b[r, c])
+                        zh = max(zh, b[r, c])
+                lo[a, q], hi[a, q] = zl, zh
+                mn, mx = min(mn, zl), max(mx, zh)
+    return mn, mx, dm
+
+
+@_jit
+def horn_row(above, cur, below, dx8, dy8, zlo, rng, out):
+    """Level-0 shading of the wide rows ``cur`` (M, W) float32 with the global rows just above
+    and below (W,): ``out`` (M, W, 3) uint16 = float16 bits of Horn's ∂h/∂x (east), ∂h/∂y
+    (north) and (h − zlo)/rng; ``dx8`` = float32(8·dx) etc. (colors.horn_slopes)."""
+    M, W = cur.shape
+    buf = np.empty(3, np.float32)
+    bits = buf.view(np.uint32)
+    for r in range(M):
+        up = above if r == 0 else cur[r - 1]
+        dn = below if r == M - 1 else cur[r + 1]
+        mid = cur[r]
+        for c in range(W):
+            cl, cr = max(c - 1, 0), min(c + 1, W - 1)
+            a, b_, c_ = up[cl], up[c], up[cr]
+            d, f = mid[cl], mid[cr]
+            g, h, i = dn[cl], dn[c], dn[cr]
+            buf[0] = ((c_ + _TWO * f + i) - (a + _TWO * d + g)) / dx8
+            buf[1] = ((a + _TWO * b_ + c_) - (g + _TWO * h + i)) / dy8
+            buf[2] = (mid[c] - zlo) / rng
+            for ch in range(3):
+                out[r, c, ch] = _half_bits(bits[ch])
+
+
+@_jit
+def _tent3(x0, x1, x2):
+    return x0 * _QUART + x1 * _HALF + x2 * _QUART
+
+
+@_jit
+def _padded_row(above, m0, m1, below, p):
+    """Row ``p`` of the padded rows: global row 2i(M-1) - 1 + p (see :func:`tent_row`)."""
+    M = m0.shape[0]
+    if p == 0:
+        return above[0]
+    if p <= M - 1:
+        return m0[p - 1]
+    if p <= 2 * (M - 1):
+        return m1[p - M]
+    return below[p - 2 * M + 1]
+
+
+@_jit
+def tent_row(above, m0, m1, below, lut, out):
+    """One block row of shading level l from level l-1's float16 wide rows (uint16 bits):
+    ``above`` (1, W, 3) the global row just above, ``m0``/``m1`` (M, W, 3) block rows 2i and
+    2i+1 (their first M-1 rows), ``below`` (2, W, 3) the next two global rows; ``out``
+    (M, (W-1)/2+1, 3) uint16. The [1 2 1]/4 tent in both axes at the kept samples
+    (colors.tent_decimate); ``lut`` = :func:`half_lut`."""
+    M, W = m0.shape[0], m0.shape[1]
+    Wo = out.shape[1]
+    buf = np.empty(1, np.float32)
+    bits = buf.view(np.uint32)
+    for r in range(M):
+        g0 = _padded_row(above, m0, m1, below, 2 * r)
+        g1 = _padded_row(above, m0, m1, below, 2 * r + 1)
+        g2 = _padded_row(above, m0, m1, below, 2 * r + 2)
+        for o in range(Wo):
+            xl, xc, xr = max(2 * o - 1, 0), 2 * o, min(2 * o + 1, W - 1)
+            for ch in range(3):
+                vl = _tent3(lut[g0[xl, ch]], lut[g1[xl, ch]], lut[g2[xl, ch]])
+                vc = _tent3(lut[g0[xc, ch]], lut[g1[xc, ch]], lut[g2[xc, ch]])
+                vr = _tent3(lut[g0[xr, ch]], lut[g1[xr, ch]], lut[g2[xr, ch]])
+                buf[0] = _tent3(vl, vc, vr)
+                out[r, o, ch] = _half_bits(bits[0])
+
+
+@_jit
+def local_d2(g, d, out):
+    """Röttger's local d2 of the nodes of edge ``d`` over ``g`` (2a+1, 2b+1) float32 (heights
+    every d/2 samples) into ``out`` (a, b) float32 (roettger.local_d2)."""
+    a, b = out.shape
+    fd = np.float32(d)
+    for i in range(a):
+        for j in range(b):
+            c00, c01 = g[2 * i, 2 * j], g[2 * i, 2 * j + 2]
+            c10, c11 = g[2 * i + 2, 2 * j], g[2 * i + 2, 2 * j + 2]
+            ctr = g[2 * i + 1, 2 * j + 1]
+            dev = abs(g[2 * i, 2 * j + 1] - (c00 + c01) * _HALF)
+            dev = max(dev, abs(g[2 * i + 2, 2 * j + 1] - (c10 + c11) * _HALF))
+            dev = max(dev, abs(g[2 * i + 1, 2 * j] - (c00 + c10) * _HALF))
+            dev = max(dev, abs(g[2 * i + 1, 2 * j + 2] - (c01 + c11) * _HALF))
+            dev = max(dev, abs(ctr - (c00 + c11) * _HALF))
+            dev = max(dev, abs(ctr - (c01 + c10) * _HALF))
+            out[i, j] = dev / fd

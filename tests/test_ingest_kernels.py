@@ -1,0 +1,108 @@
+"""Issue 20: the compiled row kernels of the ingest give exactly what the numpy expressions
+they replace give (same float32 operations; float16 with numpy's rounding), on random data
+with awkward values, so the stores stay bit-identical (the whole-store check is
+tests/test_ingest_parallel.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from massview.data.terrain import colors, meta, roettger
+from massview.data.terrain import rowkernels as rk
+
+
+def _terrain(rng, shape, scale=1000.0):
+    a = rng.normal(size=shape).astype(np.float32).cumsum(axis=0).cumsum(axis=1) * np.float32(scale / 50)
+    return a + rng.normal(size=shape).astype(np.float32) * np.float32(3)
+
+
+def test_float16_bits_match_numpy_everywhere_that_matters():
+    rng = np.random.default_rng(1)
+    bits = np.concatenate([rng.integers(0, 2**32, 2_000_000, dtype=np.uint64).astype(np.uint32),
+                           np.arange(0x33000000 - 4096, 0x38800000 + 4096, 97, dtype=np.uint32),  # subnormal halves
+                           np.arange(0x477FE000 - 70000, 0x47800000 + 70000, 3, dtype=np.uint32),  # overflow edge
+                           np.array([0, 0x80000000, 0x7F800000, 0xFF800000, 0x3F800000, 0x00000001], np.uint32)])
+    bits = np.concatenate([bits, bits | np.uint32(0x80000000)])
+    f = bits.view(np.float32)
+    f = f[~np.isnan(f)]  # NaN payloads: hardware and software paths of numpy differ; ingest never has NaN
+    got = np.empty(f.shape, np.uint16)
+    rk.to_half(f.view(np.uint32), got)
+    with np.errstate(over="ignore"):
+        want = f.astype(np.float16).view(np.uint16)
+    assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("M,f", [(129, 16), (257, 16), (33, 4)])
+def test_block_stats_match_numpy(M, f):
+    rng = np.random.default_rng(M)
+    b = _terrain(rng, (M, M))
+    lo, hi = np.empty(((M - 1) // f,) * 2, np.float32), np.empty(((M - 1) // f,) * 2, np.float32)
+    mn, mx, dm = rk.block_stats(b, f, lo, hi)
+    assert (mn, mx) == (b.min(), b.max())
+    assert dm == max(float(x.max()) for x in meta.vertex_deltas(b))
+    want_lo = np.minimum.reduce([meta.reduce_min(b[dy:dy + M - 1, dx:dx + M - 1], f) for dy in (0, 1) for dx in (0, 1)])
+    want_hi = np.maximum.reduce([meta.reduce_max(b[dy:dy + M - 1, dx:dx + M - 1], f) for dy in (0, 1) for dx in (0, 1)])
+    assert np.array_equal(lo, want_lo) and np.array_equal(hi, want_hi)
+
+
+# -- the numpy code the kernels replaced (colors.py before issue 20's second round) --------------
+def _padded(above, mid, below, c0, c1):
+    W = mid.shape[1]
+    lo, hi = max(c0 - 1, 0), min(c1 + 1, W)
+    g = np.concatenate([x[:, lo:hi] for x in (above, mid, below)], axis=0)
+    if c0 == 0 or c1 == W:
+        g = np.concatenate(([g[:, :1]] if c0 == 0 else []) + [g] + ([g[:, -1:]] if c1 == W else []), axis=1)
+    return g
+
+
+def _numpy_shade0(prev, cur, nxt, dx, dy, zlo, rng_):
+    M, W = cur.shape
+    above = prev[M - 2: M - 1] if prev is not None else cur[:1]
+    below = nxt[1:2] if nxt is not None else cur[M - 1:]
+    out = np.empty((M, W, 3), np.float16)
+    s = _padded(above, cur, below, 0, W)
+    sx, sy = colors.horn_slopes(s, dx, dy)
+    for ch, v in enumerate((sx, sy, (s[1:-1, 1:-1] - zlo) / rng_)):
+        out[:, :, ch] = v
+    return out
+
+
+def _numpy_tent(rows, i):
+    a, m0, m1, b = (rows.get(k) for k in (2 * i - 1, 2 * i, 2 * i + 1, 2 * i + 2))
+    M, W = m0.shape[0], m0.shape[1]
+    above = a[M - 2: M - 1] if a is not None else m0[:1]
+    below = b[0:2] if b is not None else np.concatenate([m1[M - 1:]] * 2)
+    mid = np.concatenate([m0[:M - 1], m1[:M - 1]])
+    g = _padded(above, mid, below, 0, W).astype(np.float32)
+    return colors.tent_decimate(g).astype(np.float16)
+
+
+@pytest.mark.parametrize("edges", [(True, True), (False, True), (True, False), (False, False)])
+def test_horn_row_matches_numpy(edges):
+    rng = np.random.default_rng(3)
+    M, W = 33, 3 * 32 + 1
+    rows = [_terrain(rng, (M, W)) for _ in range(3)]
+    prev, cur, nxt = rows[0] if edges[0] else None, rows[1], rows[2] if edges[1] else None
+    dx, dy, zlo, zhi = 30.0, 27.5, float(cur.min()) - 3.1, float(cur.max()) + 7.3
+    want = _numpy_shade0(prev, cur, nxt, dx, dy, zlo, max(zhi - zlo, 1e-6))
+    got = colors.shade0_wide(prev, cur, nxt, dx, dy, zlo, max(zhi - zlo, 1e-6))
+    assert got.dtype == np.float16 and np.array_equal(got.view(np.uint16), want.view(np.uint16))
+
+
+@pytest.mark.parametrize("i,last", [(1, False), (1, True), (0, False), (0, True)])
+def test_tent_row_matches_numpy(i, last):
+    rng = np.random.default_rng(4)
+    M, W = 33, 4 * 32 + 1
+    keys = [k for k in range(2 * i - 1, 2 * i + 3) if k >= 0 and not (last and k == 2 * i + 2)]
+    rows = {k: (rng.normal(size=(M, W, 3)) * 40).astype(np.float16) for k in keys}
+    want, got = _numpy_tent(rows, i), colors.tent_wide(rows, i)
+    assert got.dtype == np.float16 and np.array_equal(got.view(np.uint16), want.view(np.uint16))
+
+
+def test_local_d2_matches_numpy():
+    rng = np.random.default_rng(5)
+    g = _terrain(rng, (65, 129))
+    out = np.empty((32, 64), np.float32)
+    rk.local_d2(g, 8, out)
+    assert np.array_equal(out, roettger.local_d2(g, 8))
