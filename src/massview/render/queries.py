@@ -7,7 +7,9 @@
    previous frame's visible objects — the caller picks their geometry and LOD);
 2. with depth writes off and the depth test ``<=``, draw each candidate's box (12 triangles)
    inside its own ``GL_SAMPLES_PASSED`` query;
-3. collect the sample counts. Queries are **batched**: a batch of up to ``batch`` boxes is
+3. collect the sample counts (:meth:`OcclusionQuerier.begin`, then :meth:`~OcclusionQuerier.query`
+   any number of times — the M1 client's group-tree walk calls it once per round — then
+   :meth:`~OcclusionQuerier.end`; :meth:`~OcclusionQuerier.test` does all three). Queries are **batched**: a batch of up to ``batch`` boxes is
    issued before the results of the previous batch are read, so one frame blocks on results
    ``ceil(n / batch)`` times (once with the default, unbounded batch), never once per object.
 

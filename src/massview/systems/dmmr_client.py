@@ -4,9 +4,11 @@ Two modules, each on its own GL context (the paper's two GPUs), run as the last 
 of the frame pipeline:
 
 * :meth:`DmmrClient.visibility` (GPU 1): the sub-frustum's potential occluders and the
-  previous frame's visible objects are drawn to depth, every other object is tested with a
-  batched hardware occlusion query on its box (:mod:`massview.render.queries`), and objects
-  that pass are marked visible for ``--visible-frames`` frames
+  previous frame's visible objects are drawn to depth, every other object is tested with
+  batched hardware occlusion queries (:mod:`massview.render.queries`) — through the scene's
+  group tree (:mod:`massview.systems.dmmr_hierarchy`, the same visible set with fewer
+  queries) or one per object box (``--query-hierarchy off``, the paper's) — and objects that
+  pass are marked visible for ``--visible-frames`` frames
   (:class:`~massview.lod.visibility.VisibilityState`);
 * :meth:`DmmrClient.render` (GPU 2): the visible list is made resident through the
   three-level cache (:class:`~massview.render.geometry_cache.GeometryCache`: GPU ← RAM ←
