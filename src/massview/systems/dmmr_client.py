@@ -128,8 +128,9 @@ class DmmrClient:
         self.ram = BlockCache(packed_loader(store), ram_bytes, workers=2)
         self.state = VisibilityState(len(self.box_lo), cfg.visible_frames)
         groups = store.groups
-        self.groups = (GroupQueries(groups.parent, groups.depth, self.sk.group)
-                       if cfg.query_hierarchy == "on" and len(groups.parent) else None)
+        leaf = np.asarray(self.sk.group, np.int64)
+        self.groups = (GroupQueries(groups.parent, groups.depth, leaf)  # a scene without a tree: one query per box
+                       if cfg.query_hierarchy == "on" and len(groups.parent) and (leaf >= 0).all() else None)
         self._vis: tuple[SceneDrawer, OcclusionQuerier] | None = None
         self._ren: SceneDrawer | None = None
         self._ids: SceneIdBuffer | None = None
