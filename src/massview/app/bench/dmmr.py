@@ -232,8 +232,8 @@ def run(args) -> int:
     results: dict = {}
     if "tables" in parts:
         _tables(args, results)
-    scene = _scene(args, "plant", plants[0])
-    if parts & {"queries", "occlusion", "split", "pipeline", "speedup"}:
+    if plants and parts & {"queries", "occlusion", "split", "pipeline", "speedup"}:
+        scene = _scene(args, "plant", plants[0])
         base = _job(args, scene, n, "compare", "--record-ids", frames=args.compare_frames)
         results["comparisons"] = _comparisons(args, parts, scene, n, base)
     out = Path(args.workdir) / "results.json"
