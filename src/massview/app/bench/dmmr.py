@@ -237,6 +237,7 @@ def run(args) -> int:
         base = _job(args, scene, n, "compare", "--record-ids", frames=args.compare_frames)
         results["comparisons"] = _comparisons(args, parts, scene, n, base)
     out = Path(args.workdir) / "results.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({str(k): v for k, v in results.items()}, indent=1, default=float))
     print(f"\nwrote {out} in {time.perf_counter() - t0:.0f} s (figures taken on a shared CPU: compare the ratios)")
     return 0
