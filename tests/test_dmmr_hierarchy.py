@@ -165,3 +165,23 @@ def test_traversal_rounds_coherence_and_inherited_samples_without_gl():
     asked.clear()
     res = t.run(np.arange(6), lo, hi, query, near, 0, np.zeros(3), 1e-6)  # coherence: groups seen last frame are opened
     assert asked == [5] and res.rounds == 1 and res.passed.tolist() == [True, True, False, True, False, False]
+
+
+def test_widened_query_box_keeps_an_object_flush_with_an_occluder_face(ctx):
+    """A thin plate on a wall's front face ties with the wall in depth; the ID buffer (id order,
+    depth test <) shows the plate, and its box widened by half a pixel passes the query, so the
+    client keeps it (the bench's 8 cm flanges were missed on 6 of 60 client-frames without it)."""
+    from massview.systems.dmmr_hierarchy import widen_boxes
+
+    cam = Camera.look_at((0.3, -20, 0.2), (0.3, 10, 0.2), fovy=60, near=0.5, far=100, width=W, height=H)
+    plate, wall = ((-1, 10, -1), (1, 10.08, 1)), ((-8, 10, -8), (8, 10.5, 8))  # plate front face = wall front face
+    b = Both(ctx, box_meshes([plate, wall]))
+    try:
+        assert b.ids.visible(cam, cam.viewport, np.arange(2)).tolist() == [0, 1]
+        b.querier.begin(cam, cam.viewport, lambda mvp: b.meshes.draw(np.array([1]), mvp))
+        lo, hi = widen_boxes(b.lo[:1], b.hi[:1], np.asarray(cam.position), 1.0 / lod_scale(cam))
+        assert (lo < b.lo[:1]).all() and (hi > b.hi[:1]).all()
+        assert b.querier.query(lo, hi)[0] > 0
+        b.querier.end()
+    finally:
+        b.release()

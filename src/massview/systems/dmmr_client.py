@@ -42,7 +42,7 @@ from ..render.geometry_cache import GeometryCache, packed_loader
 from ..render.queries import OcclusionQuerier, SceneIdBuffer
 from ..render.scene import MeshPool, SceneRenderer
 from ..render.view import ViewRenderer
-from .dmmr_hierarchy import GroupQueries, box_screen_area
+from .dmmr_hierarchy import GroupQueries, box_screen_area, widen_boxes
 
 __all__ = ["ClientTask", "Visible", "DmmrClient", "SceneDrawer", "normal_matrices"]
 
@@ -172,13 +172,15 @@ class DmmrClient:
         one per object box (``off``, the paper's). Returns (passed per object, counters)."""
         t0 = time.perf_counter()
         tris = querier.begin(cam, vp, draw_depth)
-        lo, hi, thr = self.box_lo[query], self.box_hi[query], self.cfg.query_threshold
+        pixel, eye = 1.0 / lod_scale(cam), np.asarray(cam.position)
+        lo, hi = widen_boxes(self.box_lo[query], self.box_hi[query], eye, pixel)  # ties go to the visible side
+        thr = self.cfg.query_threshold
         if self.groups is None:
             samples = querier.query(lo, hi)
             passed, counts = samples > thr, {"queries_issued": len(query), "object_queries": len(query)}
         else:
             res = self.groups.run(query, lo, hi, querier.query, lambda a, b: boxes_reach_near(cam, a, b), thr,
-                                  np.asarray(cam.position), 1.0 / lod_scale(cam), lambda a, b: box_screen_area(cam, vp, a, b))
+                                  eye, pixel, lambda a, b: box_screen_area(cam, vp, a, b))
             passed = res.passed
             counts = {"queries_issued": res.issued, "object_queries": res.object_queries, "group_queries": res.group_queries,
                       "culled_by_group": res.culled_by_group}

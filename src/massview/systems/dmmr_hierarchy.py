@@ -39,7 +39,18 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["HierarchyResult", "GroupQueries", "box_screen_area"]
+__all__ = ["HierarchyResult", "GroupQueries", "box_screen_area", "widen_boxes"]
+
+
+def widen_boxes(lo: np.ndarray, hi: np.ndarray, eye: np.ndarray, pixel: float) -> tuple[np.ndarray, np.ndarray]:
+    """World boxes ((k, 3) float64) widened on every side by half a pixel at their farthest
+    corner from ``eye`` (``pixel``: world size of a pixel at distance 1): the box then strictly
+    encloses what it bounds on screen and in depth, so depth ties with a coplanar occluder and
+    rasterization ties on edges fall on the visible side."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    far = np.maximum(np.abs(lo - eye), np.abs(hi - eye))
+    pad = (0.5 * pixel) * np.sqrt((far * far).sum(-1))[..., None]
+    return lo - pad, hi + pad
 
 
 def box_screen_area(camera, vp, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -186,9 +197,7 @@ class _Tree:
 
     def widened(self, eye: np.ndarray, pixel: float) -> tuple[np.ndarray, np.ndarray]:
         """Group boxes widened by half a pixel at their farthest corner from the eye."""
-        far = np.maximum(np.abs(self.g_lo - eye), np.abs(self.g_hi - eye))
-        pad = (0.5 * pixel) * np.sqrt((far * far).sum(1))[:, None]
-        return self.g_lo - pad, self.g_hi + pad
+        return widen_boxes(self.g_lo, self.g_hi, eye, pixel)
 
     def wide(self, g_area: np.ndarray, o_area: np.ndarray) -> np.ndarray:
         """(m,) bool: the group's box covers more pixels than its parts' boxes together."""
