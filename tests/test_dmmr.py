@@ -65,8 +65,14 @@ def test_occlusion_culling_keeps_the_image_and_draws_fewer_triangles(tmp_path, p
     clients = [r for r in recs if r["rank"] > 0]
     assert sum(r["counters"].get("culled_by_occlusion", 0) for r in clients) > 0
     assert max(r["counters"].get("queries_issued", 0) for r in clients) > 1
-    for r in clients:  # batched: one wait per frame however many queries (none when all are marked)
-        assert r["counters"].get("query_waits", 0) == (1 if r["counters"].get("queries_issued", 0) else 0)
+    from massview.data.scene import SceneStore
+
+    levels = int(SceneStore(plant).groups.depth.max()) + 1
+    for r in clients:  # batched: one wait per round of the group-tree walk (≤ levels + 1), never one per query
+        c = r["counters"]
+        assert (c.get("query_waits", 0) > 0) == (c.get("queries_issued", 0) > 0) and c.get("query_waits", 0) <= levels + 1
+        assert c.get("queries_issued", 0) == c.get("group_queries", 0) + c.get("object_queries", 0)
+    assert sum(r["counters"].get("culled_by_group", 0) for r in clients) > 0  # hidden groups culled objects unqueried
 
 
 @pytest.mark.mpi
@@ -141,6 +147,8 @@ def test_bad_dmmr_options_are_clear_errors():
         RenderConfig(visible_frames=0)
     with pytest.raises(ConfigError, match="--occluder-lod"):
         RenderConfig(occluder_lod="fine")
+    with pytest.raises(ConfigError, match="--query-hierarchy"):
+        RenderConfig(query_hierarchy="maybe")
     p = run_cli("render", SCENE, "--system", "dmmr", "--occlusion", "maybe", check=False)
     assert p.returncode != 0 and "--occlusion" in p.stderr
 

@@ -16,6 +16,9 @@ def add_dmmr_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--visible-frames", type=int, default=None, help="dmmr: frames an object stays visible after passing a query (default 4)")
     g.add_argument("--query-threshold", type=int, default=None, help="dmmr: pixels a box must show to be visible (default 0)")
     g.add_argument("--occlusion", choices=("on", "off"), default=None, help="dmmr: occlusion culling on the clients (default on)")
+    g.add_argument("--query-hierarchy", choices=("on", "off"), default=None,
+                   help="dmmr: test query objects through the scene's group tree, culling a hidden group's objects with one query "
+                        "(on, default: the same visible set, fewer queries) or with one query per object box (off, the paper's)")
     g.add_argument("--occluder-lod", choices=("exact", "coarse"), default=None,
                    help="dmmr: depth pre-pass at the rendered level (exact, default: conservative) or the coarsest level (the paper's)")
     g.add_argument("--stage-pipeline", choices=("on", "off"), default=None,

@@ -64,9 +64,13 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
         settings = {"decomposition": f"{kind}:{mode}" if mode else kind,
                     "compositor": cfg.compositor, "tau": cfg.tau, "color_by_rank": cfg.color_by_rank,
                     "exaggeration": cfg.exaggeration, "sun": list(cfg.sun), "colormap": cfg.colormap, "haze": cfg.haze}
+        modes = list(getattr(system, "viewer_decompositions", modes))  # a system may offer only what applies to it (M1)
+        if settings["decomposition"] not in modes:
+            settings["decomposition"] = modes[0]
         base_speed = float(np.linalg.norm((hi - lo)[:2])) * 0.02
         cmaps = list(dict.fromkeys([cfg.colormap, *VIEWER_COLORMAPS]))
-        state = ViewerState(start, settings, {"decomposition": modes, "compositor": list(COMPOSITORS), "colormap": cmaps}, base_speed)
+        state = ViewerState(start, settings, {"decomposition": modes, "compositor": list(COMPOSITORS), "colormap": cmaps,
+                                              "decomposition_note": getattr(system, "viewer_note", "")}, base_speed)
         server = ViewerServer(state, args.host, args.port)
         server.start()
         bound = "" if server.loopback else f"; bound to {args.host}, the token in the URL is required"

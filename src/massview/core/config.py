@@ -66,6 +66,7 @@ class RenderConfig:
     visible_frames: int = 4  # dmmr: frames a passed occlusion query keeps an object visible
     query_threshold: int = 0  # dmmr: samples (pixels) a box must pass to count as visible
     occlusion: str = "on"  # dmmr: occlusion culling on the clients, "on" or "off"
+    query_hierarchy: str = "on"  # dmmr: occlusion queries through the group tree ("on") or one per object box ("off")
     occluder_lod: str = "exact"  # dmmr: depth pre-pass at the rendered level ("exact") or the coarsest ("coarse")
     stage_pipeline: str = "on"  # dmmr: divide i / visibility i-1 / render i-2 concurrently, or "off"
     client_cache_mb: int | None = None  # dmmr: client RAM cache (default: scene object bytes / clients)
@@ -113,7 +114,7 @@ class RenderConfig:
     def _check_dmmr(self) -> None:
         if self.visible_frames < 1 or self.query_threshold < 0:
             raise ConfigError("--visible-frames must be at least 1 and --query-threshold at least 0")
-        for name in ("occlusion", "stage_pipeline"):
+        for name in ("occlusion", "stage_pipeline", "query_hierarchy"):
             if getattr(self, name) not in ("on", "off"):
                 raise ConfigError(f"--{name.replace('_', '-')} must be on or off, got {getattr(self, name)!r}")
         if self.occluder_lod not in ("exact", "coarse"):

@@ -7,7 +7,9 @@
    previous frame's visible objects — the caller picks their geometry and LOD);
 2. with depth writes off and the depth test ``<=``, draw each candidate's box (12 triangles)
    inside its own ``GL_SAMPLES_PASSED`` query;
-3. collect the sample counts. Queries are **batched**: a batch of up to ``batch`` boxes is
+3. collect the sample counts (:meth:`OcclusionQuerier.begin`, then :meth:`~OcclusionQuerier.query`
+   any number of times — the M1 client's group-tree walk calls it once per round — then
+   :meth:`~OcclusionQuerier.end`; :meth:`~OcclusionQuerier.test` does all three). Queries are **batched**: a batch of up to ``batch`` boxes is
    issued before the results of the previous batch are read, so one frame blocks on results
    ``ceil(n / batch)`` times (once with the default, unbounded batch), never once per object.
 
@@ -86,6 +88,8 @@ class OcclusionQuerier:
         self._vao = None
         self._fbo = None
         self._size = None
+        self._mvp = None
+        self.waits, self.wait_s = 0, 0.0  # of the current frame (since begin)
 
     def _target(self, w: int, h: int) -> moderngl.Framebuffer:
         if self._size != (w, h):
@@ -106,10 +110,9 @@ class OcclusionQuerier:
             self._vao = self.ctx.vertex_array(self.prog, [(self._vbo, "3f", "in_pos")])
         self._vbo.write(data)
 
-    def test(self, camera: Camera, vp: Viewport, draw_depth: Callable[[np.ndarray], int] | None,
-             lo: np.ndarray, hi: np.ndarray, threshold: int = 0) -> QueryResult:
-        """Depth pre-pass, then one query per box ``[lo[i], hi[i]]``; see the module doc."""
-        t0 = time.perf_counter()
+    def begin(self, camera: Camera, vp: Viewport, draw_depth: Callable[[np.ndarray], int] | None) -> int:
+        """Step 1: bind the depth target (scissored to ``vp``) and run the depth pre-pass;
+        returns its triangles. :meth:`query` may then be called any number of times."""
         fbo = self._target(camera.width, camera.height)
         fbo.use()
         self.ctx.scissor = None
@@ -119,13 +122,33 @@ class OcclusionQuerier:
         self.ctx.disable(moderngl.CULL_FACE)
         self.ctx.scissor = _scissor(camera, vp)
         self.ctx.depth_func = "<"
-        mvp = camera.view_projection()
-        tris = int(draw_depth(mvp)) if draw_depth is not None else 0
+        self._mvp = camera.view_projection()
+        self.waits, self.wait_s = 0, 0.0
+        return int(draw_depth(self._mvp)) if draw_depth is not None else 0
+
+    def query(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Step 2: (n,) int64 samples passed by each box ``[lo[i], hi[i]]`` against the depth
+        pre-pass (depth writes off, so the boxes do not occlude one another). One call blocks
+        ``ceil(n / batch)`` times (once with the default batch); counted in ``waits``."""
         samples = np.zeros(len(lo), np.int64)
-        waits, wait_s = self._query_boxes(fbo, mvp, lo, hi, samples) if len(lo) else (0, 0.0)
+        if len(lo):
+            w, s = self._query_boxes(self._fbo, self._mvp, lo, hi, samples)
+            self.waits += w
+            self.wait_s += s
+        return samples
+
+    def end(self) -> None:
         self.ctx.scissor = None
+
+    def test(self, camera: Camera, vp: Viewport, draw_depth: Callable[[np.ndarray], int] | None,
+             lo: np.ndarray, hi: np.ndarray, threshold: int = 0) -> QueryResult:
+        """Depth pre-pass, then one query per box ``[lo[i], hi[i]]``; see the module doc."""
+        t0 = time.perf_counter()
+        tris = self.begin(camera, vp, draw_depth)
+        samples = self.query(lo, hi)
+        self.end()
         total = time.perf_counter() - t0
-        return QueryResult(samples, samples > int(threshold), waits, tris, 1e3 * (total - wait_s), 1e3 * wait_s)
+        return QueryResult(samples, samples > int(threshold), self.waits, tris, 1e3 * (total - self.wait_s), 1e3 * self.wait_s)
 
     def _query_boxes(self, fbo, mvp: np.ndarray, lo: np.ndarray, hi: np.ndarray, samples: np.ndarray) -> tuple[int, float]:
         """Issue the box queries batch by batch, collecting batch b after issuing b+1; fills

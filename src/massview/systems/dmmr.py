@@ -109,10 +109,22 @@ class DmmrSystem:
         if self.cfg.wall or self.cfg.tile_targets:
             raise ConfigError("--wall and --tile-targets are not available with --system dmmr (the server assembles one frame); leave them out")
         self.store = open_scene(spec)
-        kind, layout = parse_decomposition(self.cfg.decomposition, ("default",))
-        layout = "balanced" if kind == "sort-last" or layout == "kd" else layout  # default: Algorithm 1
-        self.server = DmmrServer(self.store, self.cfg.tau, layout, self.cfg.grid)
+        self.server = DmmrServer(self.store, self.cfg.tau, self._layout(self.cfg), self.cfg.grid)
         self._ref: SceneDrawer | None = None
+        self._split: list = []  # the last frame's client viewports (the viewer's panel)
+
+    #: what the viewer's decomposition menu offers: the server splits the frustum itself, with
+    #: Algorithm 1 (the runtime's ``kd`` slot) or into equal screen tiles; sort-last does not
+    #: apply (each client draws its own screen region)
+    viewer_decompositions = ("sort-first:kd", "sort-first:horizontal", "sort-first:vertical", "sort-first:grid")
+    viewer_note = "M1: sort-first:kd = Algorithm 1 (load-balanced frustum division); the others: equal screen tiles"
+
+    @staticmethod
+    def _layout(cfg: RenderConfig) -> str:
+        """``balanced`` (Algorithm 1: sort-last, the default, or ``sort-first:kd``/``balanced``) or
+        an equal-tile layout (``sort-first:horizontal|vertical|grid``)."""
+        kind, layout = parse_decomposition(cfg.decomposition, ("default",))
+        return "balanced" if kind == "sort-last" or layout == "kd" else layout
 
     @property
     def bounds(self):
@@ -290,7 +302,9 @@ class DmmrSystem:
         link, role = self._link, self._role
         if role in ("server", "both"):
             t0 = time.perf_counter()
+            self.server.layout, self.server.grid = self._layout(cfg), cfg.grid  # the viewer may switch it between frames
             fr = self._divide_send(frame, camera, self._clients, link)
+            self._split = [t.viewport for t in fr[2]]
         if role in ("client", "both"):
             if self._client_obj is None:
                 self._client_obj = DmmrClient(self.store, cfg, self._index, self.ram_budget(self._clients))
@@ -314,6 +328,9 @@ class DmmrSystem:
         server = next((r for r in records if r["rank"] == 0), {})
         clients = sorted((r for r in records if r["rank"] > 0), key=lambda r: r["rank"]) or getattr(self, "_panel_clients", [])
         rows = panel_rows(server, clients)
+        if self._split:
+            rows["split"] = "Algorithm 1" if self.server.layout == "balanced" else f"equal tiles ({self.server.layout})"
+            rows["sub-frusta x,y,w,h per client"] = " / ".join(f"{v.x},{v.y},{v.w},{v.h}" for v in self._split)
         return {"title": "M1 (dmmr), per client", "columns": ["figure", "value"], "rows": [[k, v] for k, v in rows.items()]}
 
     # -- the one-rank reference ---------------------------------------------------------

@@ -4,9 +4,11 @@ Two modules, each on its own GL context (the paper's two GPUs), run as the last 
 of the frame pipeline:
 
 * :meth:`DmmrClient.visibility` (GPU 1): the sub-frustum's potential occluders and the
-  previous frame's visible objects are drawn to depth, every other object is tested with a
-  batched hardware occlusion query on its box (:mod:`massview.render.queries`), and objects
-  that pass are marked visible for ``--visible-frames`` frames
+  previous frame's visible objects are drawn to depth, every other object is tested with
+  batched hardware occlusion queries (:mod:`massview.render.queries`) — through the scene's
+  group tree (:mod:`massview.systems.dmmr_hierarchy`, the same visible set with fewer
+  queries) or one per object box (``--query-hierarchy off``, the paper's) — and objects that
+  pass are marked visible for ``--visible-frames`` frames
   (:class:`~massview.lod.visibility.VisibilityState`);
 * :meth:`DmmrClient.render` (GPU 2): the visible list is made resident through the
   three-level cache (:class:`~massview.render.geometry_cache.GeometryCache`: GPU ← RAM ←
@@ -32,6 +34,7 @@ from ..core.config import RenderConfig
 from ..core.image import Image
 from ..core.stats import FrameStats
 from ..data.cache import BlockCache
+from ..lod.scene import lod_scale
 from ..lod.visibility import VisibilityState, boxes_reach_near
 from ..parallel.codec import encode_image
 from ..render.context import create_context
@@ -39,6 +42,7 @@ from ..render.geometry_cache import GeometryCache, packed_loader
 from ..render.queries import OcclusionQuerier, SceneIdBuffer
 from ..render.scene import MeshPool, SceneRenderer
 from ..render.view import ViewRenderer
+from .dmmr_hierarchy import GroupQueries, box_screen_area, widen_boxes
 
 __all__ = ["ClientTask", "Visible", "DmmrClient", "SceneDrawer", "normal_matrices"]
 
@@ -123,6 +127,10 @@ class DmmrClient:
         self.coarsest = np.asarray(self.sk.levels, np.int64) - 1
         self.ram = BlockCache(packed_loader(store), ram_bytes, workers=2)
         self.state = VisibilityState(len(self.box_lo), cfg.visible_frames)
+        groups = store.groups
+        leaf = np.asarray(self.sk.group, np.int64)
+        self.groups = (GroupQueries(groups.parent, groups.depth, leaf)  # a scene without a tree: one query per box
+                       if cfg.query_hierarchy == "on" and len(groups.parent) and (leaf >= 0).all() else None)
         self._vis: tuple[SceneDrawer, OcclusionQuerier] | None = None
         self._ren: SceneDrawer | None = None
         self._ids: SceneIdBuffer | None = None
@@ -149,18 +157,37 @@ class DmmrClient:
             lv = task.levels[pos] if self.cfg.occluder_lod == "exact" else self.coarsest[plan.depth_pass]
             with stats.stage("vis_load"):
                 occ, lv, c, _ = self._resident(drawer, plan.depth_pass, lv, exact=True)
-            res = querier.test(cam, task.viewport, drawer.draw_fn(cam, occ, lv),
-                               self.box_lo[plan.query], self.box_hi[plan.query], self.cfg.query_threshold)
-            visible = self.state.finish(plan, res.passed)
-        stats.times_ms["vis_issue"] = res.issue_ms
-        stats.times_ms["vis_retrieve"] = res.retrieve_ms
-        for k, v in (("depth_pass_objects", len(plan.depth_pass)), ("queries_issued", res.issued), ("query_waits", res.waits),
-                     ("culled_by_occlusion", int((~res.passed).sum())), ("marked_visible", len(plan.marked)),
-                     ("near_visible", len(plan.near)), ("depth_pass_triangles", res.depth_triangles)):
+            passed, counts = self._query(querier, cam, task.viewport, drawer.draw_fn(cam, occ, lv), plan.query, stats)
+            visible = self.state.finish(plan, passed)
+        for k, v in (("depth_pass_objects", len(plan.depth_pass)), ("culled_by_occlusion", int((~passed).sum())),
+                     ("marked_visible", len(plan.marked)), ("near_visible", len(plan.near)), *counts.items()):
             stats.count(k, v)
         for k, v in c.to_counters("vis_").items():
             stats.count(k, v)
         return Visible(task, np.searchsorted(items, visible), stats)
+
+    def _query(self, querier: OcclusionQuerier, cam: Camera, vp, draw_depth, query: np.ndarray, stats: FrameStats):
+        """Depth pre-pass, then the queries of objects ``query``: through the group tree
+        (:class:`~massview.systems.dmmr_hierarchy.GroupQueries`, ``--query-hierarchy on``) or
+        one per object box (``off``, the paper's). Returns (passed per object, counters)."""
+        t0 = time.perf_counter()
+        tris = querier.begin(cam, vp, draw_depth)
+        pixel, eye = 1.0 / lod_scale(cam), np.asarray(cam.position)
+        lo, hi = widen_boxes(self.box_lo[query], self.box_hi[query], eye, pixel)  # ties go to the visible side
+        thr = self.cfg.query_threshold
+        if self.groups is None:
+            samples = querier.query(lo, hi)
+            passed, counts = samples > thr, {"queries_issued": len(query), "object_queries": len(query)}
+        else:
+            res = self.groups.run(query, lo, hi, querier.query, lambda a, b: boxes_reach_near(cam, a, b), thr,
+                                  eye, pixel, lambda a, b: box_screen_area(cam, vp, a, b))
+            passed = res.passed
+            counts = {"queries_issued": res.issued, "object_queries": res.object_queries, "group_queries": res.group_queries,
+                      "culled_by_group": res.culled_by_group}
+        querier.end()
+        stats.times_ms["vis_issue"] = 1e3 * (time.perf_counter() - t0 - querier.wait_s)
+        stats.times_ms["vis_retrieve"] = 1e3 * querier.wait_s
+        return passed, {**counts, "query_waits": querier.waits, "depth_pass_triangles": tris}
 
     def render(self, vis: Visible, stats: FrameStats, tint=(0.0, 0.0, 0.0, 0.0)) -> tuple[Image, bytes]:
         """Module 3: load, draw, read back and compress the sub-frame."""

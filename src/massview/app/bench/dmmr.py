@@ -52,8 +52,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--path", default="serpentine", help="serpentine (a sweep over every copy, default) or any --path of render")
     p.add_argument("--size", default="1280x1024")
     p.add_argument("--gpu-mb", type=int, default=512)
-    p.add_argument("--items", "--parts", dest="parts", default="tables,occlusion,split,pipeline,speedup",
-                   help="what to run: tables (1-3), occlusion, split, pipeline, speedup (comma-separated)")
+    p.add_argument("--items", "--parts", dest="parts", default="tables,queries,occlusion,split,pipeline,speedup",
+                   help="what to run: tables (1-3), queries (group-tree against per-object queries), occlusion, split, pipeline, "
+                        "speedup (comma-separated)")
 
 
 def _scene(args, kind: str, copies: int) -> Path:
@@ -116,6 +117,7 @@ def _job(args, scene: Path, clients: int, tag: str, *extra: str, frames: int | N
     d["wall_s"] = time.perf_counter() - t0
     if "--record-ids" in extra:
         d["copies"], d["copies_seen"], d["min_frames_per_copy"] = _copies_seen(scene, recs)
+        d["stats"] = str(out / "stats.jsonl")
     print(f"  {scene.name} on {clients} client(s), {tag}: {frames or args.frames} frames in {d['wall_s']:.0f} s"
           + (f"; copies drawn: {d['copies_seen']} of {d['copies']} (each on at least {d['min_frames_per_copy']} frames)"
              if "copies" in d else ""), flush=True)
@@ -139,6 +141,9 @@ def _digest(recs: list[dict]) -> dict:
         "render": [cmean(c, "draw", "readback") for c in clients],
         "to_server": [cmean(c, "encode", "send") for c in clients],
         "queries": [cmean(c, "queries_issued", counter=True) for c in clients],
+        "group_queries": [cmean(c, "group_queries", counter=True) for c in clients],
+        "query_waits": [cmean(c, "query_waits", counter=True) for c in clients],
+        "visibility": [cmean(c, "visibility") for c in clients],
         "culled": [cmean(c, "culled_by_occlusion", counter=True) for c in clients],
         "drawn": [cmean(c, "objects_drawn", counter=True) for c in clients],
         "triangles": [float(np.mean([r["triangles"] for r in recs if r["rank"] == c])) for c in clients],
@@ -227,11 +232,12 @@ def run(args) -> int:
     results: dict = {}
     if "tables" in parts:
         _tables(args, results)
-    scene = _scene(args, "plant", plants[0])
-    if parts & {"occlusion", "split", "pipeline", "speedup"}:
-        base = _job(args, scene, n, "compare", frames=args.compare_frames)
+    if plants and parts & {"queries", "occlusion", "split", "pipeline", "speedup"}:
+        scene = _scene(args, "plant", plants[0])
+        base = _job(args, scene, n, "compare", "--record-ids", frames=args.compare_frames)
         results["comparisons"] = _comparisons(args, parts, scene, n, base)
     out = Path(args.workdir) / "results.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({str(k): v for k, v in results.items()}, indent=1, default=float))
     print(f"\nwrote {out} in {time.perf_counter() - t0:.0f} s (figures taken on a shared CPU: compare the ratios)")
     return 0
@@ -243,6 +249,8 @@ def _comparisons(args, parts: set, scene: Path, n: int, base: dict | None) -> di
         return out
     fr = args.compare_frames
     print(f"\ncomparisons on {scene.name}, {n} clients, {fr or args.frames} frames (ratios against the run with the defaults)")
+    if "queries" in parts and (flat := _job(args, scene, n, "flat_queries", "--record-ids", "--query-hierarchy", "off", frames=fr)):
+        out["queries"] = _queries_line(base, flat)
     if "occlusion" in parts and (off := _job(args, scene, n, "occl_off", "--occlusion", "off", frames=fr)):
         out["occlusion_off_over_on"] = {"triangles": off["triangles"] / max(base["triangles"], 1), "frame_time": off["frame_ms"] / base["frame_ms"]}
         print(f"  occlusion culling off ÷ on: triangles {off['triangles'] / 1e6:.2f} M ÷ {base['triangles'] / 1e6:.2f} M = "
@@ -266,6 +274,33 @@ def _comparisons(args, parts: set, scene: Path, n: int, base: dict | None) -> di
         print(f"  speed-up of {n} clients over one rank alone (server and client in one process, same culling, LOD, caches): "
               f"{out['speedup_vs_one_rank']:.2f}× (frame time {one['frame_ms']:.0f} vs {base['frame_ms']:.0f} ms) [paper: ~6× on 3 plants]")
     return out
+
+
+def _drawn_sets(a: str, b: str) -> dict:
+    """Compare the drawn sets of two runs (stats files with drawn_ids) client-frame by client-frame."""
+    from ...core.stats import read_stats
+
+    sets = [{(r["frame"], r["rank"]): set(r.get("drawn_ids", [])) for r in read_stats(Path(f)) if r["rank"] > 0} for f in (a, b)]
+    out = {"equal": 0, "flat_more": 0, "tree_more": 0, "other": 0, "client_frames": len(sets[1])}
+    for k, flat in sets[1].items():
+        tree = sets[0].get(k, set())
+        out["equal" if tree == flat else "flat_more" if tree < flat else "tree_more" if flat < tree else "other"] += 1
+    return out
+
+
+def _queries_line(tree: dict, flat: dict) -> dict:
+    """Group-tree queries (the default) against one query per object box: per client per frame."""
+    q = {k: float(np.mean(d["clients"][key])) for k, d, key in (("tree", tree, "queries"), ("flat", flat, "queries"),
+                                                                    ("tree_groups", tree, "group_queries"), ("tree_waits", tree, "query_waits"),
+                                                                    ("flat_waits", flat, "query_waits"), ("tree_vis_ms", tree, "visibility"),
+                                                                    ("flat_vis_ms", flat, "visibility"))}
+    q.update(frame_ms_tree=tree["frame_ms"], frame_ms_flat=flat["frame_ms"], **_drawn_sets(tree["stats"], flat["stats"]))
+    print(f"  occlusion queries per client per frame: group tree {q['tree']:.0f} ({q['tree_groups']:.0f} on groups, {q['tree_waits']:.1f} waits) "
+          f"vs one per object box {q['flat']:.0f} ({q['flat_waits']:.1f} waits) = {q['flat'] / max(q['tree'], 1e-9):.1f}× fewer; "
+          f"visibility stage {q['tree_vis_ms']:.0f} vs {q['flat_vis_ms']:.0f} ms; frame time {q['frame_ms_tree']:.0f} vs {q['frame_ms_flat']:.0f} ms "
+          f"({q['frame_ms_flat'] / q['frame_ms_tree']:.2f}×); drawn sets: equal on {q['equal']} of {q['client_frames']} client-frames, "
+          f"per-object queries drew more on {q['flat_more']}, the tree more on {q['tree_more']}, other {q['other']}")
+    return q
 
 
 if __name__ == "__main__":  # python -m massview.app.bench.dmmr

@@ -47,6 +47,8 @@ function fill(select, values, current) {
 function hello(msg) {
   mv.hello = msg;
   fill($("decomposition"), msg.choices.decomposition, msg.settings.decomposition);
+  $("decomposition").title = msg.choices.decomposition_note || "";  // why a system offers only some decompositions
+  if (msg.choices.decomposition_note) $("message").textContent = msg.choices.decomposition_note;
   fill($("compositor"), msg.choices.compositor, msg.settings.compositor);
   $("tau").value = msg.settings.tau; $("tauv").textContent = msg.settings.tau;
   $("colorbyrank").checked = !!msg.settings.color_by_rank;
