@@ -54,11 +54,12 @@ import numpy as np
 
 from ...lod.boardpolicy import DEFAULT_TNZ, MACHINE_RATE, PAPER_RATE, machine_scale
 
-__all__ = ["add_arguments", "run", "scaled_scene", "arc_path"]
+__all__ = ["add_arguments", "run", "scaled_scene", "arc_path", "plant_loop_path"]
 
 PAPER = {"forest": 25e6, "plant": 12.4e6, "forest60": 60e6}  # triangles (§7.2, §7.5)
 LAYOUT = {"forest": ("forest", 1.0), "plant": ("plant", 0.15), "forest60": ("forest", 2.4)}  # generator kind, size at s = 0.1
 GROWS = {"plant"}  # its generator size follows s (the plant's density is fixed); the forests keep their object counts
+REAL = {"forest": "bunny", "forest60": "bunny"}  # the scanned Stanford bunny (pymeshlab's wheel) among the trees, as in the paper
 
 
 def add_arguments(p) -> None:
@@ -70,8 +71,13 @@ def add_arguments(p) -> None:
     p.add_argument("--deg-per-frame", type=float, default=1.5,
                    help="degrees of the forest circle per frame (default 1.5: the paper's 3.75 deg/s, 360 deg in 6000 steps of ~16 ms, "
                         "at this machine's ~0.4 s frames)")
-    p.add_argument("--plant-path", choices=("arc", "flyover"), default="arc",
-                   help="the plant's path: arc (around it at 1.1 half-diagonals, the whole plant in view, default) or flyover")
+    p.add_argument("--plant-path", choices=("loop", "arc", "flyover"), default="loop",
+                   help="the plant's path: loop (default: a closed loop over and around the plant at uniform speed, see plant_loop_path), "
+                        "arc (around it at 1.1 half-diagonals) or flyover")
+    p.add_argument("--plant-scale", type=float, default=1.0,
+                   help="triangle scale of the plant, its t_nz and its too-few-triangles rule (default 1: the paper's 12.4 M triangles "
+                        "and t_nz 3.5 M — the only scale at which a board's triangles against its cluster's are the paper's, see above)")
+    p.add_argument("--plant-frames", type=int, default=24, help="frames along the plant's path (default 24; the paper: 6000)")
     p.add_argument("--reference-every", type=int, default=4, help="draw the all-original baseline every K-th frame (default 4)")
     p.add_argument("--scale", type=float, default=machine_scale(),
                    help=f"triangle scale s against the paper's scenes (default {machine_scale():g} = {MACHINE_RATE / 1e6:g} M / {PAPER_RATE / 1e6:g} M triangles/s)")
@@ -100,12 +106,12 @@ def scaled_scene(item: str, scale: float, workdir: Path) -> tuple[Path, dict]:
 
     kind, size = LAYOUT[item]
     size = size * scale / 0.1 if item in GROWS else size
-    path = workdir / f"{item}-s{scale:g}.zarr"
+    path = workdir / (f"{item}-s{scale:g}" + (f"-{REAL[item]}" if item in REAL else "") + ".zarr")
     meta = path.with_suffix(".json")
     if meta.exists() and (path / "zarr.json").exists() and '"complete": true' in (path / "zarr.json").read_text():
         return path, json.loads(meta.read_text())
     t0 = time.perf_counter()
-    nodes, _ = scene_nodes(kind, size, 1)
+    nodes, _ = scene_nodes(kind, size, 1, real=REAL.get(item, "ant"))
     full = [len(shape_levels(n.shape)[0][0].indices) for n in nodes]  # level-0 triangles (shapes cached)
     ratio = PAPER[item] * scale / sum(full)
     w = SceneWriter(path, {"generator": kind, "size": size, "scale": scale, "item": item},
@@ -169,20 +175,49 @@ def arc_path(scene: Path, arc_deg: float, out: Path, radius: float = 0.75, heigh
     return out
 
 
-def _run_one(scene: Path, path, nb: int, frames: int, args, out: Path, extra=()) -> dict:
+def plant_loop_path(scene: Path, out: Path) -> Path:
+    """The plant's fixed path (the paper's Fig. 8 is not in its text, which says only that the
+    path is traversed in 6000 steps at a uniform speed and that boards pay where many objects
+    are in view): a closed loop that starts outside the plant's west side above its top, crosses
+    over its middle looking ahead and down into it, swings round outside its east and north
+    sides with the whole plant in view and returns west. Keyframe times are proportional to the
+    distance between keyframes (uniform speed); the camera looks at a point between the plant's
+    centre and 0.4 half-diagonals ahead on the path."""
+    from ...data.scene import SceneStore
+
+    lo, hi = (np.asarray(v, np.float64) for v in SceneStore(scene).bounds)
+    c, ext = (lo + hi) / 2, hi - lo
+    r, top = float(np.linalg.norm(ext)) / 2, hi[2]
+    way = np.array([[-0.85, -0.3, 0.45], [-0.2, -0.08, 0.3], [0.35, 0.1, 0.3], [0.85, 0.25, 0.45], [0.55, 0.85, 0.55],
+                    [-0.3, 0.8, 0.5], [-0.85, -0.3, 0.45]])
+    pos = np.column_stack([c[0] + way[:, 0] * ext[0], c[1] + way[:, 1] * ext[1], top + way[:, 2] * r])
+    times = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
+    ahead = np.roll(pos, -1, axis=0) - np.roll(pos, 1, axis=0)
+    ahead[[0, -1]] = pos[1] - pos[-2]
+    ahead /= np.linalg.norm(ahead, axis=1, keepdims=True)
+    look = 0.55 * c + 0.45 * (pos + ahead * 0.4 * r)
+    keys = [{"time": float(t / times[-1]), "position": p.tolist(), "look_at": q.tolist()} for t, p, q in zip(times, pos, look)]
+    out.write_text(json.dumps({"keyframes": keys, "fovy": 45.0, "near": r * 0.002, "far": r * 6}))
+    return out
+
+
+def _run_one(scene: Path, path, nb: int, frames: int, args, out: Path, extra=(), budget=None) -> dict:
+    """One ``massview render --system reliefboards --reference`` run; ``budget``: (t_nz, min
+    triangles) of this item (default the forest's, ``args.tnz``/``args.min_triangles``)."""
+    tnz, min_tris = budget or (args.tnz, args.min_triangles)
     done = out / "summary.json"
     old = json.loads(done.read_text()) if done.exists() else {}
     t0 = time.perf_counter()
-    if args.reuse and old.get("frames") == frames and old.get("t_nz") == args.tnz and old.get("board_px") == args.board_px \
-            and old.get("min_triangles") == args.min_triangles:
+    if args.reuse and old.get("frames") == frames and old.get("t_nz") == tnz and old.get("board_px") == args.board_px \
+            and old.get("min_triangles") == min_tris:
         print(f"(reusing {out})", flush=True)
     else:
         _cli("render", scene, "--system", "reliefboards", "--ranks", nb + 1, "--frames", frames, "--path", path, "--size", args.size,
-             "--tnz", args.tnz, "--board-px", args.board_px, "--reference", "--reference-every", args.reference_every,
-             "--min-triangles", args.min_triangles, "--out", out, "-q", *extra)
+             "--tnz", tnz, "--board-px", args.board_px, "--reference", "--reference-every", args.reference_every,
+             "--min-triangles", min_tris, "--out", out, "-q", *extra)
     s = json.loads(done.read_text())
     if "wall_s" not in s:  # a fresh run (a reused one keeps its own)
-        s["board_px"], s["min_triangles"], s["wall_s"] = args.board_px, args.min_triangles, round(time.perf_counter() - t0, 1)
+        s["board_px"], s["min_triangles"], s["wall_s"] = args.board_px, min_tris, round(time.perf_counter() - t0, 1)
         done.write_text(json.dumps(s, indent=2) + "\n")
     recs = [json.loads(line) for line in (out / "stats.jsonl").read_text().splitlines()]
     ref = [r for r in recs if "ref_frame_ms" in r["counters"]]  # the frames with the baseline
@@ -208,17 +243,18 @@ def _row(item, nb, s) -> None:
           flush=True)
 
 
-def _experiment(item, scene, path, counts, frames, args, out, work, results) -> None:
+def _experiment(item, scene, path, counts, frames, args, out, work, results, budget=None) -> None:
     from ..reliefboards_report import write_backend_figures
 
     runs = {}
+    tnz = (budget or (args.tnz,))[0]
     for nb in counts:
-        s = _run_one(scene, path, nb, frames, args, work / f"{item}-{nb}")
+        s = _run_one(scene, path, nb, frames, args, work / f"{item}-{nb}", budget=budget)
         _row(item, nb, s)
         runs[nb] = {"response_ms": s.pop("_response"), "angle_error": s.pop("_angles")}
         results["items"].setdefault(item, {})[nb] = s
     w, h = results["size"]
-    write_backend_figures(out / f"{item}-backends.png", runs, f"{item} · {frames} frames · {w}x{h} · t_nz {args.tnz} · p {args.board_px}")
+    write_backend_figures(out / f"{item}-backends.png", runs, f"{item} · {frames} frames · {w}x{h} · t_nz {tnz} · p {args.board_px}")
 
 
 def run(args) -> int:
@@ -278,14 +314,24 @@ def _forest_items(args, items, counts, work: Path, out: Path, results: dict) -> 
 
 
 def _plant_item(args, counts, work: Path, out: Path, results: dict) -> None:
-    """The plant clustered by §4 (``prepare reliefboards``), around it or along ``flyover``."""
-    plant, results["scenes"]["plant"] = scaled_scene("plant", args.scale, work)
-    prep = _cli("prepare", "reliefboards", plant, "--tnz", args.tnz, "--board-px", args.board_px, "--size", args.size,
-                "--min-triangles", args.min_triangles, "--picture", out / "plant-clusters.png")
-    print(prep.stdout.strip(), flush=True)
-    results["scenes"]["plant"]["clustering"] = prep.stdout.strip()
-    path = "flyover" if args.plant_path == "flyover" else arc_path(plant, args.deg_per_frame * args.frames, work / "plant-arc.json", 1.1, 0.6)
-    _experiment("plant", plant, path, counts, args.frames, args, out, work, results)
+    """The plant at ``--plant-scale`` (default the paper's 12.4 M triangles, t_nz 3.5 M),
+    clustered by §4 (``prepare reliefboards``, timed), along its loop (or the arc / flyover)."""
+    ps = args.plant_scale
+    budget = (max(1, round(3_500_000 * ps)), max(1, round(ps * 2 * args.board_px ** 2)))
+    plant, results["scenes"]["plant"] = scaled_scene("plant", ps, work)
+    t0 = time.perf_counter()
+    prep = _cli("prepare", "reliefboards", plant, "--tnz", budget[0], "--board-px", args.board_px, "--size", args.size,
+                "--min-triangles", budget[1], "--picture", out / "plant-clusters.png")
+    print(prep.stdout.strip(), f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    results["scenes"]["plant"].update(clustering=prep.stdout.strip(), clustering_s=round(time.perf_counter() - t0, 1), t_nz=budget[0],
+                                      min_triangles=budget[1])
+    if args.plant_path == "flyover":
+        path = "flyover"
+    elif args.plant_path == "arc":
+        path = arc_path(plant, args.deg_per_frame * args.plant_frames, work / "plant-arc.json", 1.1, 0.6)
+    else:
+        path = plant_loop_path(plant, work / "plant-loop.json")
+    _experiment("plant", plant, path, counts, args.plant_frames, args, out, work, results, budget)
 
 
 def _paper_table(res: dict) -> None:
