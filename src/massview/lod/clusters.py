@@ -6,11 +6,15 @@ into components is the scene store's ingest, not this module's.
 
 Agglomerative step (both phases): among *candidate pairs* merge the one whose joined AABB has the
 smallest longest side. Every cluster keeps a constant number ``k`` of candidates — its nearest
-active clusters by box centre, found with one vectorized distance pass when the cluster is born
-— so one merge costs O(n) (a global minimum over the (n, k) candidate table plus one O(n)
-neighbour search) and the whole clustering O(n²) instead of the O(n³) of all pairs. When two
-clusters merge, candidates pointing at either are redirected to the union and re-costed; a
-cluster whose candidates no longer name ``k`` distinct clusters searches anew.
+active clusters by box centre when the cluster is born — instead of all pairs (the paper's
+O(n³) → O(n²)). When two clusters merge, candidates pointing at either are redirected to the
+union and re-costed; a cluster whose candidates no longer name ``k`` distinct clusters searches
+anew. The k nearest come from a KD-tree over a snapshot of the centres plus a brute-force pass
+over the few clusters changed since (rebuilt at 5 % changed), the cheapest pair from a heap of
+per-cluster minima, and labels from parent links — so a merge costs O(k log n) instead of
+O(n) array passes, with the same merge order as a dense implementation (tests/test_clusters.py
+keeps it as the reference). The generated 12.4 M-triangle plant's 34 640 components cluster in
+well under a minute (the dense version needed ~10 min a phase).
 
 Phase 1 merges until a cluster first reaches ``t_nz`` triangles (the most the near zone may
 draw); its diameter (AABB diagonal) is the near-zone range ``d_nz``. The cluster side length
