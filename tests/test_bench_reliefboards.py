@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 
-from massview.app.bench.reliefboards import plant_loop_path
+from massview.app.bench.reliefboards_scenes import plant_loop_path
 from massview.core.paths import load_path
 
 
