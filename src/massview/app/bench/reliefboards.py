@@ -72,7 +72,7 @@ def add_arguments(p) -> None:
     p.add_argument("--backends", default="1,2,4,8", help="backend counts, comma-separated (default 1,2,4,8)")
     p.add_argument("--size", default="1024x768", help="image size (default 1024x768, the paper's)")
     p.add_argument("--frames", type=int, default=60, help="frames per forest run (default 60; the paper: 6000 for the whole circle)")
-    p.add_argument("--big-frames", type=int, default=16, help="frames of the forest60 run (default 16)")
+    p.add_argument("--big-frames", type=int, default=24, help="frames of the forest60 runs (default 24)")
     p.add_argument("--deg-per-frame", type=float, default=1.5,
                    help="degrees of the forest circle per frame (default 1.5: the paper's 3.75 deg/s, 360 deg in 6000 steps of ~16 ms, "
                         "at this machine's ~0.4 s frames)")
