@@ -97,3 +97,72 @@ def test_bad_input_names_the_parameter():
         ClusterParams(t_nz=0)
     with pytest.raises(ConfigError, match="hi >= lo"):
         cluster_scene(np.ones((2, 3)), np.zeros((2, 3)), np.ones(2))
+
+
+class _DenseAgglomerator:
+    """The first implementation (kept as the reference): the k nearest by one distance pass over
+    all active clusters, a global argmin over the (n, k) candidate table each merge — O(n) per
+    merge with large constants. The KD-tree/heap version must merge in exactly the same order."""
+
+    def __init__(self, lo, hi, k):
+        self.lo, self.hi = lo.copy(), hi.copy()
+        self.n = len(lo)
+        self.k = max(1, min(k, self.n - 1))
+        self.active = np.ones(self.n, bool)
+        self.cand = np.zeros((self.n, self.k), np.int64)
+        self.cost = np.full((self.n, self.k), np.inf)
+        self._search(np.arange(self.n))
+
+    def _price(self, rows):
+        c = (np.maximum(self.hi[rows][:, None], self.hi[self.cand[rows]]) - np.minimum(self.lo[rows][:, None], self.lo[self.cand[rows]])).max(-1)
+        c[self.cand[rows] == rows[:, None]] = np.inf
+        self.cost[rows] = c
+
+    def _search(self, rows):
+        centre = (self.lo + self.hi) * 0.5
+        others = np.nonzero(self.active)[0]
+        d = ((centre[rows, None, :] - centre[None, others, :]) ** 2).sum(-1)
+        d[rows[:, None] == others[None, :]] = np.inf
+        kk = min(self.k, len(others) - 1)
+        if kk < 1:
+            self.cost[rows] = np.inf
+            return
+        near = np.argsort(d, axis=1, kind="stable")[:, :kk]
+        self.cand[rows] = others[near[:, np.arange(self.k) % kk]]
+        self._price(rows)
+
+    def run(self):
+        out = []
+        while self.active.sum() > 1:
+            flat = np.argmin(np.where(self.active[:, None], self.cost, np.inf))
+            a, j = divmod(int(flat), self.k)
+            cost = float(self.cost[a, j])
+            if not np.isfinite(cost):
+                break
+            b = int(self.cand[a, j])
+            a, b = min(a, b), max(a, b)
+            self.lo[a], self.hi[a] = np.minimum(self.lo[a], self.lo[b]), np.maximum(self.hi[a], self.hi[b])
+            self.active[b] = False
+            self.cost[b] = np.inf
+            self.cand[self.cand == b] = a
+            touched = np.nonzero(np.any(self.cand == a, axis=1) & self.active)[0]
+            self._price(touched)
+            srt = np.sort(self.cand[touched], axis=1)
+            distinct = 1 + (np.diff(srt, axis=1) != 0).sum(axis=1)
+            stale = touched[(distinct < self.k) & (distinct < self.active.sum() - 1)]
+            self._search(np.union1d(stale, [a]))
+            out.append((a, b, cost))
+        return out
+
+
+def test_kdtree_heap_agglomeration_merges_in_the_dense_reference_order():
+    rng = np.random.default_rng(11)
+    n = 600  # clustered boxes of varied sizes, as a plant's parts; enough merges to rebuild the KD-tree snapshot
+    centres = rng.uniform(0, 200, (30, 3))[rng.integers(30, size=n)] + rng.normal(0, 6, (n, 3))
+    lo = centres - rng.uniform(0.1, 3, (n, 3))
+    hi = centres + rng.uniform(0.1, 3, (n, 3))
+    ref = _DenseAgglomerator(lo, hi, 8).run()
+    _, merges, _ = agglomerate(lo, hi, np.ones(n, np.int64), k=8)
+    assert len(merges) == len(ref) == n - 1
+    assert [(a, b) for a, b, _ in merges] == [(a, b) for a, b, _ in ref]
+    assert np.allclose([c for *_, c in merges], [c for *_, c in ref])

@@ -240,18 +240,18 @@ def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camer
     option, ``"orbit"``), a :class:`Camera`, or a list of cameras. ``out``: also write ``frames/``, ``stats.jsonl`` and ``summary.json`` there.
     ``options``: :class:`RenderConfig` fields. Returns a :class:`RenderResult` (``None`` on ranks
     other than 0 when called collectively inside an MPI job). ``system="reliefboards"`` (M2)
-    runs its own role loop (:mod:`massview.app.reliefboards_api`); ``reliefboards``: its
+    runs its own role loop (:mod:`massview.systems.reliefboards_job`); ``reliefboards``: its
     ``ReliefboardOptions`` or a dict of their fields (``t_nz``, ``epsilon_deg``, ...).
     """
     cfg = render_config(config, **options)
     if cfg.system == "reliefboards":  # M2: one visualization rank and backends (issue 19)
-        from .app.reliefboards_api import render_reliefboards
+        from .systems.reliefboards_job import render_reliefboards
 
         if what is None or isinstance(what, (str, Path)):
             w, h = _size(size) if size is not None else (cfg.width, cfg.height)
             cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": int(frames or cfg.frames)})
         spec = scene.spec if isinstance(scene, Scene) else str(scene)
-        return render_reliefboards(spec, what, cfg, ranks, out, images, depth, reliefboards)
+        return render_reliefboards(spec, what, cfg, ranks, out, images, depth, reliefboards, result=RenderResult)
     owned = not isinstance(scene, Scene)
     scene = open_scene(scene)
     try:

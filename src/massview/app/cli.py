@@ -289,7 +289,7 @@ def main(argv: list[str] | None = None) -> int:
 
         return run_job(argv[1])
     if argv[:1] == ["__m2job"] and len(argv) == 2:  # a rank of an M2 job started by massview.api.render
-        from .reliefboards_api import run_job as run_m2_job
+        from ..systems.reliefboards_job import run_job as run_m2_job
 
         return run_m2_job(argv[1])
     args = build_parser().parse_args(argv)

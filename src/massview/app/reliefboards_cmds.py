@@ -9,7 +9,6 @@ distribution (min, quartiles, mean, max), time to a complete view, per-backend l
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -18,10 +17,9 @@ import numpy as np
 from ..core.config import RenderConfig
 from ..core.errors import ConfigError
 from ..core.paths import load_path
-from ..core.stats import summarize
 from ..lod.boardpolicy import DEFAULT_TNZ, BoardPolicy
 
-__all__ = ["add_render_args", "options_from_args", "cmd_render", "run", "m2_summary"]
+__all__ = ["add_render_args", "options_from_args", "cmd_render"]
 
 
 def _stall(spec: str) -> tuple[int, float | None]:
@@ -65,98 +63,10 @@ def options_from_args(args):
                               reference_every=args.reference_every)
 
 
-def _quantiles(values) -> dict:
-    v = np.asarray(values, np.float64)
-    if v.size == 0:
-        return {"count": 0}
-    q = np.percentile(v, [0, 25, 50, 75, 100])
-    q = [round(float(x), 3) for x in q]
-    return {"count": int(v.size), "min": q[0], "q1": q[1], "median": q[2],
-            "q3": q[3], "max": q[4], "mean": round(float(v.mean()), 3)}
-
-
-def m2_summary(records: list[dict]) -> dict:
-    """The §7 figures of a run from its per-frame records."""
-    c = [r["counters"] for r in records]
-    frame_ms = np.array([r["times_ms"]["total"] for r in records])
-    resp = [x for k in c for x in k.get("response_ms", [])]
-    angles = [x for k in c for x in k.get("angle_error", [])]
-    complete = [i for i, k in enumerate(c) if k.get("view_complete")]
-    t_complete = float(frame_ms[: complete[0] + 1].sum()) if complete else None
-    return {
-        "frame_ms_p50": round(float(np.percentile(frame_ms, 50)), 3),
-        "frame_ms_p99": round(float(np.percentile(frame_ms, 99)), 3),
-        "tris_near_mean": float(np.mean([k["tris_near"] for k in c])),
-        "tris_far_original_mean": float(np.mean([k["tris_far_original"] for k in c])),
-        "tris_board_mean": float(np.mean([k["tris_board"] for k in c])),
-        "requests": int(sum(k.get("requests", 0) for k in c)),
-        "answered": int(sum(k.get("answered", 0) for k in c)),
-        "pending_at_end": int(c[-1]["pending"]) if c else 0,
-        "response_ms": _quantiles(resp),
-        "angle_error_deg": _quantiles(angles),
-        "first_complete_frame": complete[0] if complete else None,
-        "ms_to_complete_view": round(t_complete, 3) if t_complete is not None else None,
-        "loads_per_backend": np.sum([k.get("loads", []) for k in c if k.get("loads")], axis=0).tolist() if c else [],
-        "board_passes_on_visualization_rank": int(max((k.get("board_passes_here", 0) for k in c), default=0)),
-    }
-
-
-def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool = True, write_frames: bool = True,
-        cameras=None):
-    """Render ``cfg.frames`` frames of ``cfg.path`` (or the given ``cameras``, needed on rank 0
-    only) with M2; returns the summary on rank 0."""
-    from ..systems.boardscene import open_board_objects
-    from ..systems.reliefboards import run_reliefboards
-    from .render_cmd import write_png
-
-    rank = comm.Get_rank()
-    fovy = 45.0
-    objects = open_board_objects(scene, opts.cluster_params(cfg.height, fovy))
-    if rank == 0 and cameras is None:
-        cameras = load_path(cfg.path, *objects.bounds).cameras(cfg.frames, cfg.width, cfg.height)
-    if rank == 0 and cameras and abs(cameras[0].fovy - fovy) > 1e-9:
-        raise ConfigError(f"--path {cfg.path}: the reliefboards system classifies objects for fovy {fovy}, the path has {cameras[0].fovy}")
-    stats_file = None
-    if rank == 0 and out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        stats_file = open(out / "stats.jsonl", "w")
-
-    def sink(f, image, stats):
-        if stats_file is not None:
-            if write_frames:
-                write_png(out / "frames" / f"{f:05d}.png", image)
-            stats_file.write(json.dumps(stats.to_json()) + "\n")
-
-    try:
-        res = run_reliefboards(comm, objects, opts, cameras, sink, cfg.reference, cfg.egl_device, cfg.color_by_rank)
-    finally:
-        if stats_file is not None:
-            stats_file.close()
-    if res is None:
-        return None
-    summary = _summary(res, scene, cfg, opts, objects, comm.Get_size() - 1)
-    if out is not None:
-        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    return summary
-
-
-def _summary(res, scene: str, cfg: RenderConfig, opts, objects, backends: int) -> dict:
-    records, extra = res
-    summary = summarize(records, scene=scene, system="reliefboards", size=[cfg.width, cfg.height], path=cfg.path,
-                        renderer=extra["renderer"], backends=backends)
-    summary.update(m2_summary(records))
-    summary.update(objects=objects.count, feasible=int(objects.feasible.sum()), d_nz=objects.d_nz, sl_c=objects.sl_c,
-                   t_nz=opts.t_nz, late_boards=extra["late_boards"], backend_counters=extra["backends"])
-    refs = [r["counters"] for r in records if "ref_max_abs_diff" in r["counters"]]
-    if cfg.reference and refs:
-        summary["max_abs_diff"] = max(k["ref_max_abs_diff"] for k in refs)
-        summary["diff_fraction"] = max(k["ref_diff_fraction"] for k in refs)
-    return summary
-
-
 def cmd_render(args, argv, cfg: RenderConfig) -> int:
     """``massview render --system reliefboards``: relaunch under mpiexec, run, print."""
     from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
+    from ..systems.reliefboards_job import run
 
     opts = options_from_args(args)
     load_path(cfg.path, [0, 0, 0], [1, 1, 1])

@@ -29,7 +29,10 @@ measured idle; the bench measures and prints it). Triangle budgets scale by the 
 
     t_nz = 3.5 M · MACHINE_RATE / PAPER_RATE = 3.5 M / 10 = 350 000        (:data:`DEFAULT_TNZ`)
 
-and the bench scales its scenes' triangle counts by the same factor, :func:`machine_scale`.
+and the bench scales its forests' triangle counts by the same factor, :func:`machine_scale`. Its
+plant runs unscaled (12.4 M triangles, t_nz = 3.5 M): a board's cost is per pixel, so scaling
+triangles but not pixels makes §4's clusters cost no more than their boards (the bench's
+docstring gives the ratio, t_nz / 1.72 M at 1024×768).
 """
 
 from __future__ import annotations

@@ -6,11 +6,15 @@ into components is the scene store's ingest, not this module's.
 
 Agglomerative step (both phases): among *candidate pairs* merge the one whose joined AABB has the
 smallest longest side. Every cluster keeps a constant number ``k`` of candidates — its nearest
-active clusters by box centre, found with one vectorized distance pass when the cluster is born
-— so one merge costs O(n) (a global minimum over the (n, k) candidate table plus one O(n)
-neighbour search) and the whole clustering O(n²) instead of the O(n³) of all pairs. When two
-clusters merge, candidates pointing at either are redirected to the union and re-costed; a
-cluster whose candidates no longer name ``k`` distinct clusters searches anew.
+active clusters by box centre when the cluster is born — instead of all pairs (the paper's
+O(n³) → O(n²)). When two clusters merge, candidates pointing at either are redirected to the
+union and re-costed; a cluster whose candidates no longer name ``k`` distinct clusters searches
+anew. The k nearest come from a KD-tree over a snapshot of the centres plus a brute-force pass
+over the few clusters changed since (rebuilt at 5 % changed), the cheapest pair from a heap of
+per-cluster minima, and labels from parent links — so a merge costs O(k log n) instead of
+O(n) array passes, with the same merge order as a dense implementation (tests/test_clusters.py
+keeps it as the reference). The generated 12.4 M-triangle plant's 34 640 components cluster in
+well under a minute (the dense version needed ~10 min a phase).
 
 Phase 1 merges until a cluster first reaches ``t_nz`` triangles (the most the near zone may
 draw); its diameter (AABB diagonal) is the near-zone range ``d_nz``. The cluster side length
@@ -29,6 +33,7 @@ fewer draws faster as itself. ``min_triangles`` overrides that bound.
 
 from __future__ import annotations
 
+import heapq
 import math
 from dataclasses import dataclass
 
@@ -102,8 +107,71 @@ def _check(lo, hi, tris):
     return lo, hi, tris
 
 
+class _Neighbours:
+    """The k nearest *active* clusters by box centre, for many rows at once, in O(k log n) each.
+
+    A KD-tree over a snapshot of the active centres answers queries; clusters that changed since
+    the snapshot (merged: their box grew) are *dirty* — checked by brute force — and snapshot
+    points that died or changed are skipped, asking the tree for more until enough valid ones
+    are found. The answer is exact: the same k nearest as a distance pass over all active
+    clusters. The snapshot is rebuilt when the dirty set passes 5 % of the active clusters."""
+
+    def __init__(self, agg):
+        self.agg = agg
+        self._build()
+
+    def _build(self):
+        from scipy.spatial import cKDTree
+
+        a = self.agg
+        self.ids = np.flatnonzero(a.active)
+        self.tree = cKDTree((a.lo[self.ids] + a.hi[self.ids]) * 0.5) if len(self.ids) else None
+        self.fresh = np.zeros(a.n, bool)  # unchanged since the snapshot
+        self.fresh[self.ids] = True
+        self.is_dirty = np.zeros(a.n, bool)
+        self.dirty: list[int] = []
+
+    def changed(self, i: int) -> None:
+        """Cluster ``i`` died or its box changed."""
+        self.fresh[i] = False
+        if self.agg.active[i] and not self.is_dirty[i]:
+            self.is_dirty[i] = True
+            self.dirty.append(i)
+
+    def nearest(self, rows: np.ndarray, kk: int) -> np.ndarray:
+        """(len(rows), kk) int64: for each row its kk nearest other active clusters."""
+        a = self.agg
+        if len(self.dirty) > max(64, 0.05 * a.n_active):
+            self._build()
+        dirty = np.asarray(self.dirty, np.int64)
+        dirty = dirty[a.active[dirty]]
+        c = (a.lo[rows] + a.hi[rows]) * 0.5
+        out = np.empty((len(rows), kk), np.int64)
+        dd = ((c[:, None, :] - (a.lo[dirty] + a.hi[dirty])[None] * 0.5) ** 2).sum(-1) if len(dirty) else np.empty((len(rows), 0))
+        m = min(len(self.ids), 2 * kk + 2)
+        d, j = self.tree.query(c, m) if m else (np.empty((len(rows), 0)), np.empty((len(rows), 0), np.int64))
+        for r, row in enumerate(rows):
+            dr, jr, mr = np.atleast_1d(d[r]), np.atleast_1d(j[r]), m
+            while True:
+                ids = self.ids[jr[jr < len(self.ids)]]
+                dv = dr[jr < len(self.ids)]
+                ok = self.fresh[ids] & (ids != row)
+                if ok.sum() >= kk or mr >= len(self.ids):
+                    break
+                mr = min(len(self.ids), mr * 2)
+                dr, jr = self.tree.query(c[r], mr)
+                dr, jr = np.atleast_1d(dr), np.atleast_1d(jr)
+            cand_d = np.concatenate([dv[ok] ** 2, dd[r][dirty != row]])
+            cand_i = np.concatenate([ids[ok], dirty[dirty != row]])
+            pick = np.argsort(cand_d, kind="stable")[:kk]
+            out[r] = cand_i[pick]
+        return out
+
+
 class _Agglomerator:
-    """State of one agglomerative run: active clusters, their boxes and candidate table."""
+    """State of one agglomerative run: active clusters, their boxes, the candidate table
+    ``cand``/``cost`` (n, k), who lists whom (``listed_by``), a heap of row minima (stale
+    entries skipped by a per-row version) and the parent of every merged-away cluster."""
 
     def __init__(self, lo, hi, tris, k, cap):
         self.lo, self.hi, self.tris = lo.copy(), hi.copy(), tris.copy()
@@ -111,11 +179,26 @@ class _Agglomerator:
         self.k = max(1, min(k, self.n - 1))
         self.cap = cap
         self.active = np.ones(self.n, bool)
-        self.label = np.arange(self.n)
-        self.cand = np.zeros((self.n, self.k), np.int64)
+        self.n_active = self.n
+        self.parent = np.arange(self.n)
+        self.cand = np.full((self.n, self.k), -1, np.int64)
         self.cost = np.full((self.n, self.k), np.inf)
+        self.version = np.zeros(self.n, np.int64)
+        self.listed_by: list[set] = [set() for _ in range(self.n)]
+        self.heap: list = []
         if self.n > 1:
+            self.nbrs = _Neighbours(self)
             self._search(np.arange(self.n))
+
+    @property
+    def label(self) -> np.ndarray:
+        """(n,) the active cluster every input belongs to now."""
+        lab = self.parent.copy()
+        while True:
+            nxt = lab[lab]
+            if np.array_equal(nxt, lab):
+                return lab
+            lab = nxt
 
     def _joined(self, a, b):
         """Longest side of the joined boxes of clusters a and b (broadcast index arrays)."""
@@ -127,45 +210,72 @@ class _Agglomerator:
         if self.cap is not None:
             c[c > self.cap] = np.inf
         self.cost[rows] = c
+        best = c.min(axis=1)
+        self.version[rows] += 1
+        for r, b in zip(rows.tolist(), best.tolist()):
+            if math.isfinite(b):
+                heapq.heappush(self.heap, (b, r, int(self.version[r])))
+
+    def _set(self, rows, cand):
+        for r, new in zip(rows.tolist(), cand):
+            for old in set(self.cand[r].tolist()) - {-1}:
+                self.listed_by[old].discard(r)
+            for c in set(new.tolist()):
+                self.listed_by[c].add(r)
+        self.cand[rows] = cand
 
     def _search(self, rows):
         """New candidate lists for ``rows``: their k nearest active clusters by box centre."""
-        centre = (self.lo + self.hi) * 0.5
-        others = np.nonzero(self.active)[0]
-        for chunk in np.array_split(rows, max(1, len(rows) * len(others) // 4_000_000 + 1)):
-            d = ((centre[chunk, None, :] - centre[None, others, :]) ** 2).sum(-1)
-            d[chunk[:, None] == others[None, :]] = np.inf
-            kk = min(self.k, len(others) - 1)
-            if kk < 1:
-                self.cost[chunk] = np.inf
-                continue
-            near = np.argpartition(d, kk - 1, axis=1)[:, :kk]
-            self.cand[chunk] = others[near[:, np.arange(self.k) % kk]]
-            self._price(chunk)
+        kk = min(self.k, self.n_active - 1)
+        if kk < 1 or len(rows) == 0:
+            self.cost[rows] = np.inf
+            self.version[rows] += 1
+            return
+        near = self.nbrs.nearest(rows, kk)
+        self._set(rows, near[:, np.arange(self.k) % kk])
+        self._price(rows)
+
+    def _cheapest(self):
+        while self.heap:
+            cost, a, v = self.heap[0]
+            if self.active[a] and v == self.version[a]:
+                return cost, a
+            heapq.heappop(self.heap)
+        return None
 
     def step(self):
         """Merge the cheapest candidate pair; returns (a, b, longest side) or None if none is left."""
-        flat = np.argmin(np.where(self.active[:, None], self.cost, np.inf))
-        a, j = divmod(int(flat), self.k)
-        cost = float(self.cost[a, j])
-        if not math.isfinite(cost):
+        top = self._cheapest()
+        if top is None:
             return None
-        b = int(self.cand[a, j])
+        cost, a = top
+        b = int(self.cand[a, int(np.argmin(self.cost[a]))])
         a, b = min(a, b), max(a, b)
         self.lo[a] = np.minimum(self.lo[a], self.lo[b])
         self.hi[a] = np.maximum(self.hi[a], self.hi[b])
         self.tris[a] += self.tris[b]
         self.active[b] = False
+        self.n_active -= 1
+        self.parent[b] = a
         self.cost[b] = np.inf
-        self.label[self.label == b] = a
-        self.cand[self.cand == b] = a
-        touched = np.nonzero(np.any(self.cand == a, axis=1) & self.active)[0]
-        self._price(touched)
-        srt = np.sort(self.cand[touched], axis=1)
-        distinct = 1 + (np.diff(srt, axis=1) != 0).sum(axis=1)
-        stale = touched[(distinct < self.k) & (distinct < self.active.sum() - 1)]
+        self.version[b] += 1
+        self._set(np.array([b]), np.full((1, self.k), -1, np.int64))
+        for r in list(self.listed_by[b]):
+            self.cand[r][self.cand[r] == b] = a
+            self.listed_by[a].add(r)
+        self.listed_by[b] = set()
+        self.nbrs.changed(b)
+        self.nbrs.changed(a)
+        touched = np.array(sorted(r for r in self.listed_by[a] if self.active[r]), np.int64)
+        if len(touched):
+            self._price(touched)
+            srt = np.sort(self.cand[touched], axis=1)
+            distinct = 1 + (np.diff(srt, axis=1) != 0).sum(axis=1)
+            stale = touched[(distinct < self.k) & (distinct < self.n_active - 1)]
+        else:
+            stale = touched
         self._search(np.union1d(stale, [a]))
-        return a, b, cost
+        return a, b, float(cost)
 
 
 def agglomerate(lo, hi, triangles, k: int = 8, cap: float | None = None, stop_triangles: int | None = None):
@@ -181,7 +291,7 @@ def agglomerate(lo, hi, triangles, k: int = 8, cap: float | None = None, stop_tr
     merges = []
     if stop_triangles is not None and len(tris) and tris.max() >= stop_triangles:
         return agg.label.copy(), merges, int(np.argmax(tris))
-    while agg.active.sum() > 1:
+    while agg.n_active > 1:
         m = agg.step()
         if m is None:
             break

@@ -39,7 +39,7 @@ def open_system(spec: str, cfg=None):
         from .roettger import RoettgerSystem
 
         return RoettgerSystem((spec, *cfg.layers), cfg)
-    if getattr(cfg, "system", "auto") == "reliefboards":  # M2 runs its own role loop (app/reliefboards_api.py)
+    if getattr(cfg, "system", "auto") == "reliefboards":  # M2 runs its own role loop (systems/reliefboards_job.py)
         raise ConfigError("system 'reliefboards' (M2) has no in-process system object: use massview.render(scene, cameras, "
                           f"ranks=N, system='reliefboards') or `massview render {spec} --system reliefboards --ranks N`")
     kind = scene_kind(spec)

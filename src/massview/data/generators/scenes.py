@@ -14,7 +14,8 @@ stored as separate geometry, as in the papers: the data must not fit in memory.
 * **city** — blocks of red-sandstone buildings: facade bodies with window frames, onion
   domes, columned pavilions (chhatris) and minarets. ~1100 nodes, ~4.1 M triangles per copy.
 * **forest** — conifers, broad-leaved trees (lumpy crowns) and a real-world mesh from a
-  registry package (pyvista's ``ant.ply``) scattered on a ground plate. ~250 objects, ~13.7 M
+  registry package (pyvista's ``ant.ply``; or, with ``real="bunny"``, the scanned Stanford
+  bunny shipped in pymeshlab's wheel, as in M2's paper) scattered on a ground plate. ~250 objects, ~13.7 M
   triangles per copy.
 
 Memory stays bounded however many copies: nodes are generated one at a time, the LOD levels
@@ -39,7 +40,7 @@ from ..scene.simplify import build_levels, is_closed
 from ..scene.writer import SceneWriter
 from . import shapes
 
-__all__ = ["SCENE_KINDS", "Node", "scene_nodes", "generate_scene", "real_mesh", "real_mesh_path"]
+__all__ = ["SCENE_KINDS", "REAL_MESHES", "Node", "scene_nodes", "generate_scene", "real_mesh", "real_mesh_path"]
 
 SCENE_KINDS = ("plant", "city", "forest")
 PATH_DEPTH = {"plant": 8, "city": 6, "forest": 3}
@@ -175,7 +176,7 @@ def _building(rng, key, x, y) -> list[Node]:
 
 
 # -- forest -----------------------------------------------------------------------------
-def _forest(size: float, seed: int) -> tuple[list[Node], tuple[float, float]]:
+def _forest(size: float, seed: int, real: str = "ant") -> tuple[list[Node], tuple[float, float]]:
     rng = np.random.default_rng(seed)
     n = max(1, round(250 * size))
     side = math.ceil(math.sqrt(n))
@@ -190,7 +191,7 @@ def _forest(size: float, seed: int) -> tuple[list[Node], tuple[float, float]]:
         kind = int(rng.integers(3))
         variant = int(rng.integers(4))
         if kind == 2:
-            shape, col, sc = ("real", "ant"), (150, 90, 45), float(rng.uniform(0.08, 0.12))
+            shape, col, sc = ("real", real), (150, 90, 45), float(rng.uniform(0.08, 0.12)) * REAL_SCALE[real]
         else:
             shape, col, sc = (("conifer", variant), (40, 100, 45), 1.0) if kind == 0 else (("broadleaf", variant), (70, 130, 40), 1.0)
             sc = float(rng.uniform(0.8, 1.2))
@@ -202,34 +203,58 @@ def _forest(size: float, seed: int) -> tuple[list[Node], tuple[float, float]]:
 _LAYOUTS: dict[str, Callable] = {"plant": _plant, "city": _city, "forest": _forest}
 
 
-def scene_nodes(kind: str, size: float = 1.0, seed: int = 1) -> tuple[list[Node], tuple[float, float]]:
-    """The nodes of one copy and the copy's footprint (x, y extent)."""
+def scene_nodes(kind: str, size: float = 1.0, seed: int = 1, real: str = "ant") -> tuple[list[Node], tuple[float, float]]:
+    """The nodes of one copy and the copy's footprint (x, y extent). ``real``: the packaged
+    real-world mesh the forest scatters among its trees (``ant``, the default, or ``bunny``:
+    the scanned Stanford bunny, as in the paper's forest); the layout is the same either way."""
     if kind not in _LAYOUTS:
         raise ConfigError(f"unknown scene {kind!r}; choose one of {', '.join(SCENE_KINDS)}")
     if not (math.isfinite(size) and size > 0):
         raise ConfigError(f"--size must be a positive number, got {size}")
-    return _LAYOUTS[kind](size, seed)
+    if real not in REAL_MESHES:
+        raise ConfigError(f"unknown real-world mesh {real!r}; choose one of {', '.join(REAL_MESHES)}")
+    return _forest(size, seed, real) if kind == "forest" else _LAYOUTS[kind](size, seed)
+
+
+# name -> (package, file inside it, scanned?): real-world meshes shipped inside registry packages
+REAL_MESHES = {"ant": ("pyvista", "examples/ant.ply", False),
+               "bunny": ("pymeshlab", "tests/sample_meshes/bunny.obj", True)}  # the Stanford bunny, 3-D scanned (28 088 v, 56 172 t)
+REAL_SCALE = {"ant": 1.0, "bunny": 50.0}  # node scale factor: both about 3 m across in the forest
 
 
 def real_mesh(name: str = "ant") -> tuple[np.ndarray, np.ndarray]:
-    """(vertices f8 (v,3), triangles i8 (t,3)) of a packaged real-world mesh, as in its file."""
-    import trimesh
+    """(vertices f8 (v,3), triangles i8 (t,3)) of a packaged real-world mesh. The ant as in its
+    file; the scanned bunny through the scene store's own OBJ ingest (:func:`open_input`, then
+    :func:`clean_soup`: redundant vertices merged, degenerate faces dropped — §4's first step),
+    turned from its file's y-up to the scenes' z-up."""
+    if name == "ant":
+        import trimesh
 
-    m = trimesh.load(real_mesh_path(name), process=False, force="mesh")
-    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+        m = trimesh.load(real_mesh_path(name), process=False, force="mesh")
+        return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+    from ..scene.soup import clean_soup
+    from ..scene.sources import open_input
+
+    soup = open_input(real_mesh_path(name), stream_bytes=1 << 62)
+    p, _, _, f = clean_soup(soup.corners(np.arange(len(soup.faces))))
+    p = np.asarray(p, np.float64)
+    return np.stack([p[:, 0], -p[:, 2], p[:, 1]], axis=1), np.asarray(f, np.int64)
 
 
 def real_mesh_path(name: str = "ant") -> Path:
-    """A small real-world mesh shipped inside a registry package (pyvista's examples), found
-    without importing the package; ConfigError when it is not installed."""
+    """A real-world mesh shipped inside a registry package (``REAL_MESHES``), found without
+    importing the package; ConfigError when it is not installed."""
     import importlib.util
 
-    spec = importlib.util.find_spec("pyvista")
+    if name not in REAL_MESHES:
+        raise ConfigError(f"unknown real-world mesh {name!r}; choose one of {', '.join(REAL_MESHES)}")
+    pkg, rel, _ = REAL_MESHES[name]
+    spec = importlib.util.find_spec(pkg)
     if spec is None or not spec.submodule_search_locations:
-        raise ConfigError("the forest scatters pyvista's example mesh; install pyvista (`pip install pyvista`)")
-    path = Path(list(spec.submodule_search_locations)[0]) / "examples" / f"{name}.ply"
+        raise ConfigError(f"the forest's {name} mesh ships with {pkg}; install it (`pip install {pkg}`)")
+    path = Path(list(spec.submodule_search_locations)[0]) / rel
     if not path.exists():
-        raise ConfigError(f"{path} is missing from the installed pyvista; reinstall pyvista")
+        raise ConfigError(f"{path} is missing from the installed {pkg}; reinstall {pkg}")
     return path
 
 
