@@ -161,8 +161,8 @@ def _gil_probe(system, cams, cfg, seconds: float = 0.6) -> float:
     """How fast a second thread runs Python + numpy compositing work (encode the top band of a
     rendered frame and merge it into a copy of itself) while this thread draws frames, relative
     to while this thread sleeps: what the pipelined loop's communication thread gets during a
-    draw. A GL call that keeps the GIL (moderngl's draws and its ``finish``, which waits for
-    llvmpipe's raster threads) stops that thread for its whole duration. Best of three
+    draw. A GL call that keeps the GIL (moderngl's draw calls) stops that thread for its
+    whole duration; the wait for llvmpipe's raster threads (``render.context.finish``) does not. Best of three
     alternating windows each (a shared machine's load comes and goes)."""
     from ...core.image import Image
     from ...core.task import Task
@@ -310,5 +310,5 @@ def _print(console, results, args, store) -> None:
     probe = next((r["gil_probe"] for r in results if r.get("gil_probe") is not None), None)
     if probe is not None:
         console.print(f"GIL probe: a compositing thread runs at {probe:.2f}× its own speed while the main thread draws "
-                      "(moderngl keeps the GIL through its draw calls and glFinish; the pipelined loop's communication thread "
-                      "waits for the whole draw).")
+                      "(moderngl keeps the GIL through its draw calls; the wait for llvmpipe's raster threads goes through "
+                      "render.context.finish, a glFinish that releases it; the rest is the cores the raster threads take).")
