@@ -57,3 +57,13 @@ def terrain_store(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("terrain") / "t.zarr"
     run_cli("generate", "terrain", out, "--size", 2049, "--seed", 4, "-q")
     return out
+
+
+@pytest.fixture(scope="module")
+def ctx():
+    """One headless GL context per test module (Mesa llvmpipe through EGL here)."""
+    from massview.render.context import create_context
+
+    c = create_context()
+    yield c
+    c.release()

@@ -24,15 +24,6 @@ from test_occlusion import box_meshes, wall_scene
 W, H = 320, 240
 
 
-@pytest.fixture(scope="module")
-def ctx():
-    from massview.render.context import create_context
-
-    c = create_context()
-    yield c
-    c.release()
-
-
 class Both:
     """Flat and hierarchical queries of the same objects after the same depth pass."""
 

@@ -8,18 +8,10 @@ import pytest
 
 from massview.core.errors import ConfigError
 from massview.data.cache import BlockCache
-from massview.render.context import create_context
 from massview.render.geometry_cache import GeometryCache, packed_loader
 from massview.render.scene import MeshPool
 
 from scene_helpers import MemoryScene
-
-
-@pytest.fixture(scope="module")
-def ctx():
-    c = create_context()
-    yield c
-    c.release()
 
 
 @pytest.fixture(scope="module")

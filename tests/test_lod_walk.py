@@ -18,6 +18,7 @@ from massview.lod import kpatch_walk as walk
 from massview.lod.kpatch_cut import Dims, Residency, draw_level, edge_halves, patch_vertices, square_halves
 from massview.lod.kpatch_top import TopBatch
 from massview.parallel.decompose import grid_tiles
+from test_lod_stage import _keys
 
 FIELDS = new.Front.FIELDS
 LAYOUTS = [(1500, 129, 3), (2049, 257, 17), (4097, 257, 5), (3000, 513, 129)]
@@ -90,10 +91,6 @@ def _rows(f, idx=None):
     a = np.stack([getattr(f, k).astype(np.float64) for k in FIELDS] + [code], 1)
     a = a if idx is None else a[idx]
     return a[np.lexsort(a.T[::-1])]
-
-
-def _keys(calls):
-    return {k for lv, bi, bj, _ in calls for k in zip(lv.tolist(), bi.tolist(), bj.tolist())}
 
 
 @pytest.fixture(scope="module")

@@ -13,18 +13,10 @@ from massview.core.paths import load_path
 from massview.data.generators import generate_objects
 from massview.lod.cull import boxes_in_frustum
 from massview.lod.visibility import VisibilityState, boxes_reach_near
-from massview.render.context import create_context
 from massview.render.meshes import MeshRenderer
 from massview.render.queries import IdBuffer, OcclusionQuerier
 
 W, H = 320, 240
-
-
-@pytest.fixture(scope="module")
-def ctx():
-    c = create_context()
-    yield c
-    c.release()
 
 
 def box_meshes(boxes):
