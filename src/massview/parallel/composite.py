@@ -61,8 +61,10 @@ _STAGE_OF = {"encode": "encode", "wait": "transfer", "decode": "composite", "com
 
 @contextmanager
 def _timed(stats: FrameStats, piece: str):
-    """Add the body's wall time to the piece and to the stage it belongs to."""
-    t0 = time.perf_counter()
+    """Add the body's wall time to the piece and to the stage it belongs to; for a wait also
+    this thread's CPU time in it as ``cpu.wait`` (MPI busy-polling; near 0 when the wait
+    sleeps: :func:`~.exchange.wait_mode`)."""
+    t0, c0 = time.perf_counter(), (time.thread_time() if piece == "wait" else 0.0)
     try:
         yield
     finally:
@@ -70,6 +72,8 @@ def _timed(stats: FrameStats, piece: str):
         stage, key = _STAGE_OF[piece], "piece." + piece
         times[stage] = times.get(stage, 0.0) + dt
         times[key] = times.get(key, 0.0) + dt
+        if piece == "wait":
+            times["cpu.wait"] = times.get("cpu.wait", 0.0) + (time.thread_time() - c0) * 1e3
 
 
 def combine(front: Image, back: Image) -> Image:

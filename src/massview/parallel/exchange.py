@@ -7,19 +7,111 @@ encoded and waits for all of them once, at the end, so a rank never blocks on a 
 has work of its own; :func:`receive` / :func:`receive_any` take one message where the caller
 needs it (a rank does its local work first and waits for a peer only when it has nothing else
 to do). :func:`exchange` is the one-call form. Bytes on the wire (payloads) are counted into a
-:class:`FrameStats`. A wait is where a rank gives its core to a peer on a shared machine (see
-:func:`massview.parallel.runtime.launch_env`).
+:class:`FrameStats`.
+
+**How a rank waits** (``MASSVIEW_MPI_WAIT``, read here; :func:`set_wait_mode` overrides it):
+
+* ``poll`` (MPICH's own blocking calls: ``Waitall``, ``Mprobe``, ``Barrier``): MPICH
+  busy-polls, so a waiting rank keeps its core. Best while every rank has a core of its own.
+* ``sleep``: the same waits made of non-blocking calls (``Testall``, ``Improbe`` + ``Irecv``,
+  ``Ibarrier``) polled with sleeps in between, 20 µs doubling to 160 µs, with this thread's
+  timer slack set to 1 ns (``prctl(PR_SET_TIMERSLACK)``) so that a short sleep stays short.
+  A waiting rank gives its core to the peer it waits for when ranks outnumber the cores
+  (issue 20; :func:`massview.parallel.runtime.launch_env` picks it then). The messages and
+  their order are the same in both modes: only how a rank waits for them differs.
 """
 
 from __future__ import annotations
 
+import os
+import threading
+import time
+
 import numpy as np
 from mpi4py import MPI
 
+from ..core.errors import ConfigError
 from ..core.stats import FrameStats
 
 __all__ = ["Outbox", "receive", "receive_any", "exchange", "measure_bandwidth", "measure_memory_bandwidth", "max_over_ranks",
-           "agree_all", "any_rank"]
+           "agree_all", "any_rank", "WAIT_MODES", "WAIT_ENV_VAR", "wait_mode", "set_wait_mode", "wait_all", "barrier"]
+
+WAIT_MODES = ("poll", "sleep")
+WAIT_ENV_VAR = "MASSVIEW_MPI_WAIT"
+_SLEEP_FIRST_S, _SLEEP_MAX_S = 20e-6, 160e-6
+_mode: list[str | None] = [None]  # None: not read from the environment yet
+
+
+def _check_mode(mode: str, where: str) -> str:
+    if mode not in WAIT_MODES:
+        raise ConfigError(f"{where}={mode!r} is not a wait mode; use one of {', '.join(WAIT_MODES)}")
+    return mode
+
+
+def wait_mode() -> str:
+    """How this process waits for peers: ``MASSVIEW_MPI_WAIT`` (default ``poll``) unless
+    :func:`set_wait_mode` chose otherwise."""
+    if _mode[0] is None:
+        _mode[0] = _check_mode(os.environ.get(WAIT_ENV_VAR, "poll") or "poll", WAIT_ENV_VAR)
+    return _mode[0]
+
+
+def set_wait_mode(mode: str) -> str:
+    """Make every later wait of this process use ``mode``; returns the previous mode. Every
+    rank of a communicator should use the same mode (the messages do not depend on it)."""
+    before = wait_mode()
+    _mode[0] = _check_mode(mode, "wait mode")
+    return before
+
+
+_SLACK = threading.local()
+
+
+def _low_timer_slack() -> None:
+    """Set this thread's timer slack to 1 ns once (Linux; elsewhere nothing): the kernel's
+    default 50 µs slack would stretch every 20 µs sleep to ~70 µs."""
+    if getattr(_SLACK, "done", False):
+        return
+    _SLACK.done = True
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(29, 1, 0, 0, 0)  # PR_SET_TIMERSLACK, 1 ns
+    except (OSError, AttributeError):
+        pass
+
+
+def _sleep_until(done):
+    """Call ``done()`` until it returns something true, sleeping between calls (20 → 160 µs)."""
+    out = done()
+    if out:
+        return out
+    _low_timer_slack()
+    delay = _SLEEP_FIRST_S
+    while True:
+        time.sleep(delay)
+        out = done()
+        if out:
+            return out
+        delay = min(2 * delay, _SLEEP_MAX_S)
+
+
+def wait_all(requests: list) -> None:
+    """Complete every request (``Waitall``, or ``Testall`` between sleeps: :func:`wait_mode`)."""
+    if not requests:
+        return
+    if wait_mode() == "sleep":
+        _sleep_until(lambda: MPI.Request.Testall(requests))
+    else:
+        MPI.Request.Waitall(requests)
+
+
+def barrier(comm) -> None:
+    """``comm``'s barrier, waited for the :func:`wait_mode` way."""
+    if wait_mode() == "sleep":
+        wait_all([comm.Ibarrier()])
+    else:
+        comm.Barrier()
 
 _TAG_DATA = 0x4D57
 
@@ -45,7 +137,7 @@ class Outbox:
             self.stats.bytes_sent += buf.size
 
     def wait(self) -> None:
-        MPI.Request.Waitall(self._reqs)
+        wait_all(self._reqs)
         self._reqs, self._bufs = [], []
 
 
@@ -58,9 +150,14 @@ def receive_any(comm, tag: int, stats: FrameStats | None = None, source: int = M
     """(source, message) of the first message with ``tag`` to arrive from any rank (or from
     ``source``): matched probe, sized from its status, received into a new uint8 buffer."""
     status = MPI.Status()
-    msg = comm.Mprobe(source=source, tag=_tag(tag), status=status)
-    buf = np.empty(status.Get_count(MPI.BYTE), np.uint8)
-    msg.Recv(buf)
+    if wait_mode() == "sleep":
+        msg = _sleep_until(lambda: comm.Improbe(source=source, tag=_tag(tag), status=status))
+        buf = np.empty(status.Get_count(MPI.BYTE), np.uint8)
+        wait_all([msg.Irecv(buf)])
+    else:
+        msg = comm.Mprobe(source=source, tag=_tag(tag), status=status)
+        buf = np.empty(status.Get_count(MPI.BYTE), np.uint8)
+        msg.Recv(buf)
     if stats is not None:
         stats.bytes_recv += buf.size
     return status.Get_source(), buf
@@ -83,8 +180,9 @@ def exchange(comm, sends: dict[int, bytes], sources: list[int], stats: FrameStat
 
 def measure_bandwidth(comm, nbytes: int = 8 << 20, repeat: int = 5) -> float:
     """Point-to-point bandwidth in bytes/s one rank can count on while every rank exchanges at
-    once: ranks (2i, 2i+1) swap ``nbytes`` uint8 buffers (``Sendrecv``; with an odd count the
-    last rank sits out), timed from a common barrier until the last pair is done (a barrier),
+    once: ranks (2i, 2i+1) swap ``nbytes`` uint8 buffers (``Isend`` + ``Irecv``, waited for
+    the :func:`wait_mode` way, as compositing waits; with an odd count the last rank sits
+    out), timed from a common barrier until the last pair is done (a barrier),
     best of ``repeat``; the same on every rank. 0.0 on a single rank. Ranks that share cores
     share them here as they do when they composite (issue 20: an honest floor)."""
     n, me = comm.Get_size(), comm.Get_rank()
@@ -94,11 +192,11 @@ def measure_bandwidth(comm, nbytes: int = 8 << 20, repeat: int = 5) -> float:
     partner = me ^ 1
     best = float("inf")
     for _ in range(repeat + 1):  # the first exchange warms up the connection and the pages
-        comm.Barrier()
+        barrier(comm)
         t0 = MPI.Wtime()
         if partner < n:
-            comm.Sendrecv(send, dest=partner, sendtag=77, recvbuf=recv, source=partner, recvtag=77)
-        comm.Barrier()
+            wait_all([comm.Irecv(recv, source=partner, tag=77), comm.Isend(send, dest=partner, tag=77)])
+        barrier(comm)
         best = min(best, max_over_ranks(comm, MPI.Wtime() - t0))
     return nbytes / best
 
@@ -113,10 +211,10 @@ def measure_memory_bandwidth(comm, nbytes: int = 64 << 20, repeat: int = 5) -> f
     dst = np.zeros(nbytes, np.uint8)
     best = float("inf")
     for _ in range(repeat + 1):  # the first copy also faults the pages in
-        comm.Barrier()
+        barrier(comm)
         t0 = MPI.Wtime()
         np.copyto(dst, src)
-        comm.Barrier()
+        barrier(comm)
         best = min(best, max_over_ranks(comm, MPI.Wtime() - t0))
     return 2 * nbytes / best
 
