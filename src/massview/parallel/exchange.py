@@ -14,7 +14,8 @@ to do). :func:`exchange` is the one-call form. Bytes on the wire (payloads) are 
 * ``poll`` (MPICH's own blocking calls: ``Waitall``, ``Mprobe``, ``Barrier``): MPICH
   busy-polls, so a waiting rank keeps its core. Best while every rank has a core of its own.
 * ``sleep``: the same waits made of non-blocking calls (``Testall``, ``Improbe`` + ``Irecv``,
-  ``Ibarrier``) polled with sleeps in between, 20 µs doubling to 160 µs, with this thread's
+  ``Ibarrier``) polled back to back for 50 µs, then with sleeps in between, 20 µs doubling
+  to 160 µs, with this thread's
   timer slack set to 1 ns (``prctl(PR_SET_TIMERSLACK)``) so that a short sleep stays short.
   A waiting rank gives its core to the peer it waits for when ranks outnumber the cores
   (issue 20; :func:`massview.parallel.runtime.launch_env` picks it then). The messages and
@@ -38,7 +39,7 @@ __all__ = ["Outbox", "receive", "receive_any", "exchange", "measure_bandwidth", 
 
 WAIT_MODES = ("poll", "sleep")
 WAIT_ENV_VAR = "MASSVIEW_MPI_WAIT"
-_SLEEP_FIRST_S, _SLEEP_MAX_S = 20e-6, 160e-6
+_SPIN_S, _SLEEP_FIRST_S, _SLEEP_MAX_S = 50e-6, 20e-6, 160e-6
 _mode: list[str | None] = [None]  # None: not read from the environment yet
 
 
@@ -82,10 +83,17 @@ def _low_timer_slack() -> None:
 
 
 def _sleep_until(done):
-    """Call ``done()`` until it returns something true, sleeping between calls (20 → 160 µs)."""
+    """Call ``done()`` until it returns something true: for 50 µs back to back (a peer that is
+    running answers within that), then with sleeps in between (20 µs doubling to 160 µs).
+    The spin was measured: without it, 2 ranks took 1.17× poll's time (under load)."""
     out = done()
     if out:
         return out
+    t_end = time.perf_counter() + _SPIN_S
+    while time.perf_counter() < t_end:
+        out = done()
+        if out:
+            return out
     _low_timer_slack()
     delay = _SLEEP_FIRST_S
     while True:
