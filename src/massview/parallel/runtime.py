@@ -136,27 +136,36 @@ def raster_threads(ranks_here: int, cores: int | None = None) -> int | None:
     ranks on 2 cores Mesa's default was faster in both runs, at 4 ranks 0 was (0.60–0.82× the
     frame time); on a loaded machine more threads also win a larger share of the CPU."""
     if cores is None:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        cores = _cores()
     return None if ranks_here <= cores else 0
 
 
-# How waiting ranks give their core back: after this many polls that made no progress MPICH's
-# ch4 progress loop sleeps (usleep(1)) instead of spinning on. MPICH's default spins forever,
-# and on a machine where ranks (and llvmpipe's raster threads) outnumber the cores a spinning
-# rank burns the core the peer it waits for needs (issue 20: `massview bench composite`
-# measured with and without; figures in the README).
-WAIT_ENV = {"MPIR_CVAR_CH4_PROGRESS_THROTTLE": "1", "MPIR_CVAR_CH4_PROGRESS_THROTTLE_NO_PROGRESS_COUNT": "4096"}
+# How waiting ranks give their core back when local ranks outnumber the cores: massview's own
+# sleeping wait (parallel/exchange.py, ``MASSVIEW_MPI_WAIT=sleep``) instead of MPICH's
+# busy-polling blocking calls. Measured with ``massview bench composite --wait poll,sleep``
+# (both modes in one job, alternating; README "How local ranks share the cores"): sleep took
+# 0.86x poll's time at 3 and at 4 ranks on 2 cores, 1.04-1.08x at 2 ranks (so not there).
+# MPICH's own throttle (MPIR_CVAR_CH4_PROGRESS_THROTTLE*, set here before) is not a CVAR of
+# the mpich 5.0.2 wheel: it did nothing.
+WAIT_ENV = {"MASSVIEW_MPI_WAIT": "sleep"}
 
 
-def launch_env(nranks: int, env: dict[str, str]) -> dict[str, str]:
-    """``env`` with the launcher's defaults for ``nranks`` local ranks added where the user set
-    nothing: MPICH's waiting ranks yield their core (:data:`WAIT_ENV`), and llvmpipe gets
-    :func:`raster_threads` raster threads per rank (``LP_NUM_THREADS``, when it says so). Variables already in
-    ``env`` win, so either can be set by hand."""
+def _cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def launch_env(nranks: int, env: dict[str, str], cores: int | None = None) -> dict[str, str]:
+    """``env`` with the launcher's defaults for ``nranks`` local ranks on ``cores`` (default:
+    this machine's) added where the user set nothing: when the ranks outnumber the cores,
+    waiting ranks sleep (:data:`WAIT_ENV`), and llvmpipe gets :func:`raster_threads` raster
+    threads per rank (``LP_NUM_THREADS``, when it says so). Variables already in ``env`` win,
+    so either can be set by hand."""
     out = dict(env)
-    for key, value in WAIT_ENV.items():
-        out.setdefault(key, value)
-    threads = raster_threads(nranks)
+    cores = _cores() if cores is None else cores
+    if nranks > cores:
+        for key, value in WAIT_ENV.items():
+            out.setdefault(key, value)
+    threads = raster_threads(nranks, cores)
     if threads is not None:
         out.setdefault("LP_NUM_THREADS", str(threads))
     return out

@@ -1,0 +1,90 @@
+"""The sleeping wait (``MASSVIEW_MPI_WAIT=sleep``, parallel/exchange.py) under real mpiexec:
+every compositor at 3 and 4 ranks gives the serial fold bit for bit, and a real sort-last
+render gives the same image in both wait modes and equals the serial one; bad values fail
+with an error naming the variable; the launcher picks sleep only when ranks outnumber cores."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import SMALL_SCENE, SMALL_SIZE, load_png
+
+pytestmark = pytest.mark.mpi
+
+
+def _env(**extra) -> dict:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
+    return {**env, **extra}
+
+
+@pytest.mark.parametrize("ranks", [3, 4])
+def test_sleep_wait_composites_equal_the_serial_fold(ranks):
+    mpiexec = str(Path(sys.executable).parent / "mpiexec")
+    job = Path(__file__).parent / "composite_job.py"
+    proc = subprocess.run([mpiexec, "-n", str(ranks), sys.executable, str(job), "1500"], capture_output=True, text=True,
+                          env=_env(MASSVIEW_MPI_WAIT="sleep"), timeout=300)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    assert "composite job ok" in proc.stdout
+
+
+def _render(out: Path, ranks: int, compositor: str, mode: str) -> dict:
+    proc = subprocess.run([sys.executable, "-m", "massview", "render", SMALL_SCENE, "--ranks", str(ranks), "--decomposition", "sort-last",
+                           "--compositor", compositor, "--frames", "2", "--size", SMALL_SIZE, "--out", str(out), "--reference", "-q"],
+                          capture_output=True, text=True, env=_env(MASSVIEW_MPI_WAIT=mode), timeout=300)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return json.loads((out / "summary.json").read_text())
+
+
+@pytest.mark.parametrize("ranks,compositor", [(3, "binary-swap"), (3, "direct-send"), (4, "radix-k"), (4, "binary-swap")])
+def test_render_is_the_same_in_both_wait_modes(tmp_path, ranks, compositor):
+    runs = {mode: _render(tmp_path / mode, ranks, compositor, mode) for mode in ("poll", "sleep")}
+    for s in runs.values():
+        assert s["max_abs_diff"] == 0 and s["diff_fraction"] == 0.0
+    frames = sorted(p.name for p in (tmp_path / "poll" / "frames").glob("*.png"))
+    assert len(frames) == 2
+    for name in frames:
+        a, b = (load_png(tmp_path / mode / "frames" / name) for mode in ("poll", "sleep"))
+        assert np.array_equal(a, b), name
+
+
+def test_bad_wait_mode_names_the_variable(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "massview", "render", SMALL_SCENE, "--ranks", "2", "--frames", "1", "--size", SMALL_SIZE,
+                           "--out", str(tmp_path), "-q"], capture_output=True, text=True, env=_env(MASSVIEW_MPI_WAIT="nap"), timeout=300)
+    assert proc.returncode != 0
+    assert "MASSVIEW_MPI_WAIT='nap'" in proc.stderr and "poll, sleep" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_set_wait_mode_checks_and_returns_the_previous_mode():
+    from massview.core.errors import ConfigError
+    from massview.parallel import exchange
+
+    before = exchange.set_wait_mode("sleep")
+    try:
+        assert exchange.wait_mode() == "sleep"
+        with pytest.raises(ConfigError, match="use one of poll, sleep"):
+            exchange.set_wait_mode("spin")
+        assert exchange.set_wait_mode("poll") == "sleep"
+    finally:
+        exchange.set_wait_mode(before)
+
+
+def test_launcher_sleeps_only_when_ranks_outnumber_cores():
+    from massview.parallel.runtime import launch_env
+
+    assert launch_env(3, {}, cores=2)["MASSVIEW_MPI_WAIT"] == "sleep"
+    assert "MASSVIEW_MPI_WAIT" not in launch_env(2, {}, cores=2)
+    assert launch_env(4, {"MASSVIEW_MPI_WAIT": "poll"}, cores=2)["MASSVIEW_MPI_WAIT"] == "poll"
+
+
+def test_bench_rejects_an_unknown_wait_mode():
+    from massview.app.bench.composite import parse_modes
+    from massview.core.errors import ConfigError
+
+    assert parse_modes("poll, sleep") == ["poll", "sleep"]
+    with pytest.raises(ConfigError, match="--wait"):
+        parse_modes("poll,yield")
