@@ -224,6 +224,12 @@ def _print(console, results: list[dict], args) -> None:
                       f"{r['mem_frame_MBps']:.0f} / {r['mem_64MiB_MBps']:.0f}", f"{r['floor_ms']:.2f}", f"{r['ratio']:.2f}",
                       f"{r['shared_floor_ms']:.2f}", f"{r['shared_ratio']:.2f}", f"{r['cpu_ms']:.1f}")
     console.print(table)
+    _print_ranks(console, results)
+
+
+def _print_ranks(console, results: list[dict]) -> None:
+    from rich.table import Table
+
     pieces = Table(title="per rank, best repeat: where the time goes (ms) against the floor's two terms (ms); work / polling / run queue / "
                          "asleep from the main thread's schedstat; context switches voluntary / involuntary")
     for col in ("algorithm", "ranks", "wait", "rank", "ms", "compositing", "delivery", *PIECES, "other", "work", "polling", "run queue",
