@@ -320,7 +320,9 @@ class TerrainRenderer:
 
     def _draw_deferred(self, n: int) -> None:
         """Pass 1 into the bound target's G-buffer (its depth test), pass 2 shades the pixels
-        pass 1 wrote into the target's colour (:mod:`.terrain_gbuffer`)."""
+        pass 1 wrote into the target's colour (:mod:`.terrain_gbuffer`): a far-plane triangle
+        with depth test GREATER and no depth writes, so pixels no terrain covers (depth 1.0, the
+        sky) skip the shading shader; those pass 1 did not write in this draw are discarded."""
         ctx = self.ctx
         target = ctx.fbo
         gfbo = self._gbuffers.begin(target)
@@ -328,10 +330,14 @@ class TerrainRenderer:
         target.use()
         for unit, tex in enumerate(self._gbuffers.textures(gfbo), start=4):
             tex.use(unit)
-        ctx.disable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
+        ctx.depth_func = ">"  # the far-plane triangle passes where pass 1 (or an earlier draw) left depth < 1: not on sky
+        target.depth_mask = False
+        target.use()
         self._shade_vao.render(moderngl.TRIANGLES, vertices=3)
-        ctx.enable(moderngl.DEPTH_TEST)
+        target.depth_mask = True
+        target.use()
+        ctx.depth_func = "<"  # massview's terrain depth test (render/framebuffer.py)
 
     def release(self) -> None:
         self._gbuffers.release()
