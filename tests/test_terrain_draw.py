@@ -65,7 +65,7 @@ def _render(sysm, cam, cfg, new, vp=None, tint=(0, 0, 0, 0)):
     """``new``: deferred shading and whole-block draws; False: the path before (forward, a
     command per patch); None: the default (shading chosen per draw, whole-block draws)."""
     _, _, terrain, _ = sysm.renderers()
-    terrain.deferred, terrain.merge = new, new is not False
+    terrain.deferred, terrain.merge, terrain.sort = new, new is not False, new is not False
     img = sysm.render(Task(0, vp or cam.viewport), cam, cfg, FrameStats(0, 0), tint=tint)
     return img.color.copy(), img.depth.copy()
 
