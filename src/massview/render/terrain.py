@@ -34,11 +34,14 @@ from .terrain_programs import TerrainPrograms, program
 from .terrain_plain import VERTEX_BYTES, PlainMeshRenderer, pack_block  # noqa: F401  (re-exported)
 
 # Deferred shading pays a full-screen pass and a G-buffer; forward shading pays the shading on
-# every 4×4 stamp a triangle touches. Measured on llvmpipe (issue 20, CPU-ms of a draw, demo
-# flyover cameras, 1280×1024 and 1280×720, whole fronts and sort-last shares of them): deferred
-# ÷ forward 0.79–0.82 at 0.41–0.51 triangles a pixel, 0.99–1.25 at 0.20–0.26, 1.2–2.1 at
-# 0.10–0.17, 0.96 at full resolution (25 a pixel). Deferred above this many triangles a pixel.
-DEFERRED_ABOVE = 0.3
+# every 4×4 stamp a triangle touches. The shading pass skips sky pixels (a far-plane triangle,
+# depth test GREATER) and commands go front to back, so deferred pays from fewer triangles a
+# pixel than before (0.3). Measured on llvmpipe under load (issue 20, CPU-ms of a draw, median
+# of 3, demo 4097² flyover cameras at 1280×1024, whole fronts and halves/quarters/eighths of
+# them, τ 0.5–32): deferred ÷ forward 0.67–0.80 at 0.19–0.95 triangles a pixel, 0.81–0.93 at
+# 0.049–0.17, 0.97 at 0.045, 1.03 at 0.038, 1.01–1.29 at 0.012–0.032, 1.3–2.1 below 0.011.
+# Deferred above this many triangles a pixel.
+DEFERRED_ABOVE = 0.04
 
 __all__ = ["DEFERRED_ABOVE", "VERTEX_BYTES", "pack_block", "pack_payload", "layer_bytes", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
 
