@@ -65,7 +65,7 @@ def _render(sysm, cam, cfg, new, vp=None, tint=(0, 0, 0, 0)):
     """``new``: deferred shading and whole-block draws; False: the path before (forward, a
     command per patch); None: the default (shading chosen per draw, whole-block draws)."""
     _, _, terrain, _ = sysm.renderers()
-    terrain.deferred, terrain.merge = new, new is not False
+    terrain.deferred, terrain.merge, terrain.sort = new, new is not False, new is not False
     img = sysm.render(Task(0, vp or cam.viewport), cam, cfg, FrameStats(0, 0), tint=tint)
     return img.color.copy(), img.depth.copy()
 
@@ -170,7 +170,9 @@ def test_shading_path_follows_triangles_per_pixel(small_store):
             got = _render(sysm, cam, cfg, None, vp)
             assert terrain.used_deferred is want
         full = sysm.front
-        sysm.front = full.take(sysm.select(Task(0, cam.viewport), cam, cfg)[:8])  # a sparse share of the frame
+        sparse = int(DEFERRED_ABOVE * 160 * 120) // terrain.tris_per_patch // 2  # half the triangles the threshold allows
+        assert sparse >= 1
+        sysm.front = full.take(sysm.select(Task(0, cam.viewport), cam, cfg)[:sparse])  # a sparse share of the frame
         try:
             auto = _render(sysm, cam, cfg, None)
             assert terrain.used_deferred is False

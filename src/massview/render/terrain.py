@@ -34,11 +34,14 @@ from .terrain_programs import TerrainPrograms, program
 from .terrain_plain import VERTEX_BYTES, PlainMeshRenderer, pack_block  # noqa: F401  (re-exported)
 
 # Deferred shading pays a full-screen pass and a G-buffer; forward shading pays the shading on
-# every 4×4 stamp a triangle touches. Measured on llvmpipe (issue 20, CPU-ms of a draw, demo
-# flyover cameras, 1280×1024 and 1280×720, whole fronts and sort-last shares of them): deferred
-# ÷ forward 0.79–0.82 at 0.41–0.51 triangles a pixel, 0.99–1.25 at 0.20–0.26, 1.2–2.1 at
-# 0.10–0.17, 0.96 at full resolution (25 a pixel). Deferred above this many triangles a pixel.
-DEFERRED_ABOVE = 0.3
+# every 4×4 stamp a triangle touches. The shading pass skips sky pixels (a far-plane triangle,
+# depth test GREATER) and commands go front to back, so deferred pays from fewer triangles a
+# pixel than before (0.3). Measured on llvmpipe under load (issue 20, CPU-ms of a draw, median
+# of 3, demo 4097² flyover cameras at 1280×1024, whole fronts and halves/quarters/eighths of
+# them, τ 0.5–32): deferred ÷ forward 0.67–0.80 at 0.19–0.95 triangles a pixel, 0.81–0.93 at
+# 0.049–0.17, 0.97 at 0.045, 1.03 at 0.038, 1.01–1.29 at 0.012–0.032, 1.3–2.1 below 0.011.
+# Deferred above this many triangles a pixel.
+DEFERRED_ABOVE = 0.04
 
 __all__ = ["DEFERRED_ABOVE", "VERTEX_BYTES", "pack_block", "pack_payload", "layer_bytes", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
 
@@ -55,6 +58,15 @@ def _facing_up(tri: np.ndarray) -> np.ndarray:
     return out
 
 
+def _front_to_back(distance: np.ndarray) -> np.ndarray:
+    """The order that draws commands nearest first (stable: ties keep their order). Drawing near
+    surfaces first lets the depth test, which llvmpipe runs before the fragment shader, reject
+    what they hide. A depth test LESS keeps the nearest fragment whatever the order, so only an
+    exact depth tie between two triangles at one pixel could change; none does on the golden,
+    side-by-side and demo frames (tests/test_terrain_draw.py)."""
+    return np.argsort(distance, kind="stable")
+
+
 class TerrainRenderer:
     """Draws fronts from ``pool`` with per-pixel shading. ``base`` is the lowest scaled height
     (exaggeration pivots on it), ``world_size`` the terrain's horizontal diagonal (haze scale).
@@ -63,12 +75,15 @@ class TerrainRenderer:
     :data:`DEFERRED_ABOVE` triangles per pixel of the target's scissor (or viewport);
     ``used_deferred`` tells what the last draw did. ``merge``
     (default) draws every block the front covers whole with one command (:meth:`_commands`);
-    ``False`` keeps one command per patch."""
+    ``False`` keeps one command per patch. ``sort`` (default) issues the commands front to back
+    (:func:`_front_to_back`) so that llvmpipe's early depth test rejects hidden fragments;
+    ``False`` keeps front order."""
 
     def __init__(self, ctx: moderngl.Context, pool: BlockPool, k: int, spacing, vscale: float, extent: tuple[int, int],
                  base: float = 0.0, world_size: float = 1.0, deferred: bool | None = None, merge: bool = True,
-                 peak: float = math.inf):
-        self.ctx, self.pool, self.k, self.deferred, self.merge = ctx, pool, k, deferred, bool(merge)
+                 peak: float = math.inf, sort: bool = True):
+        self.ctx, self.pool, self.k, self.deferred, self.merge, self.sort = ctx, pool, k, deferred, bool(merge), bool(sort)
+        self._spacing = (float(spacing[0]), float(spacing[1]))
         self.used_deferred = False
         self.vscale, self.base, self.world_size, self.peak = float(vscale), float(base), float(world_size), float(peak)
         self._footprint = ((extent[1] - 1) * float(spacing[0]), (extent[0] - 1) * float(spacing[1]))
@@ -222,7 +237,7 @@ class TerrainRenderer:
         n = len(front)
         if n == 0:
             return 0
-        cmds = self._commands(front)
+        cmds = self._commands(front, eye if self.sort else None)
         data = cmds.tobytes()
         if self._indirect is None or self._indirect.size < len(data):
             if self._indirect is not None:
@@ -264,12 +279,13 @@ class TerrainRenderer:
         z = self.base + self.shading.exaggeration * (self.peak - self.base)
         return bool(eye[2] > z and 0.0 <= eye[0] <= self._footprint[0] and -self._footprint[1] <= eye[1] <= 0.0)
 
-    def _commands(self, front) -> np.ndarray:
+    def _commands(self, front, eye=None) -> np.ndarray:
         """(draws, 5) uint32 ``DrawElementsIndirectCommand`` rows for ``front``: one per patch in
         front order, then one per block the front covers whole at its level (all its
         2(M−1)²/4^k patches: e.g. every block at full resolution), drawn by one merged pattern.
         llvmpipe's per-draw cost (state, buffer mapping, a pipeline flush per draw) is then paid
-        per block instead of per patch."""
+        per block instead of per patch. With ``eye`` (world x, y, z) the rows are reordered
+        front to back (:func:`_front_to_back`)."""
         M, tpp = self.pool.M, self.tris_per_patch
         slots, pids, row, col = self._placement(front)
         base = (row * M + col).astype(np.int64)
@@ -284,7 +300,20 @@ class TerrainRenderer:
         cmds[:, 4] = slots[part]
         if whole.any():
             cmds = np.concatenate([cmds, self._block_commands(slots[whole], pids[whole], base[whole], full)])
-        return cmds
+        if eye is None:
+            return cmds
+        d = self._distance2(front, eye)
+        if whole.any():  # a whole block: its nearest patch (the rows _block_commands made, in its slot order)
+            d = np.concatenate([d[part], d[whole][np.argsort(slots[whole], kind="stable")].reshape(-1, full).min(1)])
+        return cmds[_front_to_back(d)]
+
+    def _distance2(self, front, eye) -> np.ndarray:
+        """Squared horizontal world distance from ``eye`` to each patch's centroid (x = col·dx,
+        y = −row·dy)."""
+        dx, dy = self._spacing
+        cx = (front.ax + front.lx + front.rx).astype(np.float64) * (dx / 3.0) - float(eye[0])
+        cy = (front.ay + front.ly + front.ry).astype(np.float64) * (-dy / 3.0) - float(eye[1])
+        return cx * cx + cy * cy
 
     def _block_commands(self, slots, pids, base, full: int) -> np.ndarray:
         """One command per whole block; its merged pattern (the block's patches sorted by
@@ -320,7 +349,9 @@ class TerrainRenderer:
 
     def _draw_deferred(self, n: int) -> None:
         """Pass 1 into the bound target's G-buffer (its depth test), pass 2 shades the pixels
-        pass 1 wrote into the target's colour (:mod:`.terrain_gbuffer`)."""
+        pass 1 wrote into the target's colour (:mod:`.terrain_gbuffer`): a far-plane triangle
+        with depth test GREATER and no depth writes, so pixels no terrain covers (depth 1.0, the
+        sky) skip the shading shader; those pass 1 did not write in this draw are discarded."""
         ctx = self.ctx
         target = ctx.fbo
         gfbo = self._gbuffers.begin(target)
@@ -328,10 +359,14 @@ class TerrainRenderer:
         target.use()
         for unit, tex in enumerate(self._gbuffers.textures(gfbo), start=4):
             tex.use(unit)
-        ctx.disable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE)
+        ctx.depth_func = ">"  # the far-plane triangle passes where pass 1 (or an earlier draw) left depth < 1: not on sky
+        target.depth_mask = False
+        target.use()
         self._shade_vao.render(moderngl.TRIANGLES, vertices=3)
-        ctx.enable(moderngl.DEPTH_TEST)
+        target.depth_mask = True
+        target.use()
+        ctx.depth_func = "<"  # massview's terrain depth test (render/framebuffer.py)
 
     def release(self) -> None:
         self._gbuffers.release()

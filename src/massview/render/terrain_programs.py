@@ -10,7 +10,8 @@ they would select and no per-lane integer division:
 * ``MODE``: the colour mode (0 ramp, 1 orthophoto, 2 grey); only its texture fetches run.
 
 Three programs: ``forward`` (geometry + shading per fragment), ``gbuffer`` (geometry pass of
-the deferred path, :mod:`.terrain_gbuffer`) and ``shade`` (its full-screen pass). Changing
+the deferred path, :mod:`.terrain_gbuffer`) and ``shade`` (its full-screen pass: one triangle on
+the far plane, terrain_shade.vert.glsl, so sky pixels fail its depth test). Changing
 the mode recompiles ``forward`` and ``shade`` (once per mode: kept) and replays every uniform
 set so far, so callers set uniforms once through :meth:`TerrainPrograms.set`.
 """
@@ -69,7 +70,7 @@ class TerrainPrograms:
         if pair is None:
             d = {**self.defines, "MODE": int(mode)}
             pair = self._by_mode[mode] = (program(self.ctx, "terrain.vert.glsl", "terrain.frag.glsl", d),
-                                          program(self.ctx, "fullscreen.vert.glsl", "terrain_shade.frag.glsl", d))
+                                          program(self.ctx, "terrain_shade.vert.glsl", "terrain_shade.frag.glsl", d))
             for p in pair:
                 self._apply(p, self._values)
         self.mode, (self.forward, self.shade) = mode, pair

@@ -7,13 +7,17 @@
 2. runs ``pvbatch`` (under ``xvfb-run`` when there is no display, llvmpipe through GLX) on 1
    and 2 ranks (``mpiexec`` of the MPI ParaView was built with, found on PATH as
    ``mpiexec.openmpi``/``mpiexec``), drawing a surface of every STEP-th sample (``--steps``;
-   ``auto``: the step that gives as many triangles as massview drew — equal triangles; 1: the
-   full surface, 2·(n−1)² triangles), and reads IceT's own timers on every rank
-   (``ICET_COMPOSITE_TIME`` …) to isolate its compositing per frame;
+   1: the full surface, 2·(n−1)² triangles; ``auto``: the two adjacent steps whose surfaces
+   bracket the triangles massview drew, :func:`bracket_steps`), and reads IceT's own timers on
+   every rank (``ICET_COMPOSITE_TIME`` …) to isolate its compositing per frame;
 3. runs massview first, on the same cameras (``bench frame``'s job: warm caches, synchronous
    loop) for sort-last and sort-first on 1 and 2 ranks;
 4. prints frame times, triangles, the 1→2-rank speed-ups and the ratios, and compositing per
-   frame at 2 ranks: IceT's against massview's encode + transfer + composite.
+   frame at 2 ranks: IceT's against massview's encode + transfer + composite;
+5. at equal triangles: per mode and rank count, ParaView's frame time interpolated linearly in
+   triangles between the two measured surfaces that bracket massview's exact count
+   (:func:`interpolate_ms`; never extrapolated: without a bracket it says so), and massview ÷
+   ParaView.
 
 When ``pvbatch`` is not installed it says so and exits 0 (Debian/Ubuntu: ``apt-get install
 paraview xvfb``). ParaView is never a dependency of massview or of its tests. Nothing here
@@ -36,7 +40,7 @@ from ...core.config import parse_size
 from ...core.errors import ConfigError
 from .frame import STAGES as _STAGE_NAMES
 
-__all__ = ["add_arguments", "run"]
+__all__ = ["add_arguments", "run", "surface_triangles", "bracket_steps", "auto_steps", "interpolate_ms"]
 
 _SCRIPT = Path(__file__).with_name("pvbatch_script.py")
 
@@ -109,16 +113,50 @@ def run_pvbatch(grid: dict, cams: Path, step: int, ranks: int, workdir: Path) ->
     raise RuntimeError(f"pvbatch failed (exit {proc.returncode}): {' '.join(map(str, cmd))}\n{(proc.stdout + proc.stderr)[-3000:]}")
 
 
-def _step(value: str, grid: dict, mv: dict, ranks: list[int]) -> int:
-    """A ParaView sample step; ``auto``: the one whose surface has about as many triangles as
-    massview drew (its sort-last run on the fewest ranks): equal triangles."""
-    if value != "auto":
-        return int(value)
-    run = mv.get(("sort-last", ranks[0]))
-    if not run:
+def surface_triangles(rows: int, cols: int, step: int) -> int:
+    """Triangles of ParaView's surface of every ``step``-th sample of a ``rows`` × ``cols`` grid
+    (pvbatch_script.py: ``ExtractSubset`` keeps samples 0, s, 2s, … up to the last index on each
+    axis — VTK's vtkExtractGrid without IncludeBoundary — and ``Triangulate`` splits every quad
+    in two)."""
+    if step < 1:
+        raise ConfigError(f"--steps: a sample step must be ≥ 1, got {step}")
+    return 2 * ((rows - 1) // step) * ((cols - 1) // step)
+
+
+def bracket_steps(rows: int, cols: int, triangles: float) -> list[int]:
+    """The sample steps whose surfaces bracket ``triangles``: [s, s + 1] with s the largest step
+    of at least that many triangles (s + 1 has fewer); [s] when s's surface has exactly that
+    many; [1] when even the full surface has fewer (no bracket: ParaView is never extrapolated,
+    :func:`interpolate_ms` then answers None)."""
+    if not triangles > 0:
+        raise ConfigError(f"massview drew {triangles} triangles: nothing to match ParaView's surface to")
+    if triangles >= surface_triangles(rows, cols, 1):
+        return [1]
+    s = 1
+    while surface_triangles(rows, cols, s + 1) >= triangles:
+        s += 1
+    return [s] if surface_triangles(rows, cols, s) == triangles else [s, s + 1]
+
+
+def auto_steps(grid: dict, counts: list[float]) -> list[int]:
+    """Every step :func:`bracket_steps` names for any of massview's triangle ``counts``."""
+    if not counts:
         raise ConfigError("--steps auto needs massview's own run (leave out --skip-massview)")
-    full = 2.0 * (grid["rows"] - 1) * (grid["cols"] - 1)
-    return max(1, round((full / max(run["sync"]["triangles"], 1.0)) ** 0.5))
+    return sorted({s for t in counts for s in bracket_steps(grid["rows"], grid["cols"], t)})
+
+
+def interpolate_ms(points: list[tuple[float, float]], triangles: float) -> float | None:
+    """ParaView's frame time (ms) at ``triangles``, linear in triangles between the nearest
+    measured (triangles, ms) points at or below and at or above it; None when ``points`` do not
+    bracket it (never extrapolated)."""
+    below = [p for p in points if p[0] <= triangles]
+    above = [p for p in points if p[0] >= triangles]
+    if not below or not above:
+        return None
+    (t0, m0), (t1, m1) = max(below), min(above)
+    if t1 == t0:
+        return float(m0)
+    return float(m0 + (m1 - m0) * (triangles - t0) / (t1 - t0))
 
 
 def icet_composite_ms(workdir: Path, name: str) -> dict | None:
@@ -174,7 +212,10 @@ def run(args) -> int:
     ranks = [int(v) for v in args.ranks.split(",") if v.strip()]
     mv = {} if args.skip_massview else _massview(args, store, ranks)
     pv = {}
-    steps = [_step(v.strip(), grid, mv, ranks) for v in args.steps.split(",") if v.strip()]
+    steps = sorted({s for v in args.steps.split(",") if v.strip()
+                    for s in (auto_steps(grid, [r["sync"]["triangles"] for r in mv.values() if r]) if v.strip() == "auto" else [int(v)])})
+    for s in steps:
+        surface_triangles(grid["rows"], grid["cols"], s)  # a clear error for a step < 1
     for step in steps:
         for n in ranks:
             done = workdir / f"pv_{n}_{step}.json"
@@ -206,6 +247,7 @@ def _print(console, pv: dict, mv: dict, ranks: list[int], steps: list[int], args
         t.add_row(system, label, *(f"{v:.0f}" for v in ms), f"{mtri:.1f}", f"{ms[0] / ms[-1]:.2f}×")
     console.print(t)
     _print_compositing(console, pv, mv, ranks, steps)
+    _print_equal(console, pv, mv, ranks, steps)
     console.print("ParaView times: Render() + reading the composited image back on rank 0, after one untimed render; "
                   "massview: the synchronous frame (LOD, draw, readback, compositing, delivery to rank 0) with warm caches.")
 
@@ -231,3 +273,26 @@ def _print_compositing(console, pv: dict, mv: dict, ranks: list[int], steps: lis
                 ours = st["encode"] + st["transfer"] + st["composite"]
                 line += f"; massview {mode} {ours:.1f} ms ({ours / icet['composite']:.2f}× IceT's)" if icet["composite"] > 0 else ""
         console.print(line)
+
+
+def _print_equal(console, pv: dict, mv: dict, ranks: list[int], steps: list[int]) -> None:
+    """Per mode and rank count: ParaView interpolated to massview's exact triangle count
+    (:func:`interpolate_ms` over the surfaces measured at that rank count), and the ratio."""
+    from rich.table import Table
+
+    t = Table(title="at equal triangles: ParaView's frame interpolated linearly in triangles to massview's count (never extrapolated)")
+    for c in ("mode", "ranks", "massview ms", "M triangles", "ParaView surfaces (M triangles)", "ParaView ms (interpolated)", "massview ÷ ParaView"):
+        t.add_column(c, justify="right")
+    for mode in ("sort-last", "sort-first"):
+        for n in ranks:
+            r = mv.get((mode, n))
+            if not r:
+                continue
+            tri = r["sync"]["triangles"]
+            points = [(float(pv[(s, n)]["triangles"]), 1e3 * float(np.mean(pv[(s, n)]["seconds"]))) for s in steps if (s, n) in pv]
+            ms = interpolate_ms(points, tri)
+            used = ", ".join(f"{p[0] / 1e6:.3f}" for p in sorted(points))
+            mine = r["sync"]["latency_ms"]
+            t.add_row(mode, str(n), f"{mine:.0f}", f"{tri / 1e6:.3f}", used, "no bracket" if ms is None else f"{ms:.0f}",
+                      "—" if ms is None else f"{mine / ms:.2f}×")
+    console.print(t)
