@@ -56,7 +56,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gpu-mb", type=int, default=512)
     p.add_argument("--items", "--parts", dest="parts", default="tables,queries,occlusion,split,pipeline,speedup",
                    help="what to run: tables (1-3), queries (group-tree against per-object queries), occlusion, split, pipeline, "
-                        "speedup (the paper's §4 experiment, --speedup-*; comma-separated)")
+                        "speedup (the paper's §4 experiment, --speedup-*), waits (the links' sleeping polls against MPI's spinning "
+                        "calls; comma-separated)")
     _speedup_arguments(p)
 
 
@@ -236,7 +237,7 @@ def run(args) -> int:
     results: dict = {}
     if "tables" in parts:
         _tables(args, results)
-    if plants and parts & {"queries", "occlusion", "split", "pipeline"}:
+    if plants and parts & {"queries", "occlusion", "split", "pipeline", "waits"}:
         scene = _scene(args, "plant", plants[0])
         base = _job(args, scene, n, "compare", "--record-ids", frames=args.compare_frames)
         results["comparisons"] = _comparisons(args, parts, scene, n, base)
@@ -277,6 +278,41 @@ def _comparisons(args, parts: set, scene: Path, n: int, base: dict | None) -> di
                            "latency_ms": [base["latency_ms"], sync["latency_ms"]]}
         print(f"  pipelined ÷ synchronous throughput {out['pipeline']['throughput_ratio']:.2f}× ({base['frame_ms']:.0f} vs {sync['frame_ms']:.0f} ms a frame); "
               f"latency {base['latency_frames']} vs {sync['latency_frames']} frames, {base['latency_ms']:.0f} vs {sync['latency_ms']:.0f} ms")
+    if "waits" in parts:
+        out["waits"] = _waits_line(args, scene, n, base, fr)
+    return out
+
+
+def _waits_line(args, scene: Path, n: int, base: dict, fr) -> dict:
+    """The dmmr links' sleeping polls (the default, ``base``) against MPI's blocking calls,
+    which spin (``MASSVIEW_DMMR_WAIT=spin``), then sleeping again: frame time and the CPU all
+    processes spent a frame (the sum of their ``cpu_ms``)."""
+    import os
+
+    from ...core.stats import read_stats
+    from .dmmr_speedup import speedup_digest
+
+    def cpu(d):
+        return speedup_digest(read_stats(Path(d["stats"])), False)["cpu_ms"]
+
+    old = os.environ.get("MASSVIEW_DMMR_WAIT")
+    os.environ["MASSVIEW_DMMR_WAIT"] = "spin"
+    try:
+        spin = _job(args, scene, n, "waits_spin", frames=fr)
+    finally:
+        if old is None:
+            os.environ.pop("MASSVIEW_DMMR_WAIT")
+        else:
+            os.environ["MASSVIEW_DMMR_WAIT"] = old
+    again = _job(args, scene, n, "waits_sleep", frames=fr)
+    if spin is None or again is None:
+        return {}
+    sleep_ms = [base["frame_ms"], again["frame_ms"]]
+    sleep_cpu = [cpu(base), cpu(again)]
+    out = {"frame_ms_sleep": sleep_ms, "frame_ms_spin": spin["frame_ms"], "cpu_ms_sleep": sleep_cpu, "cpu_ms_spin": cpu(spin)}
+    print(f"  waits: sleeping polls vs spinning MPI calls (runs: sleep, spin, sleep): frame time {sleep_ms[0]:.0f}/{sleep_ms[1]:.0f} "
+          f"vs {spin['frame_ms']:.0f} ms ({spin['frame_ms'] / np.mean(sleep_ms):.2f}× spin ÷ sleep); CPU of all processes a frame "
+          f"{sleep_cpu[0]:.0f}/{sleep_cpu[1]:.0f} vs {out['cpu_ms_spin']:.0f} ms")
     return out
 
 
