@@ -126,6 +126,9 @@ def run_speedup(args) -> dict:
     counts = [int(v) for v in args.speedup_clients.split(",") if v]
     print(f"\nspeed-up experiment (§4) on {scene.name}: scene {total:.0f} MB of decoded meshes, --gpu-mb {gpu}, "
           f"{args.compare_frames or args.frames} frames; store pages dropped (posix_fadvise DONTNEED) before every run", flush=True)
+    if gpu >= total:
+        print(f"  note: each GL context's --gpu-mb {gpu} holds the whole scene: once loaded a mesh stays on the GPU, so the RAM "
+              "budget only serves first loads (a smaller --speedup-gpu-mb makes the clients re-read from RAM or disk)", flush=True)
     out: dict = {"scene_mb": total, "gpu_mb": gpu, "cases": {}}
     full_one = _run(args, scene, 1, 1, whole, gpu, f"speedup_one_full{whole}")
     for nd in counts:
