@@ -130,12 +130,12 @@ def run_speedup(args) -> dict:
         print(f"  note: each GL context's --gpu-mb {gpu} holds the whole scene: once loaded a mesh stays on the GPU, so the RAM "
               "budget only serves first loads (a smaller --speedup-gpu-mb makes the clients re-read from RAM or disk)", flush=True)
     out: dict = {"scene_mb": total, "gpu_mb": gpu, "cases": {}}
-    full_one = _run(args, scene, 1, 1, whole, gpu, f"speedup_one_full{whole}")
+    full_one = _run(args, scene, 1, 1, whole, gpu, f"speedup_one_full{whole}_gpu{gpu}")
     for nd in counts:
         budget = math.ceil(total / nd)
-        one = _run(args, scene, 1, 1, budget, gpu, f"speedup_one_ram{budget}")
-        many = _run(args, scene, nd, nd + 1, budget, gpu, f"speedup_c{nd}_ram{budget}")
-        full = _run(args, scene, nd, nd + 1, whole, gpu, f"speedup_c{nd}_full{whole}")
+        one = _run(args, scene, 1, 1, budget, gpu, f"speedup_one_ram{budget}_gpu{gpu}")
+        many = _run(args, scene, nd, nd + 1, budget, gpu, f"speedup_c{nd}_ram{budget}_gpu{gpu}")
+        full = _run(args, scene, nd, nd + 1, whole, gpu, f"speedup_c{nd}_full{whole}_gpu{gpu}")
         case: dict = {"client_cache_mb": budget}
         print(f"\n nd = {nd} clients, each with --client-cache-mb {budget} (⌈{total:.0f} MB ÷ {nd}⌉):")
         for label, d, key in (("one rank alone, one client's RAM", one, "one_rank"), (f"{nd} clients, same RAM each", many, "clients"),
