@@ -25,7 +25,12 @@ Statistics per frame: the server's record (rank 0) has stages ``divide``, ``send
 counters for objects in the frustum and sent, latency (ms and frames in flight); each client's
 record has stages ``visibility`` (``vis_load``, ``vis_issue``, ``vis_retrieve``), ``load``,
 ``draw``, ``readback``, ``encode``, ``send`` and counters for queries issued and waits, objects
-culled by occlusion, triangles drawn, cache hits and loads per level and bytes.
+culled by occlusion, triangles drawn, cache hits and loads per level and bytes. Both carry the
+process counters of :class:`~massview.systems.dmmr_meter.ProcessMeter` (``cpu_ms``,
+``file_read_bytes``, ``device_read_bytes``: between two delivered frames); a client's also
+``frame_mesh_bytes`` and ``depth_mesh_bytes`` (decoded bytes of the meshes drawn and of the
+depth pre-pass). The server hands frames to ``sink`` through a
+:class:`~massview.systems.frameloop.SinkThread` (PNG writing off the frame period).
 """
 
 from __future__ import annotations

@@ -43,7 +43,9 @@ class MpiLink:
     """Server ↔ client messages over the roles' parent communicator: tasks pickled (lowercase
     calls), sub-frames as uint8 buffers (uppercase). Sends are non-blocking, so a stage never
     waits for the receiver: at most three frames' worth of sends per sender are in flight
-    (older ones are completed first), and ``flush`` completes the rest."""
+    (older ones are completed first), and ``flush`` completes the rest. Waits sleep between
+    polls (:func:`wait_until`: ``Iprobe`` before a receive, ``Test`` for a send's completion)
+    instead of spinning in MPI's blocking calls."""
 
     def __init__(self, rc):
         self.comm, self.server, self.clients = rc.parent, rc.leader("server"), rc.ranks["client"]
