@@ -262,3 +262,19 @@ def test_generator_detail_scales_triangles_and_keeps_the_nodes():
         assert tris[1] <= 0.5 * tris[0], key
     with pytest.raises(ConfigError, match="--detail"):
         generate_scene("plant", "/nonexistent/never-written.zarr", detail=0)
+
+
+def test_bad_speedup_options_are_clear_errors(tmp_path):
+    import argparse
+
+    from massview.app.bench import dmmr as bench
+
+    ap = argparse.ArgumentParser()
+    bench.add_arguments(ap)
+    from massview.app.bench.dmmr_speedup import run_speedup
+
+    for argv, msg in ((["--speedup-clients", "2,x"], "--speedup-clients"), (["--speedup-clients", "0"], "--speedup-clients"),
+                      (["--speedup-plants", "0"], "--speedup-plants"), (["--speedup-gpu-mb", "0"], "--speedup-gpu-mb")):
+        with pytest.raises(ConfigError, match=msg):
+            run_speedup(ap.parse_args(["--workdir", str(tmp_path), *argv]))
+    assert not any(tmp_path.iterdir())  # refused before generating anything

@@ -36,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ...core.errors import ConfigError
+
 __all__ = ["add_arguments", "run_speedup", "speedup_digest"]
 
 _LEVEL_KEYS = ("gpu_hits", "ram_hits", "disk_loads", "bytes_from_disk", "ram_evictions", "gpu_evictions")
@@ -114,16 +116,31 @@ def _projection(one: dict, many: dict) -> tuple[float, float]:
     return busiest, alone / max(busiest, 1e-9)
 
 
+def _counts(text: str) -> list[int]:
+    """``--speedup-clients`` as a list of client counts (each at least 1)."""
+    try:
+        counts = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ConfigError(f"--speedup-clients must be comma-separated client counts such as 2,4, got {text!r}") from None
+    if not counts or min(counts) < 1:
+        raise ConfigError(f"--speedup-clients needs client counts of at least 1, got {text!r}")
+    return counts
+
+
 def run_speedup(args) -> dict:
     """The experiment (see the module doc); prints its lines and returns the figures."""
     from .dmmr import _describe, _scene
 
+    counts = _counts(args.speedup_clients)
+    if args.speedup_plants < 1:
+        raise ConfigError(f"--speedup-plants must be at least 1, got {args.speedup_plants}")
+    if args.speedup_gpu_mb is not None and args.speedup_gpu_mb < 1:
+        raise ConfigError(f"--speedup-gpu-mb must be at least 1 MiB, got {args.speedup_gpu_mb}")
     scene = _scene(args, "plant", args.speedup_plants)
     print(_describe(scene), flush=True)
     gpu = args.speedup_gpu_mb or args.gpu_mb
     total = _scene_mb(scene)
     whole = math.ceil(total) + 16  # every object in RAM, with room for the cache's slack
-    counts = [int(v) for v in args.speedup_clients.split(",") if v]
     print(f"\nspeed-up experiment (§4) on {scene.name}: scene {total:.0f} MB of decoded meshes, --gpu-mb {gpu}, "
           f"{args.compare_frames or args.frames} frames; store pages dropped (posix_fadvise DONTNEED) before every run", flush=True)
     if gpu >= total:
