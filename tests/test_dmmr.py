@@ -75,6 +75,52 @@ def test_occlusion_culling_keeps_the_image_and_draws_fewer_triangles(tmp_path, p
     assert sum(r["counters"].get("culled_by_group", 0) for r in clients) > 0  # hidden groups culled objects unqueried
 
 
+def _on_tmpfs(path) -> bool:
+    """Whether ``path`` lies on a RAM file system (no block device reads to count)."""
+    best, fs = "", ""
+    from pathlib import Path
+
+    for line in Path("/proc/mounts").read_text().splitlines():
+        mnt, kind = line.split()[1], line.split()[2]
+        if str(path).startswith(mnt) and len(mnt) > len(best):
+            best, fs = mnt, kind
+    return fs in ("tmpfs", "ramfs")
+
+
+def test_process_meter_counts_file_and_device_reads_of_a_cold_file(tmp_path):
+    from massview.systems.dmmr_meter import ProcessMeter, drop_page_cache
+
+    f = tmp_path / "blob.bin"
+    f.write_bytes(np.random.default_rng(1).integers(0, 255, 4 << 20, dtype=np.uint8).tobytes())
+    assert drop_page_cache(f) == 4 << 20
+    m = ProcessMeter()
+    f.read_bytes()
+    cold = m.step()
+    f.read_bytes()
+    warm = m.step()
+    assert cold["file_read_bytes"] >= 4 << 20 and warm["file_read_bytes"] >= 4 << 20
+    if not _on_tmpfs(tmp_path):  # the cold read reached the device, the warm one the page cache
+        assert cold["device_read_bytes"] >= 4 << 20 > warm["device_read_bytes"]
+    assert cold["cpu_ms"] >= 0 and warm["cpu_ms"] >= 0
+
+
+@pytest.mark.mpi
+def test_cold_store_reads_from_the_device_and_the_speedup_digest_sums_per_level_and_per_process(tmp_path, plant):
+    from massview.app.bench.dmmr_speedup import speedup_digest
+    from massview.systems.dmmr_meter import drop_page_cache
+
+    drop_page_cache(plant)
+    s, recs = dmmr(tmp_path, 3, "--path", "walkthrough", "--client-cache-mb", "8", scene=plant, frames=4)
+    assert s["max_abs_diff"] == 0  # the images are the reference's
+    d = speedup_digest(recs, one_process=False)
+    assert d["clients"] == 2 and len(d["cpu_ms_per_process"]) == 3 and all(v > 0 for v in d["cpu_ms_per_process"])
+    first = [r["counters"] for r in recs if r["rank"] > 0 and r["frame"] == 0]
+    assert sum(c["vis_disk_loads"] + c["disk_loads"] for c in first) > 0 and sum(c["file_read_bytes"] for c in first) > 0
+    if not _on_tmpfs(plant):  # a cold store: the clients' first frames really read the block device
+        assert sum(c["device_read_bytes"] for c in first) > 0
+    assert d["frame_mesh_bytes"] > 0 and d["depth_mesh_bytes"] > 0
+
+
 @pytest.mark.mpi
 def test_id_check_reports_objects_a_lossy_query_threshold_culls(tmp_path):
     """The check can fail: with --query-threshold 100 boxes showing fewer pixels are culled,
@@ -134,9 +180,15 @@ def test_one_rank_in_process_matches_the_reference_and_reports_per_stage():
         c0 = client[0]["counters"]
         assert c0["vis_disk_loads"] > 0 and c0["disk_loads"] + c0["ram_hits"] > 0  # GPU 1 read the store first
         assert client[-1]["counters"]["bytes_uploaded"] < c0["bytes_uploaded"]  # GPU buffers reused along the path
+        lb = np.asarray(sys_.store.skeleton.level_bytes, np.int64)
+        for r in records:  # per-frame process counters on the server and the client
+            assert r["counters"]["cpu_ms"] > 0 and r["counters"]["file_read_bytes"] >= r["counters"]["device_read_bytes"] >= 0
+        assert all(0 < r["counters"]["frame_mesh_bytes"] <= lb.max(1).sum() for r in client)
+        assert all(0 < r["counters"]["depth_mesh_bytes"] <= lb.max(1).sum() for r in client)
         records, _ = sys_.run_path(_Self(), [cams[0]] * 3, cfg)  # a static camera
         c = {r["frame"]: r["counters"] for r in records if r["rank"] == 1}
         assert c[1]["bytes_uploaded"] == 0 and c[1]["gpu_hits"] == c[1]["objects_drawn"] > 0  # GPU 2: nothing new
+        assert c[1]["frame_mesh_bytes"] == c[2]["frame_mesh_bytes"] > 0  # the same meshes drawn
         assert c[1]["vis_bytes_uploaded"] > 0 and c[2]["vis_bytes_uploaded"] == 0  # GPU 1: frame 0's visible set joins the depth pass once
     finally:
         sys_.close()
@@ -210,3 +262,19 @@ def test_generator_detail_scales_triangles_and_keeps_the_nodes():
         assert tris[1] <= 0.5 * tris[0], key
     with pytest.raises(ConfigError, match="--detail"):
         generate_scene("plant", "/nonexistent/never-written.zarr", detail=0)
+
+
+def test_bad_speedup_options_are_clear_errors(tmp_path):
+    import argparse
+
+    from massview.app.bench import dmmr as bench
+
+    ap = argparse.ArgumentParser()
+    bench.add_arguments(ap)
+    from massview.app.bench.dmmr_speedup import run_speedup
+
+    for argv, msg in ((["--speedup-clients", "2,x"], "--speedup-clients"), (["--speedup-clients", "0"], "--speedup-clients"),
+                      (["--speedup-plants", "0"], "--speedup-plants"), (["--speedup-gpu-mb", "0"], "--speedup-gpu-mb")):
+        with pytest.raises(ConfigError, match=msg):
+            run_speedup(ap.parse_args(["--workdir", str(tmp_path), *argv]))
+    assert not any(tmp_path.iterdir())  # refused before generating anything

@@ -60,3 +60,48 @@ def test_a_failing_stage_stops_the_pipeline_and_raises():
     p = StagePipeline([("a", lambda f, v: v), ("b", bad), ("c", lambda f, v: v)])
     with pytest.raises(RuntimeError, match="frame 3"):
         p.run(range(10))
+
+
+def test_sink_thread_runs_the_sink_off_the_caller_in_order_and_reraises_its_error():
+    import numpy as np
+
+    from massview.core.camera import Viewport
+    from massview.core.image import blank_image
+    from massview.systems.frameloop import SinkThread
+
+    seen, threads = [], set()
+
+    def slow_sink(frame, image):
+        time.sleep(0.02)
+        threads.add(threading.current_thread().name)
+        seen.append((frame, int(image.color[0, 0, 0])))
+
+    images = []
+    for f in range(6):
+        im = blank_image(Viewport(0, 0, 4, 3))
+        im.color[...] = f
+        images.append(im)
+    with SinkThread(slow_sink, depth=2) as sink:
+        for f, im in enumerate(images):
+            sink(f, im)
+    assert seen == [(f, f) for f in range(6)]  # every frame, in order, all written by close
+    assert threads == {"massview-sink"} and threading.current_thread().name not in threads
+
+    def failing(frame, image):
+        if frame == 1:
+            raise OSError(f"disk full at frame {frame}")
+        seen.append(frame)
+
+    seen.clear()
+    sink = SinkThread(failing, depth=1)
+    with pytest.raises(OSError, match="disk full at frame 1"):
+        for f, im in enumerate(images):
+            sink(f, im)
+        sink.close()
+    assert seen == [0]  # frames after the failing one are dropped
+    sink.close()  # the error was raised once
+    with pytest.raises(Exception, match="after close"):
+        sink(9, images[0])
+    with pytest.raises(Exception, match="depth"):
+        SinkThread(failing, depth=0)
+    assert np.all(images[5].color == 5)  # the caller's images are left alone

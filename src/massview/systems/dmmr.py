@@ -25,11 +25,17 @@ Statistics per frame: the server's record (rank 0) has stages ``divide``, ``send
 counters for objects in the frustum and sent, latency (ms and frames in flight); each client's
 record has stages ``visibility`` (``vis_load``, ``vis_issue``, ``vis_retrieve``), ``load``,
 ``draw``, ``readback``, ``encode``, ``send`` and counters for queries issued and waits, objects
-culled by occlusion, triangles drawn, cache hits and loads per level and bytes.
+culled by occlusion, triangles drawn, cache hits and loads per level and bytes. Both carry the
+process counters of :class:`~massview.systems.dmmr_meter.ProcessMeter` (``cpu_ms``,
+``file_read_bytes``, ``device_read_bytes``: between two delivered frames); a client's also
+``frame_mesh_bytes`` and ``depth_mesh_bytes`` (decoded bytes of the meshes drawn and of the
+depth pre-pass). The server hands frames to ``sink`` through a
+:class:`~massview.systems.frameloop.SinkThread` (PNG writing off the frame period).
 """
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 
@@ -51,9 +57,10 @@ from ..render.geometry_cache import packed_loader
 from ..render.meshes import rank_tint
 from .dmmr_client import ClientTask, DmmrClient, SceneDrawer
 from .dmmr_links import ROLES, LocalLink, MpiLink
+from .dmmr_meter import ProcessMeter
 from .dmmr_panel import panel_rows
 from .dmmr_scene import open_scene
-from .frameloop import image_diff
+from .frameloop import SinkThread, image_diff
 
 __all__ = ["DmmrSystem", "DmmrServer"]
 
@@ -180,6 +187,7 @@ class DmmrSystem:
         delay = _delays(cfg)
         tint = rank_tint(index) if cfg.color_by_rank else (0.0, 0.0, 0.0, 0.0)
         records: list[dict] = []
+        meter = ProcessMeter()  # per frame: CPU and bytes read of this process (both threads)
 
         def visibility(f, _):
             task = link.recv_task()
@@ -196,6 +204,8 @@ class DmmrSystem:
             with v.stats.stage("send"):
                 link.send_image(payload)
             v.stats.bytes_sent += len(payload)
+            for k, x in meter.step().items():
+                v.stats.count(k, x)
             records.append({**v.stats.to_json(), **v.ids})
             if f == nframes - 1:
                 client.release_render()
@@ -262,6 +272,15 @@ class DmmrSystem:
         th = threading.Thread(target=divider, name="massview-dmmr-divide", daemon=True)
         th.start()
         records, diffs = [], []
+        meter = ProcessMeter()
+        writer = SinkThread(sink) if sink is not None else None  # PNGs are written off the frame period
+        with writer or contextlib.nullcontext():
+            self._assembly_loop(link, cameras, cfg, clients, writer, credits, sent, frames, records, diffs, meter)
+        th.join()
+        link.flush()
+        return records, diffs
+
+    def _assembly_loop(self, link, cameras, cfg, clients, sink, credits, sent, frames, records, diffs, meter) -> None:
         prev = time.perf_counter()
         for f, cam in enumerate(cameras):
             st = FrameStats(frame=f, rank=0)
@@ -276,10 +295,9 @@ class DmmrSystem:
             st, diff = self._finish(f, cam, cfg, frame, full, sink)
             if diff is not None:
                 diffs.append((f, diff))
+            for k, x in meter.step().items():
+                st.count(k, x)
             records.append(st.to_json())
-        th.join()
-        link.flush()
-        return records, diffs
 
     # -- one frame at a time (the viewer, and any caller of render_frame) ----------------
     def setup(self, comm) -> None:

@@ -125,6 +125,7 @@ class DmmrClient:
         self.box_hi = np.asarray(self.sk.box_hi, np.float64)
         self.occluder = np.asarray(self.sk.occluder, bool)
         self.coarsest = np.asarray(self.sk.levels, np.int64) - 1
+        self.level_bytes = np.asarray(self.sk.level_bytes, np.int64)
         self.ram = BlockCache(packed_loader(store), ram_bytes, workers=2)
         self.state = VisibilityState(len(self.box_lo), cfg.visible_frames)
         groups = store.groups
@@ -159,6 +160,7 @@ class DmmrClient:
                 occ, lv, c, _ = self._resident(drawer, plan.depth_pass, lv, exact=True)
             passed, counts = self._query(querier, cam, task.viewport, drawer.draw_fn(cam, occ, lv), plan.query, stats)
             visible = self.state.finish(plan, passed)
+        stats.count("depth_mesh_bytes", int(self.level_bytes[occ, lv].sum()))
         for k, v in (("depth_pass_objects", len(plan.depth_pass)), ("culled_by_occlusion", int((~passed).sum())),
                      ("marked_visible", len(plan.marked)), ("near_visible", len(plan.near)), *counts.items()):
             stats.count(k, v)
@@ -203,6 +205,7 @@ class DmmrClient:
             if self.cfg.id_check:
                 vis.ids["idbuffer_ids"] = self._id_check(d, task, obj, stats)
         stats.count("objects_drawn", len(obj))
+        stats.count("frame_mesh_bytes", int(self.level_bytes[obj, lv].sum()))
         stats.count("drawn_coarser", coarser)
         if self.cfg.record_ids or self.cfg.id_check:
             vis.ids["drawn_ids"] = obj.tolist()

@@ -11,6 +11,8 @@ display rank also renders the serial image alone and records how its tile differ
 
 from __future__ import annotations
 
+import queue
+import threading
 from dataclasses import dataclass
 from typing import Callable, Iterator
 
@@ -26,7 +28,7 @@ from ..parallel.decompose import parse_decomposition, parse_wall
 from ..parallel.exchange import Outbox
 from ..render.meshes import rank_tint
 
-__all__ = ["FrameResult", "display_tiles", "render_frame", "render_frames"]
+__all__ = ["FrameResult", "SinkThread", "display_tiles", "render_frame", "render_frames"]
 
 
 class InjectedFault(MassviewError, RuntimeError):
@@ -38,6 +40,69 @@ class FrameResult:
     stats: FrameStats
     tile: Image | None  # this rank's display tile, None on non-display ranks
     diff: tuple[int, int, int] | None = None  # (max abs diff, differing pixels, pixels) vs serial
+
+
+class SinkThread:
+    """A frame sink (``sink(frame, image)``, e.g. writing PNGs) run on its own thread, so the
+    caller's frame period does not include it. Calls queue up to ``depth`` frames (a full queue
+    blocks the caller: memory stays bounded); frames reach ``sink`` in call order. An error in
+    ``sink`` is re-raised on the caller's thread by the next call or by :meth:`close` (later
+    frames are then dropped). Use as a context manager or call :meth:`close`; the images handed
+    over must not be changed afterwards."""
+
+    _STOP = object()
+
+    def __init__(self, sink: Callable[[int, Image], None], depth: int = 4):
+        if depth < 1:
+            raise MassviewError(f"SinkThread depth must be at least 1, got {depth}")
+        self._sink = sink
+        self._q: queue.Queue = queue.Queue(maxsize=depth)
+        self._error: BaseException | None = None
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="massview-sink", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is self._STOP:
+                return
+            if self._error is None:
+                try:
+                    self._sink(*item)
+                except BaseException as e:  # noqa: BLE001 - re-raised on the caller's thread
+                    self._error = e
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            err, self._error = self._error, None
+            raise err
+
+    def __call__(self, frame: int, image: Image) -> None:
+        if self._closed:
+            raise MassviewError("SinkThread: called after close()")
+        self._raise()
+        self._q.put((frame, image))
+
+    def close(self) -> None:
+        """Wait until every queued frame went through the sink; re-raise its error, if any."""
+        if not self._closed:
+            self._closed = True
+            self._q.put(self._STOP)
+            self._thread.join()
+        self._raise()
+
+    def __enter__(self) -> "SinkThread":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if exc[0] is None:
+            self.close()
+        else:  # the caller's own error wins; still let the thread finish
+            try:
+                self.close()
+            except BaseException:  # noqa: BLE001
+                pass
 
 
 def display_tiles(cfg: RenderConfig, nranks: int) -> list[tuple[int, Viewport]]:

@@ -18,7 +18,8 @@ Each case is a real ``massview render SCENE --system dmmr --path walkthrough`` j
 * occlusion culling on ÷ off (triangles, frame time);
 * Algorithm 1 against equal screen tiles (max ÷ mean client render time, and triangles);
 * pipelined against synchronous (throughput and latency in frames and ms);
-* speed-up against one client rendering the same frames alone (same culling, LOD, caches).
+* speed-up: the paper's §4 experiment (:mod:`.dmmr_speedup`): one rank with one client's RAM
+  against nd clients, and the compute-only line with the whole scene in RAM.
 
 Timings on a shared CPU are noisy: read the ratios, which are measured in the same run.
 """
@@ -32,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .dmmr_path import PAPER
+from .dmmr_speedup import add_arguments as _speedup_arguments
 
 __all__ = ["add_arguments", "run"]
 
@@ -54,7 +56,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gpu-mb", type=int, default=512)
     p.add_argument("--items", "--parts", dest="parts", default="tables,queries,occlusion,split,pipeline,speedup",
                    help="what to run: tables (1-3), queries (group-tree against per-object queries), occlusion, split, pipeline, "
-                        "speedup (comma-separated)")
+                        "speedup (the paper's §4 experiment, --speedup-*), waits (the links' sleeping polls against MPI's spinning "
+                        "calls; comma-separated)")
+    _speedup_arguments(p)
 
 
 def _scene(args, kind: str, copies: int) -> Path:
@@ -97,7 +101,8 @@ def _copies_seen(scene: Path, recs: list[dict]) -> tuple[int, int, int]:
     return n, int((frames > 0).sum()), int(frames.min())
 
 
-def _job(args, scene: Path, clients: int, tag: str, *extra: str, frames: int | None = None, ranks: int | None = None) -> dict | None:
+def _job(args, scene: Path, clients: int, tag: str, *extra: str, frames: int | None = None, ranks: int | None = None,
+         gpu_mb: int | None = None) -> dict | None:
     """One ``massview render --system dmmr`` job on ``clients`` clients (+ the server), or on
     ``ranks`` ranks (1: the server and one client in one process); its digest."""
     import time
@@ -107,7 +112,7 @@ def _job(args, scene: Path, clients: int, tag: str, *extra: str, frames: int | N
 
     out = Path(args.workdir) / "runs" / f"{scene.stem}_c{clients}_{tag}"
     argv = ["render", str(scene), "--system", "dmmr", "--path", _path_for(args, scene), "--frames", str(frames or args.frames),
-            "--size", args.size, "--gpu-mb", str(args.gpu_mb), "--out", str(out), "-q", *extra]
+            "--size", args.size, "--gpu-mb", str(gpu_mb or args.gpu_mb), "--out", str(out), "-q", *extra]
     t0 = time.perf_counter()
     if relaunch(argv, ranks or clients + 1) != 0:
         print(f"  {tag}: render failed", flush=True)
@@ -115,9 +120,9 @@ def _job(args, scene: Path, clients: int, tag: str, *extra: str, frames: int | N
     recs = read_stats(out / "stats.jsonl")
     d = _digest(recs)
     d["wall_s"] = time.perf_counter() - t0
+    d["stats"] = str(out / "stats.jsonl")
     if "--record-ids" in extra:
         d["copies"], d["copies_seen"], d["min_frames_per_copy"] = _copies_seen(scene, recs)
-        d["stats"] = str(out / "stats.jsonl")
     print(f"  {scene.name} on {clients} client(s), {tag}: {frames or args.frames} frames in {d['wall_s']:.0f} s"
           + (f"; copies drawn: {d['copies_seen']} of {d['copies']} (each on at least {d['min_frames_per_copy']} frames)"
              if "copies" in d else ""), flush=True)
@@ -232,10 +237,14 @@ def run(args) -> int:
     results: dict = {}
     if "tables" in parts:
         _tables(args, results)
-    if plants and parts & {"queries", "occlusion", "split", "pipeline", "speedup"}:
+    if plants and parts & {"queries", "occlusion", "split", "pipeline", "waits"}:
         scene = _scene(args, "plant", plants[0])
         base = _job(args, scene, n, "compare", "--record-ids", frames=args.compare_frames)
         results["comparisons"] = _comparisons(args, parts, scene, n, base)
+    if "speedup" in parts:
+        from .dmmr_speedup import run_speedup
+
+        results["speedup"] = run_speedup(args)
     out = Path(args.workdir) / "results.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({str(k): v for k, v in results.items()}, indent=1, default=float))
@@ -269,10 +278,41 @@ def _comparisons(args, parts: set, scene: Path, n: int, base: dict | None) -> di
                            "latency_ms": [base["latency_ms"], sync["latency_ms"]]}
         print(f"  pipelined ÷ synchronous throughput {out['pipeline']['throughput_ratio']:.2f}× ({base['frame_ms']:.0f} vs {sync['frame_ms']:.0f} ms a frame); "
               f"latency {base['latency_frames']} vs {sync['latency_frames']} frames, {base['latency_ms']:.0f} vs {sync['latency_ms']:.0f} ms")
-    if "speedup" in parts and (one := _job(args, scene, 1, "one_rank", frames=fr, ranks=1)):
-        out["speedup_vs_one_rank"] = one["frame_ms"] / base["frame_ms"]
-        print(f"  speed-up of {n} clients over one rank alone (server and client in one process, same culling, LOD, caches): "
-              f"{out['speedup_vs_one_rank']:.2f}× (frame time {one['frame_ms']:.0f} vs {base['frame_ms']:.0f} ms) [paper: ~6× on 3 plants]")
+    if "waits" in parts:
+        out["waits"] = _waits_line(args, scene, n, base, fr)
+    return out
+
+
+def _waits_line(args, scene: Path, n: int, base: dict, fr) -> dict:
+    """The dmmr links' sleeping polls (the default, ``base``) against MPI's blocking calls,
+    which spin (``MASSVIEW_DMMR_WAIT=spin``), then sleeping again: frame time and the CPU all
+    processes spent a frame (the sum of their ``cpu_ms``)."""
+    import os
+
+    from ...core.stats import read_stats
+    from .dmmr_speedup import speedup_digest
+
+    def cpu(d):
+        return speedup_digest(read_stats(Path(d["stats"])), False)["cpu_ms"]
+
+    old = os.environ.get("MASSVIEW_DMMR_WAIT")
+    os.environ["MASSVIEW_DMMR_WAIT"] = "spin"
+    try:
+        spin = _job(args, scene, n, "waits_spin", frames=fr)
+    finally:
+        if old is None:
+            os.environ.pop("MASSVIEW_DMMR_WAIT")
+        else:
+            os.environ["MASSVIEW_DMMR_WAIT"] = old
+    again = _job(args, scene, n, "waits_sleep", frames=fr)
+    if spin is None or again is None:
+        return {}
+    sleep_ms = [base["frame_ms"], again["frame_ms"]]
+    sleep_cpu = [cpu(base), cpu(again)]
+    out = {"frame_ms_sleep": sleep_ms, "frame_ms_spin": spin["frame_ms"], "cpu_ms_sleep": sleep_cpu, "cpu_ms_spin": cpu(spin)}
+    print(f"  waits: sleeping polls vs spinning MPI calls (runs: sleep, spin, sleep): frame time {sleep_ms[0]:.0f}/{sleep_ms[1]:.0f} "
+          f"vs {spin['frame_ms']:.0f} ms ({spin['frame_ms'] / np.mean(sleep_ms):.2f}× spin ÷ sleep); CPU of all processes a frame "
+          f"{sleep_cpu[0]:.0f}/{sleep_cpu[1]:.0f} vs {out['cpu_ms_spin']:.0f} ms")
     return out
 
 
