@@ -101,44 +101,66 @@ def _grid_squares(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, 
 
 
 @_jit
-def _fine_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity):
+def _deinterleave(row, s, out):
+    """``out[p, j] = row[j·s + p]`` (s, nq+1) float32, where that sample exists."""
+    n = row.shape[0]
+    for j in range(out.shape[1]):
+        for p in range(s):
+            if j * s + p < n:
+                out[p, j] = row[j * s + p]
+
+
+@_jit
+def _max_into(m, i, v):
+    """m[i] = max(m[i], v) as a select (v >= 0, never NaN: the same value as ``max``)."""
+    o = m[i]
+    m[i] = v if v > o else o
+
+
+@_jit
+def _fine_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity):  # noqa: PLR0913, PLR0915
     """The five maxima of every lattice square at once, (5, nq, nq) float32, for the fine
     strides (few samples per square): for each sample position (r, c) of a square, one loop
-    over a whole row of squares, with the corner terms of :func:`_corners` as arrays. The
-    same float32 expressions over the same samples as :func:`_square_maxima`; a maximum does
-    not depend on the order it is taken in (no NaN: the ingest fills them), so the results
-    are bit-identical."""
+    over a whole row of squares, on the row's samples de-interleaved by stride (contiguous
+    loads), with the corner terms of :func:`_corners` as arrays. The same float32 expressions
+    over the same samples as :func:`_square_maxima`; a maximum does not depend on the order it
+    is taken in (no NaN: the ingest fills them; every value is an ``abs``, so no −0), so the
+    results are bit-identical."""
     dx, dy, dd = c10 - c00, c01 - c00, c00 - c10 - c01 + c11
     et, eb = _F2 * cc - c00 - c10, _F2 * cc - c01 - c11
     el, er = _F2 * cc - c00 - c01, _F2 * cc - c10 - c11
     dx2, dy3 = c11 - c01, c11 - c10
     out = np.zeros((5, nq, nq), np.float32)
+    D = np.empty((s, nq + 1), np.float32)
+    even = np.empty(nq, np.bool_)
     for iv in range(nq):
         msq, mt, mb, ml, mr = out[0, iv], out[1, iv], out[2, iv], out[3, iv], out[4, iv]
         a00, a10, a01 = c00[iv], c10[iv], c01[iv]
         gx, gy, gd, gt, gb, gl, gr, gx2, gy3 = dx[iv], dy[iv], dd[iv], et[iv], eb[iv], el[iv], er[iv], dx2[iv], dy3[iv]
-        p0 = parity + iv
+        for iu in range(nq):
+            even[iu] = (parity + iv + iu) % 2 == 0
         for r in range(s + 1):
             y = fx[r]
-            brow = b[iv * s + r]
+            _deinterleave(b[iv * s + r], s, D)
             for c in range(s + 1):
                 x = fx[c]
+                z = D[c % s, c // s: c // s + nq]  # z[iu] = b[iv·s + r, iu·s + c]
                 we, wo = min(x, y), max(x + y - _F1, _F0)
                 for iu in range(nq):
-                    wgt = we if (p0 + iu) % 2 == 0 else wo
-                    msq[iu] = max(msq[iu], abs(a00[iu] + x * gx[iu] + y * gy[iu] + wgt * gd[iu] - brow[iu * s + c]))
+                    wgt = we if even[iu] else wo
+                    _max_into(msq, iu, abs(a00[iu] + x * gx[iu] + y * gy[iu] + wgt * gd[iu] - z[iu]))
                 if r <= c <= s - r:  # top
                     for iu in range(nq):
-                        mt[iu] = max(mt[iu], abs(a00[iu] + x * gx[iu] + y * gt[iu] - brow[iu * s + c]))
+                        _max_into(mt, iu, abs(a00[iu] + x * gx[iu] + y * gt[iu] - z[iu]))
                 if s - r <= c <= r:  # bottom
                     for iu in range(nq):
-                        mb[iu] = max(mb[iu], abs(a01[iu] + x * gx2[iu] + (_F1 - y) * gb[iu] - brow[iu * s + c]))
+                        _max_into(mb, iu, abs(a01[iu] + x * gx2[iu] + (_F1 - y) * gb[iu] - z[iu]))
                 if c <= min(r, s - r):  # left
                     for iu in range(nq):
-                        ml[iu] = max(ml[iu], abs(a00[iu] + y * gy[iu] + x * gl[iu] - brow[iu * s + c]))
+                        _max_into(ml, iu, abs(a00[iu] + y * gy[iu] + x * gl[iu] - z[iu]))
                 if c >= max(r, s - r):  # right
                     for iu in range(nq):
-                        mr[iu] = max(mr[iu], abs(a10[iu] + y * gy3[iu] + (_F1 - x) * gr[iu] - brow[iu * s + c]))
+                        _max_into(mr, iu, abs(a10[iu] + y * gy3[iu] + (_F1 - x) * gr[iu] - z[iu]))
     return out
 
 
@@ -146,10 +168,10 @@ def _fine_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity):
 def grid_errors(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0, U0, sq_out, per_out):  # noqa: PLR0913
     """Exact deviations of the ``nq × nq`` closed lattice squares of spacing ``s`` over a block
     whose samples are all valid; ``fx = arange(s+1)/s`` (float32). Max-folds into sq_out
-    (nV, nU) and per_out (4, nV, nU), see :func:`_fold`. The strides up to 16 (most squares,
+    (nV, nU) and per_out (4, nV, nU), see :func:`_fold`. The strides up to 64 (most squares,
     fewest samples each) take a whole row of squares per loop (:func:`_fine_maxima`); the
     results are those of :func:`_grid_errors_reference` bit for bit (tests/test_ingest_kernels.py)."""
-    if s > 16:
+    if s > 64:
         _grid_squares(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0, U0, sq_out, per_out)
         return
     _fold_rows(_fine_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity), tab, f, v0, u0, V0, U0, sq_out, per_out)
