@@ -68,8 +68,7 @@ def _square_maxima(b, iv, iu, s, fx, k, even):
     (iv, iu) of spacing ``s`` over block ``b`` (all samples valid) from its meshes, ``k`` being
     its :func:`_corners`. The quarter triangles are visited over their exact column ranges
     (``y <= x`` ⇔ ``r <= c`` for these dyadic fractions), the same samples the masks of the
-    numpy formulation select. Called with a constant ``s`` from :func:`grid_errors` for the
-    fine strides, so the compiler unrolls the tiny loops (the operations stay the same)."""
+    numpy formulation select. Used by :func:`grid_errors` for the coarse strides (> 64)."""
     a00, a10, a01, a11, dx, dy, dd, et, eb, el, er, dx2, dy3 = k
     msq, mt, mb, ml, mr = _F0, _F0, _F0, _F0, _F0
     r0, c0 = iv * s, iu * s
