@@ -106,3 +106,35 @@ def test_local_d2_matches_numpy():
     out = np.empty((32, 64), np.float32)
     rk.local_d2(g, 8, out)
     assert np.array_equal(out, roettger.local_d2(g, 8))
+
+
+# -- the exact K-patch error kernel (kernels.grid_errors) against the per-square loop it replaced --
+def _grid_inputs(b, s, f, bi, bj, m):
+    from massview.data.terrain.deviation import _region_table
+
+    nq = 2**m // s
+    lat, cc = b[::s, ::s], b[s // 2::s, s // 2::s]
+    corners = [np.ascontiguousarray(x) for x in (lat[:-1, :-1], lat[:-1, 1:], lat[1:, :-1], lat[1:, 1:], cc)]
+    fx = np.arange(s + 1, dtype=np.float32) / s
+    v0, u0 = bi * nq, bj * nq
+    n = max(nq // f, 1)
+    # start from random maxima: the kernels fold into what is there
+    rng = np.random.default_rng(s * 7 + bi)
+    sq, per = rng.random((n, n), np.float32) * 5, rng.random((4, n, n), np.float32) * 5
+    return [b, s, nq, fx, *corners, (v0 + u0) % 2, _region_table(f), f, v0, u0, v0 // f, u0 // f, sq, per]
+
+
+@pytest.mark.parametrize("m,f", [(8, 16), (6, 4), (5, 32)])
+@pytest.mark.parametrize("bi,bj", [(0, 0), (3, 2), (1, 6)])
+def test_grid_errors_match_the_per_square_reference(m, f, bi, bj):
+    from massview.data.terrain import kernels
+
+    rng = np.random.default_rng(m * 100 + bi * 10 + bj)
+    M = 2**m + 1
+    b = _terrain(rng, (M, M), scale=3000.0)
+    b[rng.random((M, M)) < 0.05] = np.float32(1e4)  # spikes: the maxima come from single samples
+    for l in range(1, m + 1):
+        want, got = _grid_inputs(b, 2**l, f, bi, bj, m), _grid_inputs(b, 2**l, f, bi, bj, m)
+        kernels._grid_errors_reference(*want)
+        kernels.grid_errors(*got)
+        assert np.array_equal(got[-2], want[-2]) and np.array_equal(got[-1], want[-1]), f"stride {2**l}"

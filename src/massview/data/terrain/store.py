@@ -28,6 +28,7 @@ store is refused with a message naming ``massview upgrade STORE``, which rewrite
 
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
@@ -115,17 +116,27 @@ class ChunkWriter:
         self.blosc = codecs[1]._blosc_codec
         self.root = Path(str(group.store.root)) / group.path / name / "c" if group.path else Path(str(group.store.root)) / name / "c"
         self.tail = ["0"] * (arr.ndim - 2)
-        self._made: set = set()
+        self._rows: set = set()
 
     def write(self, i: int, j0: int, blocks: np.ndarray) -> None:
-        """Blocks (n, M, M[, 3]) into chunks (i, j0 .. j0+n-1)."""
+        """Blocks (n, M, M[, 3]) into chunks (i, j0 .. j0+n-1). The chunk row's folder is made
+        once; each chunk's own folders (``i/j``, ``i/j/0`` …) with one ``mkdir`` each, parents
+        first (``Path.mkdir(parents=True)`` tried the deepest first: 3–5 calls, two failing)."""
+        row = os.path.join(str(self.root), str(i))
+        if i not in self._rows:
+            os.makedirs(row, exist_ok=True)
+            self._rows.add(i)
         for k in range(blocks.shape[0]):
             data = self.blosc.encode(np.ascontiguousarray(blocks[k], self.dtype).reshape(-1).view(np.uint8))
-            path = self.root.joinpath(str(i), str(j0 + k), *self.tail)
-            if path.parent not in self._made:  # (one mkdir per chunk folder, not per write)
-                path.parent.mkdir(parents=True, exist_ok=True)
-                self._made.add(path.parent)
-            path.write_bytes(data)
+            d = os.path.join(row, str(j0 + k))
+            for name in self.tail:
+                try:
+                    os.mkdir(d)
+                except FileExistsError:  # (a resumed run, or a rewritten chunk)
+                    pass
+                d = os.path.join(d, name)
+            with open(d, "wb") as fh:
+                fh.write(data)
 
 
 def block_view(wide: np.ndarray, nb: int, M: int) -> np.ndarray:
