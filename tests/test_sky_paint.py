@@ -1,5 +1,6 @@
 """paint_sky evaluates the sky only at background pixels; it must give the same bytes as the
-whole-image evaluation it replaced (kept here as the reference)."""
+whole-image evaluation it replaced (kept here as the reference), with the numpy code and with
+the compiled kernel (render/skykernel.py) alike."""
 import math
 
 import numpy as np
@@ -30,8 +31,12 @@ def _reference(camera, img):
     return color
 
 
+KERNELS = ("numpy", "numba")
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize("seed", range(6))
-def test_sky_matches_whole_image_reference(seed):
+def test_sky_matches_whole_image_reference(seed, kernel):
     rng = np.random.default_rng(seed)
     W, H = 320, 240
     cam = Camera(position=(0, 0, 100), orientation=tuple(rng.normal(size=4)), fovy=float(rng.uniform(20, 80)),
@@ -40,13 +45,15 @@ def test_sky_matches_whole_image_reference(seed):
     depth = np.where(rng.random((vp.h, vp.w)) < 0.5, 1.0, 0.4).astype(np.float32)
     color = rng.integers(0, 256, (vp.h, vp.w, 4), dtype=np.uint8)
     img = Image(color, depth, vp)
-    out = paint_sky(cam, img)
+    out = paint_sky(cam, img, kernel=kernel)
     assert np.array_equal(out.color, _reference(cam, img))
     assert np.array_equal(out.color[depth < 1], color[depth < 1])  # geometry untouched
+    assert np.array_equal(img.color, color)  # the input is not painted
 
 
+@pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize("seed", range(4))
-def test_sky_with_whole_sky_rows_matches_reference(seed, monkeypatch):
+def test_sky_with_whole_sky_rows_matches_reference(seed, kernel, monkeypatch):
     """A terrain view's mask: whole rows of sky above a wavy horizon, gaps below it (the dense
     whole-row path, in blocks of rows, and the gathered partial rows together)."""
     from massview.render import colormaps as cm
@@ -63,12 +70,41 @@ def test_sky_with_whole_sky_rows_matches_reference(seed, monkeypatch):
     depth[vp.h - 3:] = 1.0  # whole sky rows at the bottom too
     color = rng.integers(0, 256, (vp.h, vp.w, 4), dtype=np.uint8)
     img = Image(color, depth, vp)
-    out = paint_sky(cam, img)
+    out = paint_sky(cam, img, kernel=kernel)
     assert (np.count_nonzero(depth >= 1, axis=1) == vp.w).sum() > 10
     assert np.array_equal(out.color, _reference(cam, img))
 
 
-def test_no_background_returns_the_image():
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_no_background_returns_the_image(kernel):
     vp = Viewport(0, 0, 8, 8)
     img = Image(np.zeros((8, 8, 4), np.uint8), np.zeros((8, 8), np.float32), vp)
-    assert paint_sky(Camera(position=(0, 0, 1), orientation=(0, 0, 0, 1), width=8, height=8), img) is img
+    assert paint_sky(Camera(position=(0, 0, 1), orientation=(0, 0, 0, 1), width=8, height=8), img, kernel=kernel) is img
+
+
+def test_auto_paints_the_same_while_and_after_the_kernel_loads():
+    """``auto`` paints with numpy until the compiled kernel is loaded, then with it: the same
+    bytes before and after."""
+    from massview.render import colormaps as cm
+
+    rng = np.random.default_rng(7)
+    cam = Camera(position=(0, 0, 100), orientation=tuple(rng.normal(size=4)), fovy=50.0, width=160, height=120)
+    vp = Viewport(0, 0, 160, 120)
+    depth = np.where(rng.random((120, 160)) < 0.4, 1.0, 0.3).astype(np.float32)
+    img = Image(rng.integers(0, 256, (120, 160, 4), dtype=np.uint8), depth, vp)
+    first = paint_sky(cam, img, kernel="auto")
+    assert cm.load_sky_kernel(wait=True) is not None
+    assert np.array_equal(paint_sky(cam, img, kernel="auto").color, first.color)
+    assert np.array_equal(first.color, _reference(cam, img))
+
+
+def test_bad_kernel_names_the_setting(monkeypatch):
+    from massview.core.errors import ConfigError
+
+    img = Image(np.zeros((4, 4, 4), np.uint8), np.ones((4, 4), np.float32), Viewport(0, 0, 4, 4))
+    cam = Camera(position=(0, 0, 1), orientation=(0, 0, 0, 1), width=4, height=4)
+    with pytest.raises(ConfigError, match="kernel='gpu'"):
+        paint_sky(cam, img, kernel="gpu")
+    monkeypatch.setenv("MASSVIEW_SKY_KERNEL", "fast")
+    with pytest.raises(ConfigError, match="MASSVIEW_SKY_KERNEL='fast'"):
+        paint_sky(cam, img)

@@ -10,14 +10,17 @@ grey, shading alone).
 
 from __future__ import annotations
 
+import atexit
 import math
+import os
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..core.errors import ConfigError
 
-__all__ = ["Shading", "ramp", "paint_sky", "SPECIAL_COLORMAPS"]
+__all__ = ["Shading", "ramp", "paint_sky", "load_sky_kernel", "SKY_KERNELS", "SPECIAL_COLORMAPS"]
 
 SPECIAL_COLORMAPS = ("hypsometric", "ortho", "none")
 _STOPS = np.array([0.0, 0.18, 0.42, 0.7, 0.88, 1.0])
@@ -56,10 +59,58 @@ def ramp(name: str) -> np.ndarray:
     return (np.asarray(cmap(t))[:, :3] * 255 + 0.5).astype(np.uint8)
 
 
-def paint_sky(camera, img):
+SKY_KERNELS = ("auto", "numpy", "numba")
+SKY_KERNEL_ENV = "MASSVIEW_SKY_KERNEL"
+_LOADER: dict = {"thread": None, "fn": None, "error": None}
+_LOADER_LOCK = threading.Lock()
+
+
+def load_sky_kernel(wait: bool = False):
+    """The compiled sky kernel (:func:`massview.render.skykernel.paint`) once it is loaded,
+    else None. The first call starts loading it (importing numba, loading or compiling the
+    cached kernel: about a second) on a thread, so no frame waits for it: until it is ready
+    :func:`paint_sky` paints with numpy, which gives the same bytes. ``wait`` blocks until the
+    load ends. A process that exits while it loads waits for it first (numba must not be torn
+    down mid-compile). Where numba cannot load, None for good (numpy paints)."""
+    with _LOADER_LOCK:
+        if _LOADER["thread"] is None:
+            thread = threading.Thread(target=_load, name="massview-sky-kernel", daemon=True)
+            _LOADER["thread"] = thread
+            thread.start()
+            atexit.register(thread.join)
+    if wait:
+        _LOADER["thread"].join()
+    return _LOADER["fn"]
+
+
+def _load() -> None:
+    try:
+        from .skykernel import paint
+
+        z = np.zeros(1)
+        paint(np.zeros((1, 1, 4), np.uint8), np.ones((1, 1), np.float32), z, z, z, z, 0.0, np.zeros(3), np.zeros(3))
+        _LOADER["fn"] = paint
+    except Exception as exc:  # noqa: BLE001 - numba missing or broken: the numpy path stays
+        _LOADER["error"] = exc
+
+
+def _kernel_choice(kernel: str | None) -> str:
+    choice = kernel or os.environ.get(SKY_KERNEL_ENV) or "auto"
+    if choice not in SKY_KERNELS:
+        where = "kernel" if kernel else SKY_KERNEL_ENV
+        raise ConfigError(f"{where}={choice!r} is not a sky kernel; use one of {', '.join(SKY_KERNELS)}")
+    return choice
+
+
+def paint_sky(camera, img, kernel: str | None = None):
     """``img`` (an Image of the final frame or a tile of it) with its background pixels (depth
     1) painted with the sky gradient along each pixel's view ray — done once on the assembled
     pixels, so compositing and image codecs keep treating the background as empty.
+
+    ``kernel`` (default ``MASSVIEW_SKY_KERNEL``, else ``auto``): ``numba`` paints with the
+    compiled one-pass kernel (:mod:`.skykernel`, loaded first if need be), ``numpy`` with the
+    numpy code below, ``auto`` with the compiled kernel once :func:`load_sky_kernel` has it and
+    with numpy until then. All three give the same bytes.
 
     The ray terms are separable (one vector per row, one per column), so they are evaluated
     only at the background pixels: the same float64 operations in the same order as a
@@ -67,17 +118,22 @@ def paint_sky(camera, img):
     Rows that are all sky (most of it in a terrain view) are evaluated densely by broadcasting
     the row and column terms, in blocks of about ``_BLOCK`` pixels that stay in cache, and
     written as whole rows; only rows the horizon crosses gather their background pixels."""
+    choice = _kernel_choice(kernel)
+    fn = load_sky_kernel(wait=choice == "numba") if choice != "numpy" else None
+    if choice == "numba" and fn is None:
+        raise ConfigError(f"sky kernel 'numba' could not be loaded ({_LOADER['error']}); use {SKY_KERNEL_ENV}=numpy")
+    if fn is not None:
+        color = img.color.copy()
+        terms = _terms(camera, img.viewport)
+        if not fn(color, img.depth, *terms[:4], float(terms[4]), np.array(SKY_HORIZON), np.array(SKY_ZENITH)):
+            return img
+        return type(img)(color, img.depth, img.viewport)
     bg = img.depth >= 1.0
     count = np.count_nonzero(bg, axis=1)
     if not count.any():
         return img
     vp = img.viewport
-    t = math.tan(math.radians(camera.fovy) / 2)
-    px = (vp.x + np.arange(vp.w) + 0.5) / camera.width * 2 - 1
-    py = 1 - (vp.y + np.arange(vp.h) + 0.5) / camera.height * 2
-    rot = np.asarray(camera.view_matrix())[:3, :3].T  # camera-to-world
-    col_x = px * t * camera.width / camera.height
-    terms = (py * t * rot[2, 1], col_x * rot[2, 0], (py * t) ** 2, col_x ** 2, rot[2, 2])
+    terms = _terms(camera, vp)
     color = img.color.copy()
     step = max(1, _BLOCK // vp.w)
     full = np.flatnonzero(count == vp.w)
@@ -93,6 +149,17 @@ def paint_sky(camera, img):
 
 
 _BLOCK = 1 << 16  # pixels per block of whole sky rows (float64 temporaries of 512 KiB)
+
+
+def _terms(camera, vp):
+    """The separable terms of the view rays' elevation over ``vp``: (row term, column term,
+    row², column², r22) as :func:`_elevation` takes them."""
+    t = math.tan(math.radians(camera.fovy) / 2)
+    px = (vp.x + np.arange(vp.w) + 0.5) / camera.width * 2 - 1
+    py = 1 - (vp.y + np.arange(vp.h) + 0.5) / camera.height * 2
+    rot = np.asarray(camera.view_matrix())[:3, :3].T  # camera-to-world
+    col_x = px * t * camera.width / camera.height
+    return (py * t * rot[2, 1], col_x * rot[2, 0], (py * t) ** 2, col_x ** 2, rot[2, 2])
 
 
 def _elevation(terms, rows, cols) -> np.ndarray:
