@@ -1,6 +1,6 @@
 """paint_sky evaluates the sky only at background pixels; it must give the same bytes as the
 whole-image evaluation it replaced (kept here as the reference), with the numpy code and with
-the compiled kernel (render/skykernel.py) alike."""
+the compiled kernel (data/skykernel.py) alike."""
 import math
 
 import numpy as np

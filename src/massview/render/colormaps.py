@@ -66,7 +66,7 @@ _LOADER_LOCK = threading.Lock()
 
 
 def load_sky_kernel(wait: bool = False):
-    """The compiled sky kernel (:func:`massview.render.skykernel.paint`) once it is loaded,
+    """The compiled sky kernel (:func:`massview.data.skykernel.paint`) once it is loaded,
     else None. The first call starts loading it (importing numba, loading or compiling the
     cached kernel: about a second) on a thread, so no frame waits for it: until it is ready
     :func:`paint_sky` paints with numpy, which gives the same bytes. ``wait`` blocks until the
@@ -85,7 +85,7 @@ def load_sky_kernel(wait: bool = False):
 
 def _load() -> None:
     try:
-        from .skykernel import paint
+        from ..data.skykernel import paint
 
         z = np.zeros(1)
         paint(np.zeros((1, 1, 4), np.uint8), np.ones((1, 1), np.float32), z, z, z, z, 0.0, np.zeros(3), np.zeros(3))
@@ -108,7 +108,7 @@ def paint_sky(camera, img, kernel: str | None = None):
     pixels, so compositing and image codecs keep treating the background as empty.
 
     ``kernel`` (default ``MASSVIEW_SKY_KERNEL``, else ``auto``): ``numba`` paints with the
-    compiled one-pass kernel (:mod:`.skykernel`, loaded first if need be), ``numpy`` with the
+    compiled one-pass kernel (:mod:`massview.data.skykernel`, loaded first if need be), ``numpy`` with the
     numpy code below, ``auto`` with the compiled kernel once :func:`load_sky_kernel` has it and
     with numpy until then. All three give the same bytes.
 

@@ -7,10 +7,12 @@ the rounding to 8 bits. It performs exactly the float64 operations of the numpy 
 operands, same order, no fused multiply-add, no fast-math), so its bytes are the same —
 tests/test_sky_paint.py checks both against the whole-image reference. The numpy path builds
 index arrays and float64 temporaries and makes several passes (9–12 ms a 1280×1024 frame with
-~40 % sky, measured idle); this one reads each depth once (issue 20: the ``finish`` stage of
+~40 % sky, measured idle); this one evaluates each row with sky once, vectorised, and writes only its sky pixels: 2.0 ms, idle (issue 20: the ``finish`` stage of
 ``massview bench frame``).
 
-Imported only by :func:`massview.render.colormaps.load_sky_kernel`, which loads it on a thread
+It lives in ``data/`` because numba is that layer's dependency (DESIGN.md: each heavy dependency
+lives in one layer; the ingest kernels are numba too). Imported only by
+:func:`massview.render.colormaps.load_sky_kernel`, which loads it on a thread
 so that no frame waits for numba (compiled once per machine and cached beside this file, or in
 ``NUMBA_CACHE_DIR``; where no cache location is writable, once per process).
 """
