@@ -278,3 +278,17 @@ def test_bad_speedup_options_are_clear_errors(tmp_path):
         with pytest.raises(ConfigError, match=msg):
             run_speedup(ap.parse_args(["--workdir", str(tmp_path), *argv]))
     assert not any(tmp_path.iterdir())  # refused before generating anything
+
+
+def test_dmmr_wait_mode_is_checked(monkeypatch):
+    """MASSVIEW_DMMR_WAIT: sleep (default) or spin; anything else is named in the error."""
+    from massview.core.errors import ConfigError
+    from massview.systems.dmmr_links import _sleeping
+
+    monkeypatch.delenv("MASSVIEW_DMMR_WAIT", raising=False)
+    assert _sleeping() is True
+    monkeypatch.setenv("MASSVIEW_DMMR_WAIT", "spin")
+    assert _sleeping() is False
+    monkeypatch.setenv("MASSVIEW_DMMR_WAIT", "yield")
+    with pytest.raises(ConfigError, match="MASSVIEW_DMMR_WAIT='yield'"):
+        _sleeping()

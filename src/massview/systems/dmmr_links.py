@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 
+from ..core.errors import ConfigError
 from ..parallel.roles import Role
 from .dmmr_client import ClientTask
 
@@ -28,7 +29,10 @@ _BACKOFF = (50e-6, 1e-3)
 
 
 def _sleeping() -> bool:
-    return os.environ.get("MASSVIEW_DMMR_WAIT", "sleep") != "spin"
+    mode = os.environ.get("MASSVIEW_DMMR_WAIT") or "sleep"
+    if mode not in ("sleep", "spin"):
+        raise ConfigError(f"MASSVIEW_DMMR_WAIT={mode!r} is not a wait mode; use sleep (the default) or spin")
+    return mode == "sleep"
 
 
 def wait_until(ready) -> None:
