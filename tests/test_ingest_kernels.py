@@ -110,18 +110,13 @@ def test_local_d2_matches_numpy():
 
 # -- the exact K-patch error kernel (kernels.grid_errors) against the per-square loop it replaced --
 def _grid_inputs(b, s, f, bi, bj, m):
-    from massview.data.terrain.deviation import _region_table
+    from massview.data.terrain.deviation import _region_table, grid_error_args
 
-    nq = 2**m // s
-    lat, cc = b[::s, ::s], b[s // 2::s, s // 2::s]
-    corners = [np.ascontiguousarray(x) for x in (lat[:-1, :-1], lat[:-1, 1:], lat[1:, :-1], lat[1:, 1:], cc)]
-    fx = np.arange(s + 1, dtype=np.float32) / s
-    v0, u0 = bi * nq, bj * nq
-    n = max(nq // f, 1)
+    args, n = grid_error_args(b, s, m, f, bi, bj, _region_table(f))
     # start from random maxima: the kernels fold into what is there
     rng = np.random.default_rng(s * 7 + bi)
     sq, per = rng.random((n, n), np.float32) * 5, rng.random((4, n, n), np.float32) * 5
-    return [b, s, nq, fx, *corners, (v0 + u0) % 2, _region_table(f), f, v0, u0, v0 // f, u0 // f, sq, per]
+    return [b, *args, sq, per]
 
 
 @pytest.mark.parametrize("m,f", [(8, 16), (6, 4), (5, 32)])

@@ -63,6 +63,18 @@ def _region_table(f: int) -> np.ndarray:
     return out
 
 
+def grid_error_args(b: np.ndarray, s: int, m: int, f: int, bi: int, bj: int, tab: np.ndarray) -> tuple[tuple, int]:
+    """The arguments of :func:`kernels.grid_errors` after the block ``b`` and before the (n, n)
+    square and (4, n, n) region maxima it folds into, for lattice stride ``s`` ≤ 2**m of block
+    (bi, bj) with patch width ``f`` and region table ``tab``; and n."""
+    nq = 2**m // s
+    lat, cc = b[::s, ::s], b[s // 2::s, s // 2::s]
+    corners = [np.ascontiguousarray(x) for x in (lat[:-1, :-1], lat[:-1, 1:], lat[1:, :-1], lat[1:, 1:], cc)]
+    fx = np.arange(s + 1, dtype=np.float32) / s
+    v0, u0 = bi * nq, bj * nq
+    return (s, nq, fx, *corners, (v0 + u0) % 2, tab, f, v0, u0, v0 // f, u0 // f), max(nq // f, 1)
+
+
 class DeviationAccumulator:
     """Local (unsaturated) exact errors ``sq[j]`` (2^j, 2^j) and ``dg[j]`` (2, 2^j+1, 2^j+1),
     float32 height units, filled by :meth:`add_block` over every level-0 block."""
@@ -108,17 +120,13 @@ class DeviationAccumulator:
         if tab is None:
             tab = self._tables[f] = _region_table(f)
         if l <= m:
-            nq = 2**m // s
-            lat, cc = b[::s, ::s], b[s // 2::s, s // 2::s]
-            corners = [np.ascontiguousarray(x) for x in (lat[:-1, :-1], lat[:-1, 1:], lat[1:, :-1], lat[1:, 1:], cc)]
-            fx = np.arange(s + 1, dtype=np.float32) / s
-            v0, u0 = bi * nq, bj * nq
-            n = max(nq // f, 1)
+            args, n = grid_error_args(b, s, m, f, bi, bj, tab)
+            v0, u0 = bi * (2**m // s), bj * (2**m // s)  # the lattice origin the kernel folds from
             sq, per = np.zeros((n, n), np.float32), np.zeros((4, n, n), np.float32)
             if valid is None:
-                grid_errors(b, s, nq, fx, *corners, (v0 + u0) % 2, tab, f, v0, u0, v0 // f, u0 // f, sq, per)
+                grid_errors(b, *args, sq, per)
             else:
-                masked_grid_errors(b, valid, s, nq, fx, *corners, (v0 + u0) % 2, tab, f, v0, u0, v0 // f, u0 // f, sq, per)
+                masked_grid_errors(b, valid, *args, sq, per)
         else:
             y0, x0 = bi * 2**m, bj * 2**m
             v0, u0 = y0 // s, x0 // s
