@@ -63,43 +63,6 @@ def _corners(c00, c10, c01, c11, cc, iv, iu):
 
 
 @_jit
-def _square_maxima(b, iv, iu, s, fx, k, even):
-    """Maxima (square, top, bottom, left, right) of the deviations of the closed lattice square
-    (iv, iu) of spacing ``s`` over block ``b`` (all samples valid) from its meshes, ``k`` being
-    its :func:`_corners`. The quarter triangles are visited over their exact column ranges
-    (``y <= x`` ⇔ ``r <= c`` for these dyadic fractions), the same samples the masks of the
-    numpy formulation select. Used by :func:`grid_errors` for the coarse strides (> 64)."""
-    a00, a10, a01, a11, dx, dy, dd, et, eb, el, er, dx2, dy3 = k
-    msq, mt, mb, ml, mr = _F0, _F0, _F0, _F0, _F0
-    r0, c0 = iv * s, iu * s
-    for r in range(s + 1):
-        y = fx[r]
-        for c in range(s + 1):
-            x = fx[c]
-            wgt = min(x, y) if even else max(x + y - _F1, _F0)
-            msq = max(msq, abs(a00 + x * dx + y * dy + wgt * dd - b[r0 + r, c0 + c]))
-        for c in range(r, s - r + 1):  # top: r <= c <= s - r
-            mt = max(mt, abs(a00 + fx[c] * dx + y * et - b[r0 + r, c0 + c]))
-        for c in range(s - r, r + 1):  # bottom: s - r <= c <= r
-            mb = max(mb, abs(a01 + fx[c] * dx2 + (_F1 - y) * eb - b[r0 + r, c0 + c]))
-        for c in range(0, min(r, s - r) + 1):  # left: c <= min(r, s - r)
-            ml = max(ml, abs(a00 + y * dy + fx[c] * el - b[r0 + r, c0 + c]))
-        for c in range(max(r, s - r), s + 1):  # right: c >= max(r, s - r)
-            mr = max(mr, abs(a10 + y * dy3 + (_F1 - fx[c]) * er - b[r0 + r, c0 + c]))
-    return msq, mt, mb, ml, mr
-
-
-@_jit
-def _grid_squares(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0, U0, sq_out, per_out):  # noqa: PLR0913
-    """One lattice square at a time (the coarse strides: many samples per square)."""
-    for iv in range(nq):
-        for iu in range(nq):
-            k = _corners(c00, c10, c01, c11, cc, iv, iu)
-            msq, mt, mb, ml, mr = _square_maxima(b, iv, iu, s, fx, k, (parity + iv + iu) % 2 == 0)
-            _fold(sq_out, per_out, tab, f, v0, u0, V0, U0, iv, iu, msq, mt, mb, ml, mr)
-
-
-@_jit
 def _deinterleave(row, s, out):
     """``out[p, j] = row[j·s + p]`` (s, nq+1) float32, where that sample exists."""
     n = row.shape[0]
@@ -122,7 +85,7 @@ def _fine_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity):  # noqa: PLR0913
     strides (few samples per square): for each sample position (r, c) of a square, one loop
     over a whole row of squares, on the row's samples de-interleaved by stride (contiguous
     loads), with the corner terms of :func:`_corners` as arrays. The same float32 expressions
-    over the same samples as :func:`_square_maxima`; a maximum does not depend on the order it
+    over the same samples as :func:`_grid_squares`; a maximum does not depend on the order it
     is taken in (no NaN: the ingest fills them; every value is an ``abs``, so no −0), so the
     results are bit-identical."""
     dx, dy, dd = c10 - c00, c01 - c00, c00 - c10 - c01 + c11
@@ -169,7 +132,7 @@ def grid_errors(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0
     whose samples are all valid; ``fx = arange(s+1)/s`` (float32). Max-folds into sq_out
     (nV, nU) and per_out (4, nV, nU), see :func:`_fold`. The strides up to 64 (most squares,
     fewest samples each) take a whole row of squares per loop (:func:`_fine_maxima`); the
-    results are those of :func:`_grid_errors_reference` bit for bit (tests/test_ingest_kernels.py)."""
+    results are those of :func:`_grid_squares` bit for bit (tests/test_ingest_kernels.py)."""
     if s > 64:
         _grid_squares(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0, U0, sq_out, per_out)
         return
@@ -198,9 +161,10 @@ def _fold_rows(m5, tab, f, v0, u0, V0, U0, sq_out, per_out):
 
 
 @_jit
-def _grid_errors_reference(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0, U0, sq_out, per_out):  # noqa: PLR0913
-    """The kernel before issue 20's third round, kept as the reference the tests compare
-    :func:`grid_errors` with. Exact deviations of the ``nq × nq`` closed lattice squares of spacing ``s`` over a block
+def _grid_squares(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0, U0, sq_out, per_out):  # noqa: PLR0913
+    """One lattice square at a time: :func:`grid_errors` for the coarse strides (> 64: many
+    samples per square), and for every stride the reference the tests compare its fine path
+    with (the kernel before issue 20's third round). Exact deviations of the ``nq × nq`` closed lattice squares of spacing ``s`` over a block
     whose samples are all valid; ``fx = arange(s+1)/s`` (float32). The quarter triangles are
     visited over their exact column ranges (``y <= x`` ⇔ ``r <= c`` for these dyadic
     fractions), the same samples the masks of the numpy formulation select. Max-folds into
