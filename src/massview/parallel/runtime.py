@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..core.errors import MassviewError, ParallelError
 
-__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env"]
+__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env", "local_cores"]
 
 _JOB_VARS = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "HYDRA_CONTROL_FD", "MASSVIEW_UNDER_MPI")
 
@@ -136,7 +136,7 @@ def raster_threads(ranks_here: int, cores: int | None = None) -> int | None:
     ranks on 2 cores Mesa's default was faster in both runs, at 4 ranks 0 was (0.60–0.82× the
     frame time); on a loaded machine more threads also win a larger share of the CPU."""
     if cores is None:
-        cores = _cores()
+        cores = local_cores()
     return None if ranks_here <= cores else 0
 
 
@@ -150,7 +150,8 @@ def raster_threads(ranks_here: int, cores: int | None = None) -> int | None:
 WAIT_ENV = {"MASSVIEW_MPI_WAIT": "sleep"}
 
 
-def _cores() -> int:
+def local_cores() -> int:
+    """The CPUs this process may run on (its affinity; elsewhere the machine's count)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
@@ -161,7 +162,7 @@ def launch_env(nranks: int, env: dict[str, str], cores: int | None = None) -> di
     threads per rank (``LP_NUM_THREADS``, when it says so). Variables already in ``env`` win,
     so either can be set by hand."""
     out = dict(env)
-    cores = _cores() if cores is None else cores
+    cores = local_cores() if cores is None else cores
     if nranks > cores:
         for key, value in WAIT_ENV.items():
             out.setdefault(key, value)

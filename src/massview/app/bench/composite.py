@@ -38,7 +38,6 @@ voluntary / involuntary context switches. Nothing here asserts a time.
 from __future__ import annotations
 
 import json
-import os
 import resource
 import tempfile
 import time
@@ -53,7 +52,7 @@ from ...parallel.composite import COMPOSITORS, PIECES, composite, deliver, final
 from ...parallel.decompose import sort_last_ranges
 from ...parallel.exchange import (WAIT_MODES, Outbox, barrier, max_over_ranks, measure_bandwidth, measure_memory_bandwidth,
                                   set_wait_mode)
-from ...parallel.runtime import relaunch, world
+from ...parallel.runtime import local_cores, relaunch, world
 
 __all__ = ["add_arguments", "run", "worker"]
 
@@ -91,7 +90,7 @@ def worker(args) -> int:
         bws[mode] = measure_bandwidth(comm, repeat=10)
         frames[mode], bigs[mode] = measure_memory_bandwidth(comm, image.nbytes, repeat=10), measure_memory_bandwidth(comm, repeat=10)
     bw, mem_frame, mem_big = max(bws.values()), max(frames.values()), max(bigs.values())
-    mem_bw, cores = max(mem_frame, mem_big), _cores()
+    mem_bw, cores = max(mem_frame, mem_big), local_cores()
     rows = []
     for method in COMPOSITORS:
         for mode, best in _best_repeats(comm, image, method, cam.viewport, args, modes).items():
@@ -116,10 +115,6 @@ def parse_modes(text: str) -> list[str]:
     if bad or not modes:
         raise ConfigError(f"--wait {text!r}: use wait modes from {', '.join(WAIT_MODES)}, comma-separated")
     return modes
-
-
-def _cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def _sched() -> tuple[float, float, int, int]:

@@ -50,7 +50,7 @@ from ...core.config import RenderConfig, parse_size
 from ...core.paths import load_path
 from ...core.stats import FrameStats
 from ...parallel.exchange import max_over_ranks, measure_bandwidth, measure_memory_bandwidth
-from ...parallel.runtime import raster_threads, relaunch, world
+from ...parallel.runtime import local_cores, raster_threads, relaunch, world
 
 __all__ = ["add_arguments", "run", "worker", "STAGES"]
 
@@ -150,11 +150,7 @@ def _loop(comm, system, cfg, cams, pixels, bw, mem, rate) -> dict:
     cpu = comm.allreduce(time.process_time() - cpu0)  # every thread of every rank, llvmpipe's raster threads included
     return {"stage_ms": (np.mean(stages, 0) * 1e3).tolist(), "floor_ms": (np.mean(floors, 0) * 1e3).tolist(),
             "latency_ms": float(np.mean(totals) * 1e3), "throughput_fps": cfg.frames / wall, "triangles": float(np.mean(tris)),
-            "busy": cpu / (wall * _cores())}
-
-
-def _cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+            "busy": cpu / (wall * local_cores())}
 
 
 def _gil_probe(system, cams, cfg, seconds: float = 0.6) -> float:
