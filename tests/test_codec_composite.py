@@ -118,3 +118,26 @@ def test_launch_env_defaults_do_not_override_the_user():
     assert all(env[k] == v for k, v in WAIT_ENV.items()) and env["LP_NUM_THREADS"] == "0"
     mine = launch_env(4, {"LP_NUM_THREADS": "3", "MPIR_CVAR_CH4_PROGRESS_THROTTLE": "0"})
     assert mine["LP_NUM_THREADS"] == "3" and mine["MPIR_CVAR_CH4_PROGRESS_THROTTLE"] == "0"
+
+
+class _Comm:
+    def __init__(self, size):
+        self.size = size
+
+    def Get_size(self):  # noqa: N802 - mpi4py's name
+        return self.size
+
+
+def test_auto_codec_picks_by_where_the_ranks_run():
+    from massview.core.errors import ConfigError
+    from massview.parallel.codec import all_ranks_local, resolve_codec
+
+    assert all_ranks_local(_Comm(1), {}, 1)  # one rank: nothing travels
+    assert all_ranks_local(_Comm(4), {"MPI_LOCALNRANKS": "4"}, 4)  # MPICH's Hydra, one node
+    assert all_ranks_local(_Comm(2), {"OMPI_COMM_WORLD_LOCAL_SIZE": "4"}, 4)  # a sub-communicator of a one-node job
+    assert not all_ranks_local(_Comm(8), {"MPI_LOCALNRANKS": "4"}, 8)  # two nodes of 4
+    assert not all_ranks_local(_Comm(4), {}, 4)  # unknown launcher: treated as spread over nodes
+    assert resolve_codec(_Comm(1), "auto") == ("none", True)
+    assert resolve_codec(_Comm(3), "lz4") == ("lz4", False)  # a named codec is used as it is, run-coded everywhere
+    with pytest.raises(ConfigError, match="auto"):
+        resolve_codec(_Comm(3), "zip")

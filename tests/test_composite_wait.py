@@ -88,3 +88,12 @@ def test_bench_rejects_an_unknown_wait_mode():
     assert parse_modes("poll, sleep") == ["poll", "sleep"]
     with pytest.raises(ConfigError, match="--wait"):
         parse_modes("poll,yield")
+
+
+def test_bench_rejects_an_unknown_codec():
+    from massview.app.bench.composite import parse_codecs
+    from massview.core.errors import ConfigError
+
+    assert parse_codecs("auto, blosc2") == ["auto", "blosc2"]
+    with pytest.raises(ConfigError, match="--codec"):
+        parse_codecs("auto,zip")

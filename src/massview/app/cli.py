@@ -21,7 +21,7 @@ from pathlib import Path
 from ..core.config import RenderConfig, parse_size, parse_sun
 from ..core.errors import ConfigError, MassviewError
 from ..core.paths import BUILTIN_PATHS
-from ..parallel.codec import CODECS
+from ..parallel.codec import CODEC_CHOICES
 from ..parallel.composite import COMPOSITORS
 from ..parallel.runtime import reuse_freed_memory
 from . import upgrade_cmds
@@ -61,7 +61,9 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
                         "'horizontal' = side-by-side columns, 'vertical' = stacked rows")
     p.add_argument("--compositor", default="binary-swap", choices=COMPOSITORS, help="sort-last depth compositing (default binary-swap)")
     p.add_argument("--radix-k", type=int, default=None, help="k for radix-k (default 4)")
-    p.add_argument("--codec", default=None, choices=tuple(CODECS), help="sub-image byte codec (default blosc2)")
+    p.add_argument("--codec", default=None, choices=CODEC_CHOICES,
+                   help="sub-image codec (default auto: on one node runs without byte compression and final regions as raw rows; "
+                        "across nodes blosc2)")
     p.add_argument("--path", default="orbit", help=f"camera path: {', '.join(BUILTIN_PATHS)} or a keyframe FILE.json (default orbit)")
     p.add_argument("--frames", type=_positive, default=10, help="frames to render (default 10)")
     p.add_argument("--size", default="1280x1024", help="image WIDTHxHEIGHT (default 1280x1024)")

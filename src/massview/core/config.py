@@ -32,7 +32,7 @@ class RenderConfig:
     decomposition: str = "sort-last"
     compositor: str = "binary-swap"
     radix_k: int = 4
-    codec: str = "blosc2"
+    codec: str = "auto"  # sub-image codec: auto (none + raw rows on one node, else blosc2), none, lz4, blosc2
     width: int = 1280
     height: int = 1024
     frames: int = 10

@@ -5,6 +5,13 @@ Wire format (little-endian)::
     header  <4s 4i 3I>  magic b"MVI1", viewport x y w h, codec id, run count, active count
     body    compressed( runs uint32[run count] | color uint8[active, 4] | depth float32[active] )
 
+``codec="auto"`` (the default) picks per communicator (:func:`resolve_codec`): when every rank
+runs on this node (the launcher says so: MPICH's ``MPI_LOCALNRANKS``, Open MPI's
+``OMPI_COMM_WORLD_LOCAL_SIZE``) messages move through shared memory at several GB/s, faster
+than any byte codec packs them, so sub-images travel as runs without byte compression
+(``none``) and :func:`massview.parallel.composite.deliver` sends final regions as raw rows
+straight into the display tile; otherwise ``blosc2``. Every rank of a job decides the same way.
+
 Runs alternate background/active starting with background, over the row-major pixels of the
 viewport; a pixel is background when its depth is exactly 1.0. Only active pixels' color and
 depth are stored. Byte codecs: ``blosc2`` (LZ4 + byte shuffle, level 1; the default: it packs
@@ -19,6 +26,7 @@ decoding it to a full image first (kernels in :mod:`.kernels`).
 
 from __future__ import annotations
 
+import os
 import struct
 
 import numpy as np
@@ -28,14 +36,46 @@ from ..core.errors import ConfigError, ParallelError
 from ..core.image import BACKGROUND_RGBA, Image, blank_image
 from . import kernels
 
-__all__ = ["CODECS", "encode_image", "encode_region", "decode_image", "decode_runs", "message_counts", "merge_into",
+__all__ = ["CODECS", "CODEC_CHOICES", "resolve_codec", "all_ranks_local", "encode_image", "encode_region", "decode_image", "decode_runs", "message_counts", "merge_into",
            "merge_decoded", "paste_into", "paste_decoded"]
 
 _HEADER = struct.Struct("<4s4i3I")
 _MAGIC = b"MVI1"
 CODECS = {"none": 0, "lz4": 1, "blosc2": 2}
+CODEC_CHOICES = ("auto", *CODECS)
 _NAMES = {v: k for k, v in CODECS.items()}
+_LOCAL_SIZE_VARS = ("MPI_LOCALNRANKS", "OMPI_COMM_WORLD_LOCAL_SIZE")
 _BG32 = np.array(BACKGROUND_RGBA, np.uint8).view(np.uint32)[0]
+
+
+def all_ranks_local(comm, env=None, world_size: int | None = None) -> bool:
+    """True when every rank of ``comm`` runs on this node: a one-rank communicator, or a job
+    whose launcher reports as many ranks on this node as the whole job has (``world_size``,
+    default MPI_COMM_WORLD's). The same answer on every rank (a job spread over nodes has fewer
+    local ranks than ranks on each of them); an unknown launcher counts as spread (the codec
+    for a network is the safe choice)."""
+    if comm.Get_size() == 1:
+        return True
+    env = os.environ if env is None else env
+    if world_size is None:
+        from mpi4py import MPI
+
+        world_size = MPI.COMM_WORLD.Get_size()
+    for var in _LOCAL_SIZE_VARS:
+        if env.get(var, "").strip().isdigit():
+            return int(env[var]) == world_size
+    return False
+
+
+def resolve_codec(comm, codec: str) -> tuple[str, bool]:
+    """(byte codec of run-coded messages, whether final regions are delivered as raw rows) for
+    ``codec`` on ``comm``: ``auto`` is (``none``, True) when :func:`all_ranks_local`, else
+    (``blosc2``, False); a named codec is itself, run-coded everywhere."""
+    if codec == "auto":
+        return ("none", True) if all_ranks_local(comm) else ("blosc2", False)
+    if codec not in CODECS:
+        raise ConfigError(f"unknown image codec {codec!r}; use one of {', '.join(CODEC_CHOICES)}")
+    return codec, False
 
 
 def _blosc2():

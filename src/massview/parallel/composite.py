@@ -43,8 +43,8 @@ from ..core.camera import Viewport
 from ..core.errors import ConfigError
 from ..core.image import BACKGROUND_RGBA, Image
 from ..core.stats import FrameStats
-from .codec import decode_runs, encode_region, merge_decoded, merge_into, message_counts, paste_decoded
-from .exchange import Outbox, receive
+from .codec import decode_runs, encode_region, merge_decoded, merge_into, message_counts, paste_decoded, resolve_codec
+from .exchange import Outbox, receive, receive_into, wait_all
 
 __all__ = ["COMPOSITORS", "PIECES", "combine", "split_rows", "radix_factors", "composite", "final_regions", "deliver"]
 
@@ -255,17 +255,22 @@ def _count_touched(stats, stage: str, nbytes: int) -> None:
     stats.count(f"touched_{stage}", nbytes)
 
 
-def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: FrameStats | None = None, codec: str = "blosc2",
-              outbox: Outbox | None = None) -> Image:
-    """Sort-last depth compositing of every rank's full-frame ``img`` (left unchanged). Returns
-    the final pixels of the region this rank ends up owning (an empty viewport for ranks that own
-    none) as a view of this thread's scratch buffer: valid until the next call on this thread
-    (hand it to :func:`deliver` or copy it). With ``outbox`` this rank's sends may still be in
-    flight on return (pass the same outbox to :func:`deliver`, which waits for all of them at
-    its end: a rank need not wait for its peers to take its parts before it starts encoding
-    its final region); without, they are completed here."""
+def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: FrameStats | None = None, codec: str = "auto",
+              outbox: Outbox | None = None, owned: bool = False) -> Image:
+    """Sort-last depth compositing of every rank's full-frame ``img``. Returns the final pixels
+    of the region this rank ends up owning (an empty viewport for ranks that own none) as a view
+    of this thread's scratch buffer: valid until the next call on this thread (hand it to
+    :func:`deliver` or copy it). ``img`` is left unchanged unless ``owned`` (the caller gives
+    it up, as the frame loop does with each frame's read-back): then the rounds combine into
+    ``img``'s own rows — no copy of the own band — and the piece is a view of ``img`` (pass it
+    to :func:`deliver` as ``frame``: a display rank assembles its tile in it). With ``outbox``
+    this rank's sends may still be in flight on return (pass the same outbox to
+    :func:`deliver`, which waits for all of them at its end: a rank need not wait for its peers
+    to take its parts before it starts encoding its final region); without, they are
+    completed here."""
     stats = stats if stats is not None else FrameStats(frame=-1, rank=comm.Get_rank())
     n, me = comm.Get_size(), comm.Get_rank()
+    codec = resolve_codec(comm, codec)[0]
     if n == 1:
         return img
     members, factors, extra = _plan(n, method, k)
@@ -275,25 +280,25 @@ def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: 
             _encode_to(box, me - 1, img, chunk, codec, _FOLD_TAG, stats)
         piece = Image(img.color[:0, :0], img.depth[:0, :0], Viewport(0, 0, 0, 0))
     else:
-        piece = _fold_and_rounds(comm, img, members, factors, extra, stats, codec, box)
+        piece = _fold_and_rounds(comm, img, members, factors, extra, stats, codec, box, owned)
     if outbox is None:
         with _timed(stats, "wait"):
             box.wait()
     return piece
 
 
-def _fold_and_rounds(comm, img: Image, members, factors, extra: int, stats, codec, box: Outbox) -> Image:
+def _fold_and_rounds(comm, img: Image, members, factors, extra: int, stats, codec, box: Outbox, owned: bool = False) -> Image:
     """A rank that takes part in the rounds: the lower of a folded pair first combines its
-    partner's whole image into a copy of its own."""
+    partner's whole image into a copy of its own (into its own, when ``owned``)."""
     me = comm.Get_rank()
     if me < 2 * extra:
-        img = _owned(img, False, stats)
+        img = _owned(img, owned, stats)
         for chunk in _chunks(img.viewport):
             _merge_part(_band(img, chunk), comm, me + 1, _FOLD_TAG, False, stats)
-    return _radix_rounds(comm, img, members, factors, stats, codec, box, owned=me < 2 * extra)
+    return _radix_rounds(comm, img, members, factors, stats, codec, box, owned=owned or me < 2 * extra)
 
 
-_FOLD_TAG, _DELIVER_TAG = 100, 200
+_FOLD_TAG, _DELIVER_TAG, _ROWS_TAG = 100, 200, 300
 
 
 def _plan(n: int, method: str, k: int) -> tuple[list[int], list[int], int]:
@@ -326,13 +331,16 @@ def final_regions(n: int, method: str, k: int, vp: Viewport) -> list[Viewport]:
     return regions
 
 
-def deliver(comm, piece: Image, tiles: list[tuple[int, Viewport]], stats: FrameStats | None = None, codec: str = "blosc2",
-            regions: list[Viewport] | None = None, outbox: Outbox | None = None) -> Image | None:
+def deliver(comm, piece: Image, tiles: list[tuple[int, Viewport]], stats: FrameStats | None = None, codec: str = "auto",
+            regions: list[Viewport] | None = None, outbox: Outbox | None = None, frame: Image | None = None) -> Image | None:
     """Move final pixels to display tiles. ``piece`` is the region this rank holds (regions of
     all ranks partition the frame); ``tiles`` lists (display rank, tile viewport); ``regions``
     every rank's region when the caller knows them (:func:`final_regions`), else they are
     allgathered. Returns the assembled tile on display ranks, None elsewhere (on one rank whose
-    one tile is the piece's viewport: the piece itself).
+    one tile is the piece's viewport: the piece itself). ``frame``: the image the piece is a
+    view of, given up by the caller (:func:`composite` with ``owned``); a display rank whose
+    tile is that image's viewport assembles the tile in it — its own region is already in
+    place, the other ranks' parts are received or pasted around it — and returns it.
 
     Each part for another rank travels in row chunks (:func:`_chunks`), each sent the moment
     it is encoded; a display rank prepares its tile (a pooled buffer) and copies its own part
@@ -344,6 +352,7 @@ def deliver(comm, piece: Image, tiles: list[tuple[int, Viewport]], stats: FrameS
         return piece  # one rank, one tile: the image is the tile (no copy)
     if regions is None:
         regions = [Viewport.from_json(v) for v in comm.allgather(piece.viewport.to_json())]
+    codec, raw = resolve_codec(comm, codec)
     box, local = outbox if outbox is not None else Outbox(comm, stats), None
     for rank, tile in tiles:
         part = piece.viewport.intersect(tile)
@@ -352,32 +361,83 @@ def deliver(comm, piece: Image, tiles: list[tuple[int, Viewport]], stats: FrameS
         if rank == me:
             local = part
             continue
+        if raw and _whole_rows(part, piece.viewport, tile):
+            _send_rows(box, rank, piece, part, stats)
+            continue
         for chunk in _chunks(part):
             _encode_to(box, rank, piece, chunk, codec, _DELIVER_TAG, stats)
     my_tile = next((t for r, t in tiles if r == me), None)
-    out = None if my_tile is None else _assemble(comm, my_tile, piece, local, regions, stats)
+    out = None if my_tile is None else _assemble(comm, my_tile, piece, local, regions, stats, raw, frame)
     with _timed(stats, "wait"):
         box.wait()
     return out
 
 
-def _assemble(comm, tile: Viewport, piece: Image, local: Viewport | None, regions: list[Viewport], stats: FrameStats) -> Image:
-    """The display tile: the own part copied, every other rank's part received and pasted."""
+def _assemble(comm, tile: Viewport, piece: Image, local: Viewport | None, regions: list[Viewport], stats: FrameStats,
+              raw: bool = False, frame: Image | None = None) -> Image:
+    """The display tile: raw rows received straight into it (started first, completed last),
+    the own part copied (or already in place in ``frame``), every other rank's run-coded part
+    received and pasted."""
     me = comm.Get_rank()
     sources = [r for r, reg in enumerate(regions) if r != me and not reg.intersect(tile).empty]
     covered = sum(regions[r].intersect(tile).area for r in [*sources, me]) == tile.area
+    in_place = covered and local is not None and frame is not None and frame.viewport == tile and _is_view(piece, frame)
     with _timed(stats, "copy"):
-        out = _tile_buffer(tile, blank=not covered)  # regions partition the frame: each pixel written once
-        if local is not None:
+        out = frame if in_place else _tile_buffer(tile, blank=not covered)  # regions partition the frame: each pixel written once
+    rows = [s for s in sources if raw and _whole_rows(regions[s].intersect(tile), regions[s], tile)]
+    requests = [req for s in rows for req in _receive_rows(comm, out, regions[s].intersect(tile), s, stats)]
+    if local is not None and not in_place:
+        with _timed(stats, "copy"):
             _copy_region(out, piece, local)
-    _count_touched(stats, "composite", (0 if covered else out.nbytes) + (16 * local.area if local is not None else 0))
+        _count_touched(stats, "composite", 16 * local.area)
+    _count_touched(stats, "composite", 0 if covered else out.nbytes)
     for s in sources:
+        if s in rows:
+            continue
         for _ in _chunks(regions[s].intersect(tile)):
             part, size = _receive(comm, s, _DELIVER_TAG, stats)
             with _timed(stats, "combine"):
                 paste_decoded(out, part, fill=covered)
             _count_touched(stats, "composite", size + (8 * part[0].area if covered else 0))
+    with _timed(stats, "wait"):
+        wait_all(requests)
     return out
+
+
+def _is_view(piece: Image, frame: Image) -> bool:
+    """Whether ``piece``'s arrays are exactly ``frame``'s pixels of ``piece.viewport``."""
+    v = piece.viewport
+    if v.empty or v.intersect(frame.viewport) != v:
+        return False
+    rows = slice(v.y - frame.viewport.y, v.y - frame.viewport.y + v.h)
+    cols = slice(v.x - frame.viewport.x, v.x - frame.viewport.x + v.w)
+
+    def same(a, b):
+        return a.shape == b.shape and a.strides == b.strides and a.__array_interface__["data"][0] == b.__array_interface__["data"][0]
+
+    return same(piece.color, frame.color[rows, cols]) and same(piece.depth, frame.depth[rows, cols])
+
+
+def _whole_rows(part: Viewport, region: Viewport, tile: Viewport) -> bool:
+    """Whether ``part`` (= region ∩ tile) is whole rows of both the sender's region and the
+    tile: contiguous memory on both sides, so it travels as raw rows without packing (sender
+    and receiver decide alike from the viewports)."""
+    return not part.empty and part.w == region.w == tile.w
+
+
+def _send_rows(box: Outbox, dest: int, piece: Image, part: Viewport, stats: FrameStats) -> None:
+    """Send the rows ``part`` of ``piece`` as they are: color, then depth (no packing, no copy
+    when the piece is contiguous; its buffer stays untouched until :func:`deliver` ends)."""
+    rows = slice(part.y - piece.viewport.y, part.y - piece.viewport.y + part.h)
+    with _timed(stats, "encode"):
+        for arr in (piece.color[rows], piece.depth[rows]):
+            box.send(dest, np.ascontiguousarray(arr).reshape(-1).view(np.uint8), _ROWS_TAG)
+
+
+def _receive_rows(comm, out: Image, part: Viewport, source: int, stats: FrameStats) -> list:
+    """Start receiving ``source``'s raw rows ``part`` straight into the tile ``out``."""
+    rows = slice(part.y - out.viewport.y, part.y - out.viewport.y + part.h)
+    return [receive_into(comm, arr, source, _ROWS_TAG, stats) for arr in (out.color[rows], out.depth[rows])]
 
 
 _CHUNK_PIXELS = 1 << 18

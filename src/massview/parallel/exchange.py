@@ -34,7 +34,7 @@ from mpi4py import MPI
 from ..core.errors import ConfigError
 from ..core.stats import FrameStats
 
-__all__ = ["Outbox", "receive", "receive_any", "exchange", "measure_bandwidth", "measure_memory_bandwidth", "max_over_ranks",
+__all__ = ["Outbox", "receive", "receive_any", "receive_into", "exchange", "measure_bandwidth", "measure_memory_bandwidth", "max_over_ranks",
            "agree_all", "any_rank", "WAIT_MODES", "WAIT_ENV_VAR", "wait_mode", "set_wait_mode", "wait_all", "barrier"]
 
 WAIT_MODES = ("poll", "sleep")
@@ -170,6 +170,16 @@ def receive_any(comm, tag: int, stats: FrameStats | None = None, source: int = M
     if stats is not None:
         stats.bytes_recv += buf.size
     return status.Get_source(), buf
+
+
+def receive_into(comm, buf: np.ndarray, source: int, tag: int, stats: FrameStats | None = None):
+    """Start receiving the message with ``tag`` from ``source`` straight into ``buf`` (a
+    contiguous array whose size the sender matches exactly, as :meth:`Outbox.send` of an
+    array of the same shape); returns the request (complete it with :func:`wait_all`)."""
+    view = buf.reshape(-1).view(np.uint8)
+    if stats is not None:
+        stats.bytes_recv += view.size
+    return comm.Irecv(view, source=source, tag=_tag(tag))
 
 
 def exchange(comm, sends: dict[int, bytes], sources: list[int], stats: FrameStats | None = None, tag: int = 0) -> dict[int, np.ndarray]:

@@ -36,7 +36,8 @@ from ..core.stats import FrameStats
 from ..data.cache import BlockCache
 from ..lod.scene import lod_scale
 from ..lod.visibility import VisibilityState, boxes_reach_near
-from ..parallel.codec import encode_image
+from ..parallel.codec import encode_image, resolve_codec
+from ..parallel.runtime import world
 from ..render.context import create_context
 from ..render.geometry_cache import GeometryCache, packed_loader
 from ..render.queries import OcclusionQuerier, SceneIdBuffer
@@ -214,7 +215,7 @@ class DmmrClient:
         stats.count("ram_resident_bytes", self.ram.resident_bytes)
         stats.count("gpu_used_bytes", d.pool.used_bytes)
         with stats.stage("encode"):
-            payload = encode_image(img, self.cfg.codec)
+            payload = encode_image(img, resolve_codec(world(), self.cfg.codec)[0])
         return img, payload
 
     def _resident(self, d: SceneDrawer, obj: np.ndarray, lv: np.ndarray, exact: bool):

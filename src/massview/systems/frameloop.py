@@ -144,14 +144,14 @@ def _finish(comm, system, cfg: RenderConfig, camera: Camera, image: Image, stats
     ranks compute where every region is), no GL: safe on the communication thread with its own
     ``comm``."""
     kind, _ = parse_decomposition(cfg.decomposition, system.sort_last_modes)
-    regions = None  # sort-first: each rank's tile, allgathered by deliver
+    regions, frame = None, None  # sort-first: each rank's tile, allgathered by deliver
     box = Outbox(comm, stats)  # compositing's sends stay in flight until deliver's end
-    if kind == "sort-last":
-        piece = composite(comm, image, cfg.compositor, cfg.radix_k, stats, cfg.codec, box)
+    if kind == "sort-last":  # the read-back is this frame's own: compositing and the display tile reuse its buffers
+        piece, frame = composite(comm, image, cfg.compositor, cfg.radix_k, stats, cfg.codec, box, owned=True), image
         regions = final_regions(comm.Get_size(), cfg.compositor, cfg.radix_k, image.viewport)
     else:
         piece = image
-    tile = deliver(comm, piece, display_tiles(cfg, comm.Get_size()), stats, cfg.codec, regions, box)
+    tile = deliver(comm, piece, display_tiles(cfg, comm.Get_size()), stats, cfg.codec, regions, box, frame)
     if tile is not None and hasattr(system, "finish"):
         with stats.stage("finish"):
             tile = system.finish(camera, cfg, tile)

@@ -45,9 +45,11 @@ from pathlib import Path
 
 from ...core.config import RenderConfig, parse_size
 from ...core.errors import ConfigError
+from ...core.image import Image
 from ...core.paths import load_path
 from ...core.stats import FrameStats
 from ...core.task import Task
+from ...parallel.codec import resolve_codec
 from ...parallel.composite import COMPOSITORS, PIECES, composite, deliver, final_regions
 from ...parallel.decompose import sort_last_ranges
 from ...parallel.exchange import (WAIT_MODES, Outbox, barrier, max_over_ranks, measure_bandwidth, measure_memory_bandwidth,
@@ -60,12 +62,13 @@ __all__ = ["add_arguments", "run", "worker"]
 def add_arguments(p) -> None:
     import argparse
 
-    from ...parallel.codec import CODECS
+    from ...parallel.codec import CODEC_CHOICES
 
     p.add_argument("--ranks", default="2,3,4", help="rank counts, comma-separated (default 2,3,4)")
     p.add_argument("--size", default="1280x1024")
     p.add_argument("--repeat", type=int, default=5, help="timed repetitions per case (default 5)")
-    p.add_argument("--codec", default="blosc2", choices=tuple(CODECS))
+    p.add_argument("--codec", default="auto", help=f"sub-image codecs compared in each job, comma-separated: {', '.join(CODEC_CHOICES)} "
+                   "(default auto, as render uses)")
     p.add_argument("--scene", default="builtin:objects", help="scene or terrain store rendered into the partial images")
     p.add_argument("--wait", default="poll,sleep", help=f"wait modes compared in each job, comma-separated: {', '.join(WAIT_MODES)} "
                    "(default both; see MASSVIEW_MPI_WAIT)")
@@ -91,22 +94,35 @@ def worker(args) -> int:
         frames[mode], bigs[mode] = measure_memory_bandwidth(comm, image.nbytes, repeat=10), measure_memory_bandwidth(comm, repeat=10)
     bw, mem_frame, mem_big = max(bws.values()), max(frames.values()), max(bigs.values())
     mem_bw, cores = max(mem_frame, mem_big), local_cores()
+    codecs = parse_codecs(args.codec)
     rows = []
     for method in COMPOSITORS:
-        for mode, best in _best_repeats(comm, image, method, cam.viewport, args, modes).items():
+        for (codec, mode), best in _best_repeats(comm, image, method, cam.viewport, args, codecs, modes).items():
+            byte_codec, raw_rows = resolve_codec(comm, codec)
             per_rank = comm.gather(_rank_record(best, bw, mem_bw), root=0)
             sent = comm.allreduce(best["stats"].bytes_sent)
             if rank == 0:
                 floor = max(r["floor_net"] + r["floor_mem"] for r in per_rank)
                 shared = max(floor, sum(r["floor_net"] + r["floor_mem"] for r in per_rank) / cores)
-                rows.append({"algorithm": method, "ranks": n, "wait": mode, "ms": best["ms"], "bytes": sent, "floor_ms": floor,
+                rows.append({"algorithm": method, "ranks": n, "codec": codec, "wait": mode, "ms": best["ms"], "bytes": sent, "floor_ms": floor,
                              "ratio": best["ms"] / floor, "shared_floor_ms": shared, "shared_ratio": best["ms"] / shared, "cores": cores,
                              "cpu_ms": max(r["cpu"] for r in per_rank), "bandwidth_MBps": bw / 1e6,
                              "bandwidth_by_wait_MBps": {m: v / 1e6 for m, v in bws.items()}, "mem_MBps": mem_bw / 1e6,
-                             "mem_frame_MBps": mem_frame / 1e6, "mem_64MiB_MBps": mem_big / 1e6, "per_rank": per_rank})
+                             "mem_frame_MBps": mem_frame / 1e6, "mem_64MiB_MBps": mem_big / 1e6,
+                             "codec_used": byte_codec + (" runs, raw rows to rank 0" if raw_rows else " runs"), "per_rank": per_rank})
     if rank == 0:
         Path(args.worker).write_text(json.dumps(rows))
     return 0
+
+
+def parse_codecs(text: str) -> list[str]:
+    from ...parallel.codec import CODEC_CHOICES
+
+    codecs = [c.strip() for c in text.split(",") if c.strip()]
+    bad = [c for c in codecs if c not in CODEC_CHOICES]
+    if bad or not codecs:
+        raise ConfigError(f"--codec {text!r}: use codecs from {', '.join(CODEC_CHOICES)}, comma-separated")
+    return codecs
 
 
 def parse_modes(text: str) -> list[str]:
@@ -128,27 +144,31 @@ def _sched() -> tuple[float, float, int, int]:
     return on / 1e6, queued / 1e6, ru.ru_nvcsw, ru.ru_nivcsw
 
 
-def _best_repeats(comm, image, method: str, vp, args, modes: list[str]) -> dict[str, dict]:
-    """Per wait mode, the repeat with the smallest time (max over ranks) of composite + deliver
-    to rank 0; the modes alternate repeat by repeat."""
-    best: dict[str, dict] = {}
+def _best_repeats(comm, image, method: str, vp, args, codecs: list[str], modes: list[str]) -> dict[tuple[str, str], dict]:
+    """Per (codec, wait mode), the repeat with the smallest time (max over ranks) of composite +
+    deliver to rank 0; the cases alternate repeat by repeat, so all see the same load."""
+    best: dict[tuple[str, str], dict] = {}
     for _ in range(args.repeat):
-        for mode in modes:
-            set_wait_mode(mode)
-            rec = _one_repeat(comm, image, method, vp, args)
-            if mode not in best or rec["ms"] < best[mode]["ms"]:
-                best[mode] = rec
+        for case in [(c, m) for c in codecs for m in modes]:
+            set_wait_mode(case[1])
+            rec = _one_repeat(comm, image, method, vp, case[0])
+            if case not in best or rec["ms"] < best[case]["ms"]:
+                best[case] = rec
     return best
 
 
-def _one_repeat(comm, image, method: str, vp, args) -> dict:
+def _one_repeat(comm, image, method: str, vp, codec: str) -> dict:
+    """One composite + deliver as the frame loop runs them: on a fresh copy of the rank's
+    image that compositing may write into (the frame loop's read-back; the copy is made
+    before the clock starts, as the read-back is before compositing)."""
     n, st = comm.Get_size(), FrameStats(0, comm.Get_rank())
+    own = Image(image.color.copy(), image.depth.copy(), image.viewport)
     barrier(comm)
     s0, t0, c0 = _sched(), time.perf_counter(), time.thread_time()
     box = Outbox(comm, st)
-    piece = composite(comm, image, method, 4, st, args.codec, box)
+    piece = composite(comm, own, method, 4, st, codec, box, owned=True)
     t1 = time.perf_counter()
-    deliver(comm, piece, [(0, vp)], st, args.codec, final_regions(n, method, 4, vp), box)
+    deliver(comm, piece, [(0, vp)], st, codec, final_regions(n, method, 4, vp), box, own)
     t2, cpu, s1 = time.perf_counter(), time.thread_time() - c0, _sched()
     dt = max_over_ranks(comm, t2 - t0)
     return {"ms": dt * 1e3, "own": (t2 - t0) * 1e3, "composite": (t1 - t0) * 1e3, "deliver": (t2 - t1) * 1e3, "cpu": cpu * 1e3, "stats": st,
@@ -186,13 +206,13 @@ def run(args) -> int:
     from rich.console import Console
 
     counts = [int(v) for v in args.ranks.split(",") if v.strip()]
-    modes = parse_modes(args.wait)
+    modes, codecs = parse_modes(args.wait), parse_codecs(args.codec)
     console = Console(width=None if Console().is_terminal else 170)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for n in counts:
             out = Path(tmp) / f"bench{n}.json"
-            argv = ["bench", "composite", "--worker", str(out), "--size", args.size, "--repeat", str(args.repeat), "--codec", args.codec,
+            argv = ["bench", "composite", "--worker", str(out), "--size", args.size, "--repeat", str(args.repeat), "--codec", ",".join(codecs),
                     "--scene", args.scene, "--wait", ",".join(modes)]
             console.print(f"[dim]running {n} ranks ...[/]")
             rc = relaunch(argv, n)
@@ -210,12 +230,13 @@ def _print(console, results: list[dict], args) -> None:
     from rich.table import Table
 
     w, h = parse_size(args.size)
-    table = Table(title=f"sort-last compositing + delivery to rank 0, {w}x{h}, {args.scene}, codec {args.codec}, best of {args.repeat}")
-    for col in ("algorithm", "ranks", "wait", "ms/frame", "MB moved", "p2p MB/s", "mem MB/s (frame / 64 MiB)", "floor ms", "ratio to floor",
+    used = sorted({f"{r['codec']}: {r['codec_used']}" for r in results})
+    table = Table(title=f"sort-last compositing + delivery to rank 0, {w}x{h}, {args.scene}, best of {args.repeat}; codecs {'; '.join(used)}")
+    for col in ("algorithm", "ranks", "codec", "wait", "ms/frame", "MB moved", "p2p MB/s", "mem MB/s (frame / 64 MiB)", "floor ms", "ratio to floor",
                 "shared-core floor ms", "ratio to it", "CPU ms"):
         table.add_column(col, justify="right")
     for r in results:
-        table.add_row(r["algorithm"], str(r["ranks"]), r["wait"], f"{r['ms']:.2f}", f"{r['bytes'] / 1e6:.2f}", f"{r['bandwidth_MBps']:.0f}",
+        table.add_row(r["algorithm"], str(r["ranks"]), r["codec"], r["wait"], f"{r['ms']:.2f}", f"{r['bytes'] / 1e6:.2f}", f"{r['bandwidth_MBps']:.0f}",
                       f"{r['mem_frame_MBps']:.0f} / {r['mem_64MiB_MBps']:.0f}", f"{r['floor_ms']:.2f}", f"{r['ratio']:.2f}",
                       f"{r['shared_floor_ms']:.2f}", f"{r['shared_ratio']:.2f}", f"{r['cpu_ms']:.1f}")
     console.print(table)
@@ -227,12 +248,12 @@ def _print_ranks(console, results: list[dict]) -> None:
 
     pieces = Table(title="per rank, best repeat: where the time goes (ms) against the floor's two terms (ms); work / polling / run queue / "
                          "asleep from the main thread's schedstat; context switches voluntary / involuntary")
-    for col in ("algorithm", "ranks", "wait", "rank", "ms", "compositing", "delivery", *PIECES, "other", "work", "polling", "run queue",
+    for col in ("algorithm", "ranks", "codec", "wait", "rank", "ms", "compositing", "delivery", *PIECES, "other", "work", "polling", "run queue",
                 "asleep", "csw v/i", "MB in", "MB touched", "floor net", "floor mem"):
         pieces.add_column(col, justify="right")
     for r in results:
         for p in r["per_rank"]:
-            pieces.add_row(r["algorithm"], str(r["ranks"]), r["wait"], str(p["rank"]), f"{p['ms']:.2f}", f"{p['composite']:.2f}",
+            pieces.add_row(r["algorithm"], str(r["ranks"]), r["codec"], r["wait"], str(p["rank"]), f"{p['ms']:.2f}", f"{p['composite']:.2f}",
                            f"{p['deliver']:.2f}", *(f"{p[k]:.2f}" for k in PIECES), f"{p['other']:.2f}",
                            *(f"{p[k]:.2f}" for k in ("work", "polling", "runqueue", "asleep")), f"{p['vcsw']}/{p['ivcsw']}",
                            f"{p['recv_bytes'] / 1e6:.2f}", f"{p['touched_bytes'] / 1e6:.1f}", f"{p['floor_net']:.2f}", f"{p['floor_mem']:.2f}")
