@@ -136,6 +136,8 @@ def test_auto_codec_picks_by_where_the_ranks_run():
     assert all_ranks_local(_Comm(4), {"MPI_LOCALNRANKS": "4"}, 4)  # MPICH's Hydra, one node
     assert all_ranks_local(_Comm(2), {"OMPI_COMM_WORLD_LOCAL_SIZE": "4"}, 4)  # a sub-communicator of a one-node job
     assert not all_ranks_local(_Comm(8), {"MPI_LOCALNRANKS": "4"}, 8)  # two nodes of 4
+    assert all_ranks_local(_Comm(4), {"SLURM_JOB_NUM_NODES": "1"}, 4)  # srun in a one-node allocation
+    assert not all_ranks_local(_Comm(4), {"SLURM_JOB_NUM_NODES": "2"}, 4)
     assert not all_ranks_local(_Comm(4), {}, 4)  # unknown launcher: treated as spread over nodes
     assert resolve_codec(_Comm(1), "auto") == ("none", True)
     assert resolve_codec(_Comm(3), "lz4") == ("lz4", False)  # a named codec is used as it is, run-coded everywhere

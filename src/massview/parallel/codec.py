@@ -7,7 +7,7 @@ Wire format (little-endian)::
 
 ``codec="auto"`` (the default) picks per communicator (:func:`resolve_codec`): when every rank
 runs on this node (the launcher says so: MPICH's ``MPI_LOCALNRANKS``, Open MPI's
-``OMPI_COMM_WORLD_LOCAL_SIZE``) messages move through shared memory at several GB/s, faster
+``OMPI_COMM_WORLD_LOCAL_SIZE``, a Slurm allocation of one node) messages move through shared memory at several GB/s, faster
 than any byte codec packs them, so sub-images travel as runs without byte compression
 (``none``) and :func:`massview.parallel.composite.deliver` sends final regions as raw rows
 straight into the display tile; otherwise ``blosc2``. Every rank of a job decides the same way.
@@ -64,7 +64,7 @@ def all_ranks_local(comm, env=None, world_size: int | None = None) -> bool:
     for var in _LOCAL_SIZE_VARS:
         if env.get(var, "").strip().isdigit():
             return int(env[var]) == world_size
-    return False
+    return env.get("SLURM_JOB_NUM_NODES", env.get("SLURM_NNODES", "")).strip() == "1"
 
 
 def resolve_codec(comm, codec: str) -> tuple[str, bool]:
