@@ -143,3 +143,13 @@ def test_auto_codec_picks_by_where_the_ranks_run():
     assert resolve_codec(_Comm(3), "lz4") == ("lz4", False)  # a named codec is used as it is, run-coded everywhere
     with pytest.raises(ConfigError, match="auto"):
         resolve_codec(_Comm(3), "zip")
+
+
+def test_config_knows_every_codec_and_names_the_variable_of_a_bad_one():
+    from massview.core.config import CODEC_NAMES, RenderConfig
+    from massview.core.errors import ConfigError
+    from massview.parallel.codec import CODEC_CHOICES
+
+    assert CODEC_NAMES == CODEC_CHOICES
+    with pytest.raises(ConfigError, match="MASSVIEW_CODEC"):
+        RenderConfig.from_env({"MASSVIEW_CODEC": "zip"})

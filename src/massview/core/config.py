@@ -27,6 +27,9 @@ def parse_size(spec: str) -> tuple[int, int]:
     return w, h
 
 
+CODEC_NAMES = ("auto", "none", "lz4", "blosc2")  # massview.parallel.codec.CODEC_CHOICES (checked by tests/test_codec_composite.py)
+
+
 @dataclass(frozen=True)
 class RenderConfig:
     decomposition: str = "sort-last"
@@ -77,6 +80,8 @@ class RenderConfig:
     def __post_init__(self) -> None:
         if self.frames < 1:
             raise ConfigError(f"--frames must be at least 1, got {self.frames}")
+        if self.codec not in CODEC_NAMES:
+            raise ConfigError(f"--codec (or MASSVIEW_CODEC) must be one of {', '.join(CODEC_NAMES)}, got {self.codec!r}")
         if self.radix_k < 2:
             raise ConfigError(f"--radix-k must be at least 2, got {self.radix_k}")
         if self.loading not in ("async", "complete"):
