@@ -4,7 +4,12 @@
 
 For each rank count, a job under ``mpiexec`` renders one sort-last partial image per rank of
 ``--scene`` (default ``builtin:objects``; range R_i, full frame), then composites and delivers
-the final image to rank 0 with each algorithm, ``--repeat`` times. Printed per case: time per
+the final image to rank 0 with each algorithm, ``--repeat`` times, as the frame loop does: on a
+fresh copy of the image that compositing may write into (``composite(owned=True)``; the copy
+is made before the clock starts, as the read-back is before compositing), rank 0 assembling
+the frame in its own copy. ``--codec auto,blosc2`` compares codecs in the same job (``auto``,
+the default, is what ``render`` uses: on one node, runs without byte compression and final
+regions as raw rows). Printed per case: time per
 frame (max over ranks, best of the repeats), bytes moved (all ranks' sends), the ratio to the
 floor measured in the same job, and the CPU time of the slowest rank (its thread time: what the
 kernels cost apart from waiting for a core or a peer on a shared machine); then, per rank of
@@ -28,7 +33,7 @@ composite (ranks that share a core share it in the measurement too); measured on
 mode, the higher figure sets the floor.
 
 ``--wait poll,sleep`` runs each case under each of :data:`massview.parallel.exchange.WAIT_MODES`
-in the same job, the modes alternating repeat by repeat so both see the same load. The
+in the same job, the modes (and codecs) alternating repeat by repeat so all see the same load. The
 per-rank table splits each rank's time (its main thread, from ``/proc/thread-self/schedstat``
 and ``getrusage``) into work (on a core, not in a wait), polling (on a core inside a wait:
 ``cpu.wait``), run queue (runnable, waiting for a core) and asleep (the rest), with its
