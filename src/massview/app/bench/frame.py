@@ -68,6 +68,7 @@ def add_arguments(p) -> None:
     p.add_argument("--frames", type=int, default=8, help="timed frames per loop (default 8)")
     p.add_argument("--decomposition", default="sort-last:kpatch")
     p.add_argument("--compositor", default="binary-swap")
+    p.add_argument("--codec", default="auto", help="sub-image codec, as render's --codec (default auto)")
     p.add_argument("--lp-threads", default="auto", help="LP_NUM_THREADS per case, comma-separated: auto, default or a number")
     p.add_argument("--workdir", default="out/bench", help="where the demo terrain is generated when it is not cached")
     p.add_argument("--png", type=Path, default=None, help="write the stage breakdown plot here")
@@ -212,7 +213,7 @@ def worker(args) -> int:
     rank, n = comm.Get_rank(), comm.Get_size()
     w, h = parse_size(args.size)
     cfg = RenderConfig(width=w, height=h, frames=args.frames, path="flyover", decomposition=args.decomposition,
-                       compositor=args.compositor, loading="complete")
+                       compositor=args.compositor, codec=args.codec, loading="complete")
     system = open_system(args.store, cfg)
     cams = load_path("flyover", *system.bounds).cameras(args.frames, w, h)
     for f in range(args.frames):  # warm up along the whole path: loads, GL buffers, caches
@@ -244,7 +245,8 @@ def _cases(args) -> list[tuple[int, str]]:
 def _launch(args, store: Path, n: int, lp: str, tmp: str, probe: bool = False) -> dict | None:
     out = Path(tmp) / f"frame{n}_{lp}.json"
     argv = ["bench", "frame", str(store), "--worker", str(out), "--size", args.size, "--frames", str(args.frames),
-            "--decomposition", args.decomposition, "--compositor", args.compositor, *(["--gil-probe"] if probe else [])]
+            "--decomposition", args.decomposition, "--compositor", args.compositor, "--codec", args.codec,
+            *(["--gil-probe"] if probe else [])]
     saved = os.environ.get("LP_NUM_THREADS")
     # "default": Mesa's own choice, one raster thread per CPU in every rank (set explicitly,
     # since the launcher would otherwise put its own default in)
@@ -289,7 +291,7 @@ def _print(console, results, args, store) -> None:
     from rich.table import Table
 
     t = Table(title=f"frame per stage vs floor (ms, slowest rank, mean of {args.frames} frames): {store.name}, {args.size}, "
-                    f"{args.decomposition}, {args.compositor}")
+                    f"{args.decomposition}, {args.compositor}, codec {args.codec}")
     for c in ("ranks", "LP thr", "Mtri/s plain", *STAGES, "frame ms", "floor ms", "not drawing", "pipelined fps", "sync fps", "latency ms on/off",
               "cores busy sync/pipe"):
         t.add_column(c, justify="right")
