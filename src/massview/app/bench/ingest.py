@@ -123,8 +123,9 @@ def run(args) -> int:
     t.add_row("prepare CPU time (user + system)", f"{run.cpu_s:.1f} s ({run.cpu_s / prep_s:.2f} cores busy)")
     t.add_row("prepare throughput", f"{nbytes / 1e6 / prep_s:.1f} MB/s (target 100)")
     t.add_row("throughput per CPU-second", f"{nbytes / 1e6 / max(run.cpu_s, 1e-9):.1f} MB/s")
-    for name, (w, c) in (json.loads(stages_file.read_text()) if stages_file.exists() else {}).items():
-        t.add_row(f"  stage: {name}", f"{w:.1f} s wall, {c:.1f} CPU-s ({c / max(w, 1e-9):.2f} cores)")
+    for name, (w, c, sy, flt) in (json.loads(stages_file.read_text()) if stages_file.exists() else {}).items():
+        t.add_row(f"  stage: {name}", f"{w:.1f} s wall, {c:.1f} CPU-s ({c / max(w, 1e-9):.2f} cores; system {sy:.1f} s, "
+                                      f"{flt * 4096 / 2**30:.1f} GiB of minor page faults)")
     t.add_row("copy baseline (same bytes)", f"{copy_s:.1f} s, {nbytes / 1e6 / copy_s:.1f} MB/s")
     t.add_row("prepare ÷ copy time", f"{prep_s / copy_s:.1f}×")
     t.add_row("height compression ratio", f"{info['compression_ratio']:.3f}")
