@@ -66,6 +66,81 @@ def _copy_baseline(src: Path, dst: Path) -> float:
     return dt
 
 
+def _read_floor(src: Path) -> float:
+    """Seconds to read ``src`` once into one reused 64 MiB buffer (``readinto``; the page cache
+    is warm after the copy baseline): the input side of the floor."""
+    buf = bytearray(64 << 20)
+    t0 = time.perf_counter()
+    with open(src, "rb", buffering=0) as f:
+        while f.readinto(buf):
+            pass
+    return time.perf_counter() - t0
+
+
+def _write_floor(store: Path, dst: Path, threads: int = 2) -> tuple[float, float]:
+    """Write every file of ``store`` again under ``dst``: the same names and bytes, chunks
+    through the chunk writer's own calls (:func:`store.make_chunk_root` once per array, the
+    row folder once, :func:`store.write_chunk_file` per chunk), block rows shared out over
+    ``threads`` threads as prepare's workers share them. Each file's bytes are read first,
+    outside the timed part. Returns (the slowest thread's seconds in those calls, the system
+    CPU seconds of all threads in them): what writing this store costs on this file system,
+    whatever computes it."""
+    import resource
+    import threading
+
+    from ...data.terrain.store import make_chunk_root, write_chunk_file
+
+    files = sorted(p.relative_to(store) for p in store.rglob("*") if p.is_file())
+    rows: dict = {}
+    for rel in files:  # a chunk's block row is the folder under "c"; metadata files go with row 0
+        parts = rel.parts
+        rows.setdefault(parts[parts.index("c") + 1] if "c" in parts else "0", []).append(rel)
+    shares: list = [[] for _ in range(threads)]
+    for k, key in enumerate(sorted(rows, key=lambda r: (len(r), r))):
+        shares[k % threads].extend(rows[key])
+    made, lock = set(), threading.Lock()
+    spent, system = [0.0] * threads, [0.0] * threads
+
+    def folder(d: Path) -> None:  # folders above the chunk rows: once each, under the lock
+        with lock:
+            if d not in made:
+                if d.name == "c":
+                    make_chunk_root(str(d))
+                else:
+                    d.mkdir(parents=True, exist_ok=True)
+                made.add(d)
+
+    def put(rel: Path, data: bytes) -> None:
+        parts = rel.parts
+        if "c" not in parts:
+            folder((dst / rel).parent)
+            (dst / rel).write_bytes(data)
+            return
+        c = parts.index("c")
+        folder(dst.joinpath(*parts[:c + 1]))
+        row = dst.joinpath(*parts[:c + 2])
+        if row not in made:  # this thread's own row
+            os.makedirs(row, exist_ok=True)
+            made.add(row)
+        write_chunk_file(str(row / parts[c + 2]), list(parts[c + 3:]), data)
+
+    def work(n: int) -> None:
+        for rel in shares[n]:
+            data = (store / rel).read_bytes()
+            r, t = resource.getrusage(resource.RUSAGE_THREAD), time.perf_counter()
+            put(rel, data)
+            spent[n] += time.perf_counter() - t
+            system[n] += resource.getrusage(resource.RUSAGE_THREAD).ru_stime - r.ru_stime
+
+    dst.mkdir(parents=True)
+    ts = [threading.Thread(target=work, args=(n,)) for n in range(threads)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    return max(spent), sum(system)
+
+
 def _fly(store: Path, work: Path, args, console) -> list[tuple[str, object]]:
     """Render the zoom and flyover paths on ``args.ranks`` ranks; per-path ChildRun."""
     import sys as _sys
