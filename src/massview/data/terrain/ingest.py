@@ -176,15 +176,15 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     prog = progress or (lambda phase, adv, total: None)
     from .roettger import DEFAULT_C_MIN, TableBuilder  # T2's per-node table (Röttger d2)
 
-    build, table, stages = MetadataBuilder(lay, workers), TableBuilder(lay, DEFAULT_C_MIN), {}
+    build, table, stages, edges = MetadataBuilder(lay, workers), TableBuilder(lay, DEFAULT_C_MIN), {}, {}
     try:
         with _stage(stages, "pyramid, metadata, local d2"):
-            filled = _level0(g, src, lay, block, resumed, prog, workers, (build, table))
+            filled = _level0(g, src, lay, block, resumed, prog, workers, (build, table), edges)
     except IngestError:
         if not resumed:  # created by this run, nothing of value in it: leave no store behind
             shutil.rmtree(out, ignore_errors=True)
         raise
-    meta = _shading_and_tables(g, out, lay, build, table, stages, prog, workers, ortho, vertical_scale)
+    meta = _shading_and_tables(g, out, lay, build, table, stages, prog, workers, ortho, vertical_scale, edges)
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
@@ -212,7 +212,7 @@ def _stage(stages: dict, name: str):
 
 
 def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder, table, stages: dict, prog: Progress,
-                        workers: int, ortho, vertical_scale: float) -> Metadata:
+                        workers: int, ortho, vertical_scale: float, edges: dict) -> Metadata:
     """Phases 3–5 after the pyramid pass: the Röttger table, the shading pyramid (its level-0
     pass also computes the exact errors over lattice squares larger than a block, which need
     the coarse lattice of the finished pyramid), the orthophoto colour and the metadata arrays."""
@@ -228,7 +228,7 @@ def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder
         if lay.J > lay.m:
             build.set_coarse(coarse_lattice(store))
             hook = lambda i, row: build.errors(i, row, "window")  # noqa: E731
-        write_shading(store, g, zlo, zhi, prog, workers, row_hook=hook)
+        write_shading(store, g, zlo, zhi, prog, workers, row_hook=hook, edges=edges)
     with _stage(stages, "colour, metadata"):
         meta = build.finish()
         if ortho is not None:
@@ -238,14 +238,15 @@ def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder
 
 
 def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress, workers: int,
-            builders: tuple) -> int:
+            builders: tuple, edges: dict) -> int:
     """Phases 1 and 2 in one pass; returns the number of filled samples (all runs). Raises
     IngestError when no input sample is valid. Strips are read and filled in order here (each
     needs the row above it), and every coarser level's block row is decimated here, in memory,
     as soon as its two finer rows exist (every other sample of both: what decimating their
     2 × 2 child blocks gives); worker threads compress and write the rows, and a block row is
     flagged done, in order, only once its chunks are on disk. Rows done in an earlier run are
-    read back (level 0) or re-made (coarser levels) to feed the levels above, not rewritten."""
+    read back (level 0) or re-made (coarser levels) to feed the levels above, not rewritten.
+    ``edges`` receives grid rows 1 and M-2 of every level-0 block row (for the shading pass)."""
     M, nlev = lay.M, lay.levels
     build, table = builders  # MetadataBuilder, roettger.TableBuilder: fed every row on the workers
     dones = [g[f"blocks/{lv}/done"] for lv in range(nlev)]
@@ -255,6 +256,8 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
     state = {"filled": int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0}
 
     def write(lv: int, i: int, wide: np.ndarray, keep: bool, nfill: int):
+        if lv == 0:
+            edges[i] = (wide[1].copy(), wide[M - 2].copy())
         blocks = block_view(wide, lay.blocks(lv), M)
         if keep:
             writers[lv].write(i, 0, blocks)
