@@ -122,7 +122,9 @@ def _read_strip(src: RasterSource, lay: TerrainLayout, bi: int, prev_row: np.nda
     r0 = bi * (M - 1)
     strip = np.empty((M, lay.S), np.float32)
     filled = 0
-    if r0 < src.rows:
+    if r0 < src.rows and _read_strip_finite(src, strip, r0, prev_row):
+        pass
+    elif r0 < src.rows:
         data = src.read(r0, min(r0 + M + _FILL_MARGIN, src.rows), 0, cols)
         first_new = 0
         if prev_row is not None:  # the shared row is final already: keep it bit-identical
@@ -139,6 +141,29 @@ def _read_strip(src: RasterSource, lay: TerrainLayout, bi: int, prev_row: np.nda
         strip[:, :cols] = prev_row[:cols]
     strip[:, cols:] = strip[:, cols - 1: cols]
     return strip, filled
+
+
+def _read_strip_finite(src: RasterSource, strip: np.ndarray, r0: int, prev_row: np.ndarray | None) -> bool:
+    """The fast path of :func:`_read_strip`: a float32 file with no nodata value is read
+    straight into the strip (no copies); when every sample new to the strip is finite there is
+    nothing to fill, and the strip is what the general path makes (which only ever changes
+    non-finite samples). False when it does not apply (the caller reads it the general way)."""
+    M, cols = strip.shape[0], src.cols
+    nv = min(M, src.rows - r0)
+    reader = getattr(src, "read_float32_into", None)
+    whole = cols == strip.shape[1]
+    dst = strip[:nv] if whole else np.empty((nv, cols), np.float32)
+    if reader is None or not reader(r0, dst):
+        return False
+    first_new = 0 if prev_row is None else 1
+    if not np.isfinite(dst[first_new:]).all():
+        return False
+    if not whole:
+        strip[:nv, :cols] = dst
+    if prev_row is not None:
+        strip[0, :cols] = prev_row[:cols]
+    strip[nv:, :cols] = strip[nv - 1, :cols]
+    return True
 
 
 def _first_valid_row(src: RasterSource, r: int, step: int = 256) -> np.ndarray:
