@@ -104,7 +104,7 @@ def cmd_prepare(args) -> int:
     print(f"{'resumed and completed' if res.resumed else 'wrote'} {res.path}: {res.layout.rows}x{res.layout.cols} samples, "
           f"{res.layout.levels} levels of {res.layout.M}² blocks, {res.filled} nodata samples filled, "
           f"{res.seconds:.1f} s ({mb / max(res.seconds, 1e-9):.1f} MB/s)")
-    print("stages (wall, CPU of all threads): " + "; ".join(f"{k} {w:.1f} s, {c:.1f} s" for k, (w, c) in res.stages.items()))
+    print("stages (wall, CPU of all threads, of it system): " + "; ".join(f"{k} {v[0]:.1f} s, {v[1]:.1f} s, {v[2]:.1f} s" for k, v in res.stages.items()))
     _warn(res.warnings)
     if os.environ.get("MASSVIEW_STAGES_FILE"):  # for `massview bench ingest`
         Path(os.environ["MASSVIEW_STAGES_FILE"]).write_text(json.dumps(res.stages))

@@ -8,6 +8,9 @@ The DEM (default 16385², 1 GiB of float32; ``--size 32769``: 4.3 GB) is generat
 
 * baseline: a plain copy of the same bytes (read in 64 MiB pieces, write to a file) — the
   disk floor for touching the data once;
+* floor: reading the DEM once (``readinto`` one reused buffer) plus writing the store's own
+  files again (same names and bytes, with the chunk writer's calls, on as many threads as
+  prepare's workers) — what no ingest can beat on this disk, whatever it computes;
 * ``massview prepare terrain --workers N`` in a child process, which reports its own peak
   resident memory (``VmHWM`` of /proc/self/status) at exit. (``wait4``'s ``ru_maxrss`` would
   not do: Linux carries the parent's high-water mark over fork and exec.) CPU time is the
@@ -16,7 +19,7 @@ The DEM (default 16385², 1 GiB of float32; ``--size 32769``: 4.3 GB) is generat
   ``--path flyover`` on ``--ranks`` ranks (default 4) with default budgets, each rank
   reporting its own peak RSS, against the 1 GiB target.
 
-Printed: input MB/s of prepare, its ratio to the copy baseline, wall, CPU, the height
+Printed: input MB/s of prepare, its ratio to the copy baseline and to the floor, wall, CPU, the height
 compression ratio, the store size, peak RSS and the per-rank peaks. Nothing is asserted.
 """
 
@@ -64,6 +67,81 @@ def _copy_baseline(src: Path, dst: Path) -> float:
     dt = time.perf_counter() - t0
     dst.unlink()
     return dt
+
+
+def _read_floor(src: Path) -> float:
+    """Seconds to read ``src`` once into one reused 64 MiB buffer (``readinto``; the page cache
+    is warm after the copy baseline): the input side of the floor."""
+    buf = bytearray(64 << 20)
+    t0 = time.perf_counter()
+    with open(src, "rb", buffering=0) as f:
+        while f.readinto(buf):
+            pass
+    return time.perf_counter() - t0
+
+
+def _write_floor(store: Path, dst: Path, threads: int = 2) -> tuple[float, float]:
+    """Write every file of ``store`` again under ``dst``: the same names and bytes, chunks
+    through the chunk writer's own calls (:func:`store.make_chunk_root` once per array, the
+    row folder once, :func:`store.write_chunk_file` per chunk), block rows shared out over
+    ``threads`` threads as prepare's workers share them. Each file's bytes are read first,
+    outside the timed part. Returns (the slowest thread's seconds in those calls, the system
+    CPU seconds of all threads in them): what writing this store costs on this file system,
+    whatever computes it."""
+    import resource
+    import threading
+
+    from ...data.terrain.store import make_chunk_root, write_chunk_file
+
+    files = sorted(p.relative_to(store) for p in store.rglob("*") if p.is_file())
+    rows: dict = {}
+    for rel in files:  # a chunk's block row is the folder under "c"; metadata files go with row 0
+        parts = rel.parts
+        rows.setdefault(parts[parts.index("c") + 1] if "c" in parts else "0", []).append(rel)
+    shares: list = [[] for _ in range(threads)]
+    for k, key in enumerate(sorted(rows, key=lambda r: (len(r), r))):
+        shares[k % threads].extend(rows[key])
+    made, lock = set(), threading.Lock()
+    spent, system = [0.0] * threads, [0.0] * threads
+
+    def folder(d: Path) -> None:  # folders above the chunk rows: once each, under the lock
+        with lock:
+            if d not in made:
+                if d.name == "c":
+                    make_chunk_root(str(d))
+                else:
+                    d.mkdir(parents=True, exist_ok=True)
+                made.add(d)
+
+    def put(rel: Path, data: bytes) -> None:
+        parts = rel.parts
+        if "c" not in parts:
+            folder((dst / rel).parent)
+            (dst / rel).write_bytes(data)
+            return
+        c = parts.index("c")
+        folder(dst.joinpath(*parts[:c + 1]))
+        row = dst.joinpath(*parts[:c + 2])
+        if row not in made:  # this thread's own row
+            os.makedirs(row, exist_ok=True)
+            made.add(row)
+        write_chunk_file(str(row / parts[c + 2]), list(parts[c + 3:]), data)
+
+    def work(n: int) -> None:
+        for rel in shares[n]:
+            data = (store / rel).read_bytes()
+            r, t = resource.getrusage(resource.RUSAGE_THREAD), time.perf_counter()
+            put(rel, data)
+            spent[n] += time.perf_counter() - t
+            system[n] += resource.getrusage(resource.RUSAGE_THREAD).ru_stime - r.ru_stime
+
+    dst.mkdir(parents=True)
+    ts = [threading.Thread(target=work, args=(n,)) for n in range(threads)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    return max(spent), sum(system)
 
 
 def _fly(store: Path, work: Path, args, console) -> list[tuple[str, object]]:
@@ -123,10 +201,20 @@ def run(args) -> int:
     t.add_row("prepare CPU time (user + system)", f"{run.cpu_s:.1f} s ({run.cpu_s / prep_s:.2f} cores busy)")
     t.add_row("prepare throughput", f"{nbytes / 1e6 / prep_s:.1f} MB/s (target 100)")
     t.add_row("throughput per CPU-second", f"{nbytes / 1e6 / max(run.cpu_s, 1e-9):.1f} MB/s")
-    for name, (w, c) in (json.loads(stages_file.read_text()) if stages_file.exists() else {}).items():
-        t.add_row(f"  stage: {name}", f"{w:.1f} s wall, {c:.1f} CPU-s ({c / max(w, 1e-9):.2f} cores)")
+    for name, (w, c, sy, flt) in (json.loads(stages_file.read_text()) if stages_file.exists() else {}).items():
+        t.add_row(f"  stage: {name}", f"{w:.1f} s wall, {c:.1f} CPU-s ({c / max(w, 1e-9):.2f} cores), "
+                                      f"{sy:.1f} s system, {flt / 1e3:.0f} k faults")
     t.add_row("copy baseline (same bytes)", f"{copy_s:.1f} s, {nbytes / 1e6 / copy_s:.1f} MB/s")
     t.add_row("prepare ÷ copy time", f"{prep_s / copy_s:.1f}×")
+    floor_dir = work / "floor.tmp"
+    shutil.rmtree(floor_dir, ignore_errors=True)
+    read_s = _read_floor(dem)
+    write_s, write_sys = _write_floor(store, floor_dir, max(args.workers or len(os.sched_getaffinity(0)), 1))
+    shutil.rmtree(floor_dir, ignore_errors=True)
+    floor_s = read_s + write_s
+    t.add_row("read floor (the DEM once, page cache, one reused buffer)", f"{read_s:.2f} s, {nbytes / 1e6 / read_s:.0f} MB/s")
+    t.add_row("write floor (the same store bytes, the chunk writer's calls)", f"{write_s:.1f} s ({write_sys:.1f} s system CPU)")
+    t.add_row("prepare ÷ floor (read + write)", f"{prep_s / floor_s:.1f}× ({nbytes / 1e6 / floor_s:.0f} MB/s at the floor)")
     t.add_row("height compression ratio", f"{info['compression_ratio']:.3f}")
     t.add_row("store on disk (heights + shading + metadata)", f"{info['disk_bytes'] / 2**20:.0f} MiB")
     t.add_row("peak RSS of prepare", f"{rss / 2**20:.0f} MiB ({'under' if rss < 2**30 else 'OVER'} the 1 GiB target)")

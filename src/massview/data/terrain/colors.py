@@ -71,11 +71,19 @@ def shade0_wide(prev: np.ndarray | None, cur: np.ndarray, nxt: np.ndarray | None
     """Level-0 shading (M, W, 3) float16 of the wide height rows ``cur`` (M, W) float32, from
     the block rows above and below (None beyond the border: edge replication): Horn's slopes
     (:func:`horn_slopes`) and (h − zlo)/rng, the same float32 expressions, in one compiled pass."""
+    M = cur.shape[0]
+    return _shade0(prev[M - 2] if prev is not None else None, cur, nxt[1] if nxt is not None else None, dx, dy, zlo, rng)
+
+
+def _shade0(above: np.ndarray | None, cur: np.ndarray, below: np.ndarray | None, dx: float, dy: float, zlo: float,
+            rng: float) -> np.ndarray:
+    """:func:`shade0_wide` from the one grid row above ``cur`` and the one below (None beyond
+    the border)."""
     from .rowkernels import horn_row
 
     M = cur.shape[0]
-    above = prev[M - 2] if prev is not None else cur[0]
-    below = nxt[1] if nxt is not None else cur[M - 1]
+    above = above if above is not None else cur[0]
+    below = below if below is not None else cur[M - 1]
     out = np.empty(cur.shape + (3,), np.float16)
     horn_row(np.ascontiguousarray(above), np.ascontiguousarray(cur, np.float32), np.ascontiguousarray(below),
              np.float32(8 * dx), np.float32(8 * dy), np.float32(zlo), np.float32(rng), out.view(np.uint16))
@@ -100,9 +108,9 @@ def tent_wide(rows: dict, i: int) -> np.ndarray:
     return out
 
 
-def _shade0_row(prev, cur, nxt, dx: float, dy: float, zlo: float, rng: float, dst, i: int) -> np.ndarray:
-    """Level-0 shading of block row i (:func:`shade0_wide`); writes ``dst[i]``, returns the row."""
-    out = shade0_wide(prev, cur, nxt, dx, dy, zlo, rng)
+def _shade0_row(above, cur, below, dx: float, dy: float, zlo: float, rng: float, dst, i: int) -> np.ndarray:
+    """Level-0 shading of block row i (:func:`_shade0`); writes ``dst[i]``, returns the row."""
+    out = _shade0(above, cur, below, dx, dy, zlo, rng)
     M = cur.shape[0]
     dst.write(i, 0, block_view(out, (cur.shape[1] - 1) // (M - 1), M))
     return out
@@ -117,15 +125,21 @@ def _tent_row(rows: dict, i: int, dst) -> np.ndarray:
 
 
 def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int, int], None], workers: int | None = None,
-                  row_hook: Callable[[int, np.ndarray], None] | None = None) -> None:
+                  row_hook: Callable[[int, np.ndarray], None] | None = None, edges: dict | None = None) -> None:
     """Compute ``shade/<l>`` for every level of ``store`` into the zarr group ``g``.
 
-    Level 0 block rows are computed by worker threads from the wide height rows read in order
-    here; each finished row (float16, as stored) feeds the coarser levels in memory — block
-    row i of level l is made as soon as rows 2i-1 .. 2i+2 of level l-1 exist — so no level is
-    read back. Every output sample is the same float32 expression as on the whole grid.
+    Level 0 block rows are read in order here and computed by worker threads; each finished
+    row (float16, as stored) feeds the coarser levels in memory — block row i of level l is a
+    task of its own, submitted as soon as the tasks of rows 2i-1 .. 2i+2 of level l-1 are, and
+    run on a worker once they finish — so no level is read back and no row is computed on this
+    thread. Every output sample is the same float32 expression as on the whole grid.
     ``row_hook(i, blocks)``, when given, also runs on the worker for every level-0 block row
-    (``prepare`` computes the exact errors that need the whole level 0 there)."""
+    (``prepare`` computes the exact errors that need the whole level 0 there). ``edges``, when
+    given ({i: (grid row 1, grid row M-2) of level-0 block row i}, what ``prepare`` keeps from
+    its pyramid pass: 2 grid rows a block row), lets each worker read and decode its own row:
+    the rows above and below it are then not needed."""
+    from concurrent.futures import Future
+
     from .store import ChunkWriter
     from .workers import resolve_workers, run_ordered
 
@@ -134,46 +148,68 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
     rng = max(zhi - zlo, 1e-6)
     total = sum(lay.blocks(lv) for lv in range(lay.levels))
     nb0 = lay.blocks(0)
-    cache: list[dict] = [{} for _ in range(lay.levels)]
-    made = [0] * lay.levels  # block rows made per level
     writers = [ChunkWriter(g, f"shade/{lv}") for lv in range(lay.levels)]
+    slots: list[dict] = [{} for _ in range(lay.levels)]  # level → {row: Future of its float16 wide row}, while needed
+    made = [0] * lay.levels  # block rows submitted per level
 
-    def heights():
+    def task(slot: Future, fn, *args):
+        def run():
+            try:
+                slot.set_result(fn(*args))
+            except BaseException as e:
+                slot.set_exception(e)  # a row waiting for this one fails too, instead of waiting forever
+                raise
+        return run
+
+    def level0(k: int, p, c, n):
+        if row_hook is not None:
+            row_hook(k, block_view(c, nb0, M))
+        return _shade0_row(p[M - 2] if p is not None else None, c, n[1] if n is not None else None, dx, dy, zlo, rng,
+                           writers[0], k)
+
+    def level0_own(k: int):  # reads its own row (``edges``)
+        blocks = store.get_block_row(0, k)
+        if row_hook is not None:
+            row_hook(k, blocks)
+        above, below = edges[k - 1][1] if k > 0 else None, edges[k + 1][0] if k + 1 < nb0 else None
+        return _shade0_row(above, wide_row(blocks), below, dx, dy, zlo, rng, writers[0], k)
+
+    def coarser(lv: int, i: int, inputs: dict):
+        return _tent_row({k: f.result() for k, f in inputs.items()}, i, writers[lv])
+
+    def cascade(lv: int):
+        """Tasks of level ``lv`` (and above) whose inputs' tasks are all submitted."""
+        if lv >= lay.levels:
+            return
+        below, nbp = slots[lv - 1], lay.blocks(lv - 1)
+        while made[lv] < lay.blocks(lv) and made[lv - 1] > min(2 * made[lv] + 2, nbp - 1):
+            i = made[lv]
+            inputs = {k: below[k] for k in range(2 * i - 1, 2 * i + 3) if k in below}
+            slots[lv][i] = Future()
+            yield task(slots[lv][i], coarser, lv, i, inputs)
+            for k in [k for k in below if k < 2 * i + 1]:
+                del below[k]
+            made[lv] += 1
+            yield from cascade(lv + 1)
+
+    def tasks():
+        if edges is not None:
+            for k in range(nb0):
+                slots[0][k] = Future()
+                yield task(slots[0][k], level0_own, k)
+                made[0] += 1
+                yield from cascade(1)
+            return
         rows = {}
         for i in range(nb0 + 1):
             if i < nb0:
                 rows[i] = wide_row(store.get_block_row(0, i))
             if i >= 1:
                 k = i - 1
-                yield lambda k=k, p=rows.get(k - 1), c=rows[k], n=rows.get(k + 1): _level0_task(k, p, c, n)
+                slots[0][k] = Future()
+                yield task(slots[0][k], level0, k, rows.get(k - 1), rows[k], rows.get(k + 1))
                 rows.pop(k - 1, None)
+                made[0] += 1
+                yield from cascade(1)
 
-    def _level0_task(k: int, p, c, n):
-        if row_hook is not None:
-            row_hook(k, block_view(c, nb0, M))
-        return k, _shade0_row(p, c, n, dx, dy, zlo, rng, writers[0], k)
-
-    def done(res) -> None:
-        k, wide = res
-        cache[0][k] = wide
-        made[0] += 1
-        progress("shading", 1, total)
-        _cascade(1)
-
-    def _cascade(lv: int) -> None:
-        if lv >= lay.levels:
-            return
-        below, nbp = cache[lv - 1], lay.blocks(lv - 1)
-        while made[lv] < lay.blocks(lv):
-            i = made[lv]
-            need = min(2 * i + 2, nbp - 1)
-            if made[lv - 1] <= need:
-                return
-            cache[lv][i] = _tent_row(below, i, writers[lv])
-            for k in [k for k in below if k < 2 * i + 1]:
-                del below[k]
-            made[lv] += 1
-            progress("shading", 1, total)
-            _cascade(lv + 1)
-
-    run_ordered(resolve_workers(workers), heights(), done, depth=1)  # bounded: a float16 row is 50 MB at 32769²
+    run_ordered(resolve_workers(workers), tasks(), lambda res: progress("shading", 1, total), depth=1)  # bounded: a float16 row is 50 MB at 32769²

@@ -78,7 +78,7 @@ class PrepareResult:
     resumed: bool
     input_bytes: int
     warnings: list[str]
-    stages: dict = field(default_factory=dict)  # {stage: (wall s, CPU s of the whole process)}
+    stages: dict = field(default_factory=dict)  # {stage: (wall s, CPU s, system s, minor faults) of the whole process}
 
     @property
     def filled_fraction(self) -> float:
@@ -122,7 +122,9 @@ def _read_strip(src: RasterSource, lay: TerrainLayout, bi: int, prev_row: np.nda
     r0 = bi * (M - 1)
     strip = np.empty((M, lay.S), np.float32)
     filled = 0
-    if r0 < src.rows:
+    if r0 < src.rows and _read_strip_finite(src, strip, r0, prev_row):
+        pass
+    elif r0 < src.rows:
         data = src.read(r0, min(r0 + M + _FILL_MARGIN, src.rows), 0, cols)
         first_new = 0
         if prev_row is not None:  # the shared row is final already: keep it bit-identical
@@ -139,6 +141,29 @@ def _read_strip(src: RasterSource, lay: TerrainLayout, bi: int, prev_row: np.nda
         strip[:, :cols] = prev_row[:cols]
     strip[:, cols:] = strip[:, cols - 1: cols]
     return strip, filled
+
+
+def _read_strip_finite(src: RasterSource, strip: np.ndarray, r0: int, prev_row: np.ndarray | None) -> bool:
+    """The fast path of :func:`_read_strip`: a float32 file with no nodata value is read
+    straight into the strip (no copies); when every sample new to the strip is finite there is
+    nothing to fill, and the strip is what the general path makes (which only ever changes
+    non-finite samples). False when it does not apply (the caller reads it the general way)."""
+    M, cols = strip.shape[0], src.cols
+    nv = min(M, src.rows - r0)
+    reader = getattr(src, "read_float32_into", None)
+    whole = cols == strip.shape[1]
+    dst = strip[:nv] if whole else np.empty((nv, cols), np.float32)
+    if reader is None or not reader(r0, dst):
+        return False
+    first_new = 0 if prev_row is None else 1
+    if not np.isfinite(dst[first_new:]).all():
+        return False
+    if not whole:
+        strip[:nv, :cols] = dst
+    if prev_row is not None:
+        strip[0, :cols] = prev_row[:cols]
+    strip[nv:, :cols] = strip[nv - 1, :cols]
+    return True
 
 
 def _first_valid_row(src: RasterSource, r: int, step: int = 256) -> np.ndarray:
@@ -176,15 +201,15 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     prog = progress or (lambda phase, adv, total: None)
     from .roettger import DEFAULT_C_MIN, TableBuilder  # T2's per-node table (Röttger d2)
 
-    build, table, stages = MetadataBuilder(lay, workers), TableBuilder(lay, DEFAULT_C_MIN), {}
+    build, table, stages, edges = MetadataBuilder(lay, workers), TableBuilder(lay, DEFAULT_C_MIN), {}, {}
     try:
         with _stage(stages, "pyramid, metadata, local d2"):
-            filled = _level0(g, src, lay, block, resumed, prog, workers, (build, table))
+            filled = _level0(g, src, lay, block, resumed, prog, workers, (build, table), edges)
     except IngestError:
         if not resumed:  # created by this run, nothing of value in it: leave no store behind
             shutil.rmtree(out, ignore_errors=True)
         raise
-    meta = _shading_and_tables(g, out, lay, build, table, stages, prog, workers, ortho, vertical_scale)
+    meta = _shading_and_tables(g, out, lay, build, table, stages, prog, workers, ortho, vertical_scale, edges)
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
@@ -200,14 +225,19 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
 
 @contextmanager
 def _stage(stages: dict, name: str):
-    """Record the wall time and the process's CPU time (every thread) of a stage."""
-    w, c = time.perf_counter(), time.process_time()
+    """Record a stage's wall time, the process's CPU time (every thread), and of that CPU time
+    the system part and the minor page faults (``getrusage``): (wall s, CPU s, system s, faults)."""
+    import resource
+
+    w, r0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
     yield
-    stages[name] = (time.perf_counter() - w, time.process_time() - c)
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    user, system = r1.ru_utime - r0.ru_utime, r1.ru_stime - r0.ru_stime
+    stages[name] = (time.perf_counter() - w, user + system, system, r1.ru_minflt - r0.ru_minflt)
 
 
 def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder, table, stages: dict, prog: Progress,
-                        workers: int, ortho, vertical_scale: float) -> Metadata:
+                        workers: int, ortho, vertical_scale: float, edges: dict) -> Metadata:
     """Phases 3–5 after the pyramid pass: the Röttger table, the shading pyramid (its level-0
     pass also computes the exact errors over lattice squares larger than a block, which need
     the coarse lattice of the finished pyramid), the orthophoto colour and the metadata arrays."""
@@ -223,7 +253,7 @@ def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder
         if lay.J > lay.m:
             build.set_coarse(coarse_lattice(store))
             hook = lambda i, row: build.errors(i, row, "window")  # noqa: E731
-        write_shading(store, g, zlo, zhi, prog, workers, row_hook=hook)
+        write_shading(store, g, zlo, zhi, prog, workers, row_hook=hook, edges=edges)
     with _stage(stages, "colour, metadata"):
         meta = build.finish()
         if ortho is not None:
@@ -233,14 +263,15 @@ def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder
 
 
 def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool, prog: Progress, workers: int,
-            builders: tuple) -> int:
+            builders: tuple, edges: dict) -> int:
     """Phases 1 and 2 in one pass; returns the number of filled samples (all runs). Raises
     IngestError when no input sample is valid. Strips are read and filled in order here (each
     needs the row above it), and every coarser level's block row is decimated here, in memory,
     as soon as its two finer rows exist (every other sample of both: what decimating their
     2 × 2 child blocks gives); worker threads compress and write the rows, and a block row is
     flagged done, in order, only once its chunks are on disk. Rows done in an earlier run are
-    read back (level 0) or re-made (coarser levels) to feed the levels above, not rewritten."""
+    read back (level 0) or re-made (coarser levels) to feed the levels above, not rewritten.
+    ``edges`` receives grid rows 1 and M-2 of every level-0 block row (for the shading pass)."""
     M, nlev = lay.M, lay.levels
     build, table = builders  # MetadataBuilder, roettger.TableBuilder: fed every row on the workers
     dones = [g[f"blocks/{lv}/done"] for lv in range(nlev)]
@@ -250,6 +281,8 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
     state = {"filled": int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0}
 
     def write(lv: int, i: int, wide: np.ndarray, keep: bool, nfill: int):
+        if lv == 0:
+            edges[i] = (wide[1].copy(), wide[M - 2].copy())
         blocks = block_view(wide, lay.blocks(lv), M)
         if keep:
             writers[lv].write(i, 0, blocks)

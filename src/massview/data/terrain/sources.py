@@ -125,6 +125,22 @@ class BinaryFileSource(RasterSource):
             raise OSError(f"file ends early: wanted {(r1 - r0) * row} bytes at row {r0}")
         return np.frombuffer(buf, self.dtype).reshape(r1 - r0, self.cols)[:, c0:c1]
 
+    def read_float32_into(self, r0: int, out: np.ndarray) -> bool:
+        """Rows ``r0 .. r0 + len(out)`` (all columns) straight into ``out`` ((n, cols) float32,
+        C-contiguous) with one ``readinto``, when the file holds native float32 and no nodata
+        value is set: what :meth:`read` returns then, without its copies. False (``out``
+        untouched) when it does not apply; the caller then uses :meth:`read`."""
+        if self.dtype != np.dtype(np.float32) or self.nodata is not None or not out.flags.c_contiguous \
+                or out.dtype != np.float32 or out.shape[1:] != (self.cols,):
+            return False
+        with open(self.path, "rb", buffering=0) as f:
+            f.seek(self.offset + r0 * self.cols * 4)
+            got = f.readinto(memoryview(out.reshape(-1)).cast("B"))
+        if got != out.nbytes:
+            raise IngestError(f"{self.name}: could not read rows {r0}:{r0 + out.shape[0]} (the file ends early); "
+                              "the file may be truncated or corrupt")
+        return True
+
 
 def _npy_source(p: Path) -> RasterSource:
     try:

@@ -1,0 +1,96 @@
+"""Issue 20, ingest fast paths: each writes exactly the store the general path writes.
+
+* a float32 ``.npy`` read straight into the strips (no nodata, every new sample finite) gives
+  the very files of the general read path (an in-memory array source), with the input width
+  equal to or narrower than the padded grid, and with non-finite samples in some strips (those
+  strips fall back to the general path and are filled);
+* the shading pass with the edge rows kept from the pyramid pass (each worker decodes its own
+  row) writes the same shading chunks as reading the neighbouring rows back;
+* ``bench ingest``'s write floor writes the same names and bytes as the store it copies;
+* ``make_chunk_root`` is only a hint: it makes the folder and never fails on a file system
+  without the flag.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from massview.data.terrain import ArraySource, open_source, prepare_terrain
+from massview.data.terrain.synthetic import SyntheticSource
+
+
+def _files(root: Path, meta: bool = False) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file() and (meta or p.name != "zarr.json")}
+
+
+def _dem(rows: int, cols: int, bad: bool) -> np.ndarray:
+    a = SyntheticSource(max(rows, cols), seed=3).read(0, rows, 0, cols).astype(np.float32)
+    if bad:
+        a[150, 10:40] = np.nan  # in the second strip of 129-sample blocks
+        a[5, 7] = np.inf
+    return np.ascontiguousarray(a)
+
+
+@pytest.mark.parametrize("rows,cols,bad", [(257, 257, False), (300, 277, False), (300, 277, True)])
+def test_npy_read_straight_into_strips_writes_the_general_paths_store(tmp_path, rows, cols, bad):
+    a = _dem(rows, cols, bad)
+    npy = tmp_path / "dem.npy"
+    np.save(npy, a)
+    src = open_source(npy)
+    assert hasattr(src, "read_float32_into")
+    general = ArraySource(np.load(npy), src.name, transform=src.transform)
+    general.spacing = src.spacing  # the same georeference as the file source
+    straight, general_reads = [], []
+    read_into, read = src.read_float32_into, src.read
+    src.read_float32_into = lambda r0, out: straight.append(read_into(r0, out)) or straight[-1]
+    src.read = lambda *a: general_reads.append(a) or read(*a)
+    fast_res = prepare_terrain(src, tmp_path / "fast.zarr", block=129, K=5, workers=2)
+    assert straight and all(straight)  # every strip was read straight into its buffer ...
+    assert len(general_reads) == (2 if bad else 0)  # ... and only the strips with non-finite samples again
+    prepare_terrain(general, tmp_path / "general.zarr", block=129, K=5, workers=2)
+    fast, gen = _files(tmp_path / "fast.zarr"), _files(tmp_path / "general.zarr")
+    assert sorted(fast) == sorted(gen)
+    assert [k for k in fast if fast[k] != gen[k]] == []
+    assert fast_res.filled == (31 if bad else 0)
+
+
+def test_shading_from_kept_edge_rows_equals_reading_neighbours_back(tmp_path):
+    import zarr
+
+    from massview.data.terrain.colors import write_shading
+    from massview.data.terrain.store import TerrainStore, create_shade_arrays
+
+    prepare_terrain(SyntheticSource(700, seed=5), tmp_path / "a.zarr", block=129, K=5, workers=2)
+    shutil.copytree(tmp_path / "a.zarr", tmp_path / "b.zarr")
+    shutil.rmtree(tmp_path / "b.zarr" / "shade")
+    g = zarr.open_group(str(tmp_path / "b.zarr"), mode="r+")
+    store = TerrainStore(tmp_path / "b.zarr")
+    create_shade_arrays(g, store.layout)
+    zlo, zhi = store.attrs["height_range"]
+    write_shading(store, g, zlo, zhi, lambda *a: None, workers=2)  # no edges: neighbours read back
+    a, b = _files(tmp_path / "a.zarr" / "shade", meta=True), _files(tmp_path / "b.zarr" / "shade", meta=True)
+    assert sorted(a) == sorted(b) and len(a) > 10
+    assert [k for k in a if a[k] != b[k]] == []
+
+
+def test_write_floor_writes_the_same_names_and_bytes(tmp_path):
+    from massview.app.bench.ingest import _write_floor
+
+    prepare_terrain(SyntheticSource(300, seed=2), tmp_path / "s.zarr", block=129, K=5, workers=1)
+    seconds, system = _write_floor(tmp_path / "s.zarr", tmp_path / "floor", threads=2)
+    assert seconds > 0 and system >= 0
+    assert _files(tmp_path / "floor", meta=True) == _files(tmp_path / "s.zarr", meta=True)
+
+
+def test_make_chunk_root_is_only_a_hint(tmp_path):
+    from massview.data.terrain.store import make_chunk_root
+
+    root = tmp_path / "x" / "c"
+    first = make_chunk_root(str(root))
+    assert root.is_dir() and isinstance(first, bool)
+    assert make_chunk_root(str(root)) == first  # again: no error, same answer
