@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from ..core.camera import Camera
-from .cull import boxes_in_frustum
+from .cull import boxes_in_frustum, frustum_planes
 
 __all__ = ["shading_blocks"]
 
@@ -29,7 +29,7 @@ def shading_blocks(minmax: list[np.ndarray], M: int, spacing, zmap, camera: Came
     every decision — is the one the earlier form computed."""
     dx, dy = (float(v) for v in spacing)
     f = camera.height / 2 / math.tan(math.radians(camera.fovy) / 2)
-    planes = camera.frustum_planes()
+    planes = frustum_planes(camera)
     eye = np.asarray(camera.position, np.float64)
     lv = len(minmax) - 1
     bi, bj = np.zeros(1, np.int64), np.zeros(1, np.int64)
