@@ -13,23 +13,45 @@ import numpy as np
 
 __all__ = ["Lazy", "heights", "errors", "square_centre", "edge_centre"]
 
-def heights(base: float, vs: float, Z: float, z) -> np.ndarray:
-    """World heights (float64) of stored heights ``z``: base + Z·(z·vs − base)."""
-    return base + Z * (np.asarray(z, np.float64) * vs - base)
+def heights(base: float, vs: float, Z: float, z, out: np.ndarray | None = None) -> np.ndarray:
+    """World heights (float64) of stored heights ``z``: base + Z·(z·vs − base). With ``out``
+    (float64) the same operations run in place (products and sums commute exactly in IEEE
+    arithmetic, so the values are bit-identical) without temporaries."""
+    if out is None:
+        return base + Z * (np.asarray(z, np.float64) * vs - base)
+    np.multiply(z, vs, out=out, dtype=np.float64)  # the float64 product, as asarray(z, float64) * vs
+    out -= base
+    out *= Z
+    out += base
+    return out
 
 
-def errors(vs: float, Z: float, e) -> np.ndarray:
-    """World errors (float64) of stored errors ``e``: e·vs·Z."""
-    return np.asarray(e, np.float64) * vs * Z
+def errors(vs: float, Z: float, e, out: np.ndarray | None = None) -> np.ndarray:
+    """World errors (float64) of stored errors ``e``: e·vs·Z (in place into ``out`` if given)."""
+    if out is None:
+        return np.asarray(e, np.float64) * vs * Z
+    np.multiply(e, vs, out=out, dtype=np.float64)
+    out *= Z
+    return out
 
 
-def square_centre(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    return (lo + hi) / 2
+def square_centre(lo: np.ndarray, hi: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    if out is None:
+        return (lo + hi) / 2
+    np.add(lo, hi, out=out)
+    out /= 2
+    return out
 
 
-def edge_centre(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def edge_centre(lo: np.ndarray, hi: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     valid = np.isfinite(lo)  # edges outside the lattice have no squares: centre height 0
-    return np.where(valid, (np.where(valid, lo, 0) + np.where(valid, hi, 0)) / 2, 0.0)
+    if out is not None and valid.all():  # the diamonds a walk reaches: (lo + hi) / 2, as below
+        return square_centre(lo, hi, out)
+    v = np.where(valid, (np.where(valid, lo, 0) + np.where(valid, hi, 0)) / 2, 0.0)
+    if out is None:
+        return v
+    out[...] = v
+    return out
 
 
 class Lazy:
@@ -52,12 +74,15 @@ class Lazy:
     dtype = np.dtype(np.float64)  # what indexing yields
 
     def take(self, idx, out: np.ndarray | None = None, mode: str = "raise") -> np.ndarray:
-        """``ndarray.take`` semantics (``out``, ``mode``) over the computed float64 values."""
-        v = self.fn(*(s.take(idx, mode=mode) for s in self.src))
+        """``ndarray.take`` semantics (``out``, ``mode``) over the computed float64 values; with
+        a float64 ``out`` the values are computed in place (the same operations, no copy)."""
+        vals = [s.take(idx, mode=mode) for s in self.src]
         if out is None:
-            return v
-        out[...] = v
-        return out
+            out = np.empty(np.shape(vals[0]))
+        elif out.dtype != np.float64:
+            out[...] = self.fn(*vals)
+            return out
+        return self.fn(*vals, out=out)
 
     def ravel(self) -> "Lazy":
         return Lazy(self.fn, *(s.ravel() for s in self.src))

@@ -10,7 +10,24 @@ import numpy as np
 
 from ..core.camera import Camera
 
-__all__ = ["spheres_in_frustum", "boxes_in_frustum", "screen_rects"]
+__all__ = ["spheres_in_frustum", "boxes_in_frustum", "screen_rects", "frustum_planes"]
+
+
+_PLANES: list = []  # the last few (camera, viewport, planes): a frame's stages ask for the same ones
+
+
+def frustum_planes(camera: Camera, vp=None) -> np.ndarray:
+    """:meth:`Camera.frustum_planes` (read-only), remembered for the last few (camera, viewport)
+    pairs: a frame's LOD stage asks for the same camera's planes several times. Cameras are
+    immutable and the cache holds them, so an entry is found by identity."""
+    for cam, v, planes in _PLANES:
+        if cam is camera and v == vp:
+            return planes
+    planes = camera.frustum_planes(vp)
+    planes.flags.writeable = False
+    _PLANES.insert(0, (camera, vp, planes))
+    del _PLANES[4:]
+    return planes
 
 
 def spheres_in_frustum(centers: np.ndarray, radii: np.ndarray, planes: np.ndarray) -> np.ndarray:

@@ -47,6 +47,7 @@ from ..core.camera import Camera, Viewport
 from ..data.terrain.layout import TerrainLayout
 from . import kpatch_walk
 from .kpatch_top import TopBatch
+from .cull import frustum_planes
 from .columns import Lazy, edge_centre, errors, heights, square_centre
 from .kpatch_cut import Dims, Residency, View
 
@@ -227,7 +228,10 @@ class Front:
 
     def block_ids(self, offsets: np.ndarray, nb: list[int]) -> np.ndarray:
         """Flat ids of the blocks the patches draw from (``offsets[level] + bi·nb[level] + bj``)."""
-        return np.asarray(offsets)[self.level] + self.bi * np.asarray(nb)[self.level] + self.bj
+        ids = np.asarray(offsets).take(self.level)
+        ids += self.bi * np.asarray(nb).take(self.level)
+        ids += self.bj
+        return ids
 
 
 def lookup_blocks(grids: list[np.ndarray], level: np.ndarray, bi: np.ndarray, bj: np.ndarray) -> np.ndarray:
@@ -284,7 +288,7 @@ def visible_patches(h: PatchHierarchy, f: Front, camera: Camera, vp: Viewport | 
         maybe, sure = np.flatnonzero(f.code >= 1), np.zeros(len(f), bool)
     out = sure.copy()
     if len(maybe):
-        out[maybe] = boxes_touch(h, f, maybe, camera.frustum_planes(vp))
+        out[maybe] = boxes_touch(h, f, maybe, frustum_planes(camera, vp))
     return np.flatnonzero(out)
 
 

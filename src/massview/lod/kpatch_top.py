@@ -64,6 +64,9 @@ class TopBatch:
         self._blocks(h)
         self._records(h)
         self.no0, self.no1 = ~self.ex0, ~self.ex1
+        self.nblocks = nb = sum(4 ** (lay.L - lv) for lv in range(lay.levels))  # the agreed residency's flat length
+        self.bid_or_true = np.stack([np.where(self.ex0, self.bid[0], nb), np.where(self.ex1, self.bid[1], nb)])
+        self.p01 = np.stack([self.p0, self.p1])
         self._levels = [(slice(a, b), np.stack([self.p0[a:b], self.p1[a:b]]), np.stack([self.ex0[a:b], self.ex1[a:b]]))
                         for a, b in zip(self.offsets[:-1], self.offsets[1:])]
         last = slice(self.offsets[-2], self.offsets[-1])  # the deepest batched depth (edges): the walk's seeds
@@ -142,15 +145,16 @@ class TopBatch:
         ok = crit
         r0 = r1 = None
         if not res.all:
-            r0, r1 = self._resident(res)
-            ok = crit & (r0 | self.no0) & (r1 | self.no1)
+            r0, r1 = self._resident(res)  # a half that does not exist reads True
+            ok = crit & r0
+            ok &= r1
         S = np.zeros(self.size + 2, bool)
         S[self.size + 1] = True  # the root's halves are always present
         for s, q, e in self._levels:
             bad = S.take(q)
             bad ^= e  # a half differs from what exists: absent where it exists, or the reverse
             np.greater(ok[s], bad[0] | bad[1], out=S[s])  # ok and no half is wrong
-        H0, H1 = S.take(self.p0), S.take(self.p1)
+        H0, H1 = S.take(self.p01)
         split = S[:self.size]
         if r0 is not None and request is not None:
             for rk, Hk, key in ((r0, H0, self.bkey[0]), (r1, H1, self.bkey[1])):
@@ -174,6 +178,13 @@ class TopBatch:
         return key.take(i) | (hb << 61), o.take(i), hb
 
     def _resident(self, res: Residency):
-        if res.fn is not None:
-            return tuple(np.asarray(res.fn(k[0], k[1], k[2]), bool) for k in self.bkey)
-        return res.flat[self.bid[0]], res.flat[self.bid[1]]
+        """Per half: its children's blocks are agreed resident, or the half does not exist."""
+        if res.fn is not None or len(res.flat) != self.nblocks:
+            if res.fn is None:
+                return res.flat[self.bid[0]] | self.no0, res.flat[self.bid[1]] | self.no1
+            return tuple(np.asarray(res.fn(k[0], k[1], k[2]), bool) | no for k, no in zip(self.bkey, (self.no0, self.no1)))
+        flat = np.empty(len(res.flat) + 1, bool)  # + a True sentinel that absent halves read
+        flat[:-1] = res.flat
+        flat[-1] = True
+        both = flat.take(self.bid_or_true)
+        return both[0], both[1]

@@ -273,7 +273,7 @@ def emit(h, parts, head, head_code):
 
 
 def _take_into(src: np.ndarray, idx, dst: np.ndarray) -> None:
-    if src.dtype == dst.dtype:
+    if src.dtype == dst.dtype:  # float64 columns and Lazy ones (computed in place)
         src.take(idx, out=dst, mode="clip")
     else:  # a narrower table (the hierarchy may keep float32 heights)
         dst[...] = src.take(idx)

@@ -14,9 +14,9 @@ import math
 import numpy as np
 
 from ..core.camera import Camera
-from .cull import boxes_in_frustum
+from .cull import boxes_in_frustum, frustum_planes
 
-__all__ = ["shading_blocks"]
+__all__ = ["shading_blocks", "ShadingPyramid"]
 
 
 def shading_blocks(minmax: list[np.ndarray], M: int, spacing, zmap, camera: Camera, limit: int = 4096):
@@ -47,3 +47,71 @@ def shading_blocks(minmax: list[np.ndarray], M: int, spacing, zmap, camera: Came
         bj = np.concatenate([2 * bj + b for b in (0, 1, 0, 1)])
         lv -= 1
     return tuple(np.concatenate([o[k] for o in out]) for k in range(4))
+
+
+class ShadingPyramid:
+    """:func:`shading_blocks` for one pyramid and height map, with the per-frame work cut to a
+    few whole-array operations per level: every block's box is computed once here (the same
+    float64 operations on the same integers, so the same values), a level's candidates are
+    gathered from it, and the distance to the eye is the norm's own sum √((d₀² + d₁²) + d₂²).
+    Every value — and with it every decision and priority — is the function's (issue 20;
+    tests/test_lod_stage.py compares the two)."""
+
+    def __init__(self, minmax: list[np.ndarray], M: int, spacing, zmap):
+        self.dx, self.dy = (float(v) for v in spacing)
+        self.boxes, self.nb = [], []  # per level: (lo, hi), (nb², 3) float64 each, row bi·nb + bj
+        for lv, mm in enumerate(minmax):
+            nb, span = mm.shape[0], (M - 1) << lv
+            self.nb.append(nb)
+            bi, bj = (g.ravel() for g in np.meshgrid(np.arange(nb, dtype=np.int64), np.arange(nb, dtype=np.int64), indexing="ij"))
+            lo = np.stack([bj * span * self.dx, -(bi + 1) * span * self.dy, zmap(mm[bi, bj, 0])], 1)
+            hi = np.stack([(bj + 1) * span * self.dx, -bi * span * self.dy, zmap(mm[bi, bj, 1])], 1)
+            self.boxes.append((lo, hi))
+
+    def blocks(self, camera: Camera, limit: int = 4096):
+        """(level, i, j, priority) arrays: exactly :func:`shading_blocks`'s."""
+        f = camera.height / 2 / math.tan(math.radians(camera.fovy) / 2)
+        planes = frustum_planes(camera)
+        eye = np.asarray(camera.position, np.float64)
+        lv = len(self.boxes) - 1
+        cand = np.zeros(1, np.int64)  # flat index bi·nb + bj within the level
+        out, count = [], 0
+        while True:
+            lo, hi = (b.take(cand, axis=0) for b in self.boxes[lv])
+            vis = np.flatnonzero(boxes_in_frustum(lo, hi, planes))
+            g = lo - eye  # per axis max(max(lo − eye, 0), eye − hi), as the function's
+            np.maximum(g, 0, out=g)
+            np.maximum(g, np.subtract(eye, hi), out=g)
+            g *= g
+            d = g[:, 0] + g[:, 1]
+            d += g[:, 2]
+            d = np.sqrt(d.take(vis))
+            cand = cand.take(vis)
+            out.append((lv, cand, d))
+            count += len(cand)
+            finer = np.flatnonzero(2.0**lv > d / f / min(self.dx, self.dy))  # the footprint test, same operations
+            if lv == 0 or not len(finer) or count > limit:
+                break
+            nb = self.nb[lv]
+            p = cand.take(finer)
+            bi, bj = p // nb, p % nb
+            base = bi * (4 * nb) + 2 * bj  # child (2bi + a, 2bj + b) at 2nb per side
+            c = np.empty((4, len(p)), np.int64)
+            c[0] = base
+            np.add(base, 1, out=c[1])
+            np.add(base, 2 * nb, out=c[2])
+            np.add(c[2], 1, out=c[3])
+            cand = c.ravel()
+            lv -= 1
+        total = count
+        lvl, bi, bj, pri = np.empty(total, np.int64), np.empty(total, np.int64), np.empty(total, np.int64), np.empty(total)
+        e = 0
+        for lv, c, d in out:
+            b, e = e, e + len(c)
+            nb = self.nb[lv]
+            lvl[b:e] = lv
+            np.floor_divide(c, nb, out=bi[b:e])
+            np.remainder(c, nb, out=bj[b:e])
+            np.add(d, 1.0, out=pri[b:e])
+        np.divide(1.0, pri, out=pri)
+        return lvl, bi, bj, pri

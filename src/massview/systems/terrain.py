@@ -40,7 +40,7 @@ from ..data.terrain import TerrainStore
 from ..lod.cull import screen_rects
 from ..lod.blockindex import BlockIndex, KeepSet
 from ..lod.kpatch import Front, PatchHierarchy, lookup_blocks, patch_boxes, select_front, visible_patches
-from ..lod.texlod import shading_blocks
+from ..lod.texlod import ShadingPyramid
 from ..parallel.decompose import parse_decomposition, sort_first_tiles, sort_last_ranges
 from ..parallel.exchange import agree_all, any_rank
 from ..parallel.runtime import return_free_heap
@@ -88,6 +88,7 @@ class TerrainSystem:
         self.h = self._hierarchy(1.0)
         self._blocks = BlockIndex(lay.levels, lay.L)
         self._tex_ids = np.zeros(0, np.int64)  # shading blocks the current view wants
+        self._shading_pyramid = (None, None)  # (hierarchy, ShadingPyramid) for _want_shading
         self._front_mask = np.zeros(self._blocks.size, bool)  # blocks this rank's last front drew from
         self._keep_mask = self._union = self._front_mask  # ... and, cutting tiles, every rank's (not evicted on upload)
         self._want_mask = np.zeros(self._blocks.size, bool)  # blocks this rank's cut requested
@@ -265,8 +266,10 @@ class TerrainSystem:
     def _want_shading(self, camera: Camera) -> None:
         """Request the shading-pyramid blocks this view samples (after the geometry's)."""
         h = self.h
-        lv, bi, bj, prio = shading_blocks(self._minmax, self.lay.M, self.store.spacing,
-                                          lambda z: h.base + h.exaggeration * (z * h.vs - h.base), camera)
+        if self._shading_pyramid[0] is not h:  # the blocks' world boxes, once per hierarchy (exaggeration)
+            self._shading_pyramid = (h, ShadingPyramid(self._minmax, self.lay.M, self.store.spacing,
+                                                       lambda z: h.base + h.exaggeration * (z * h.vs - h.base)))
+        lv, bi, bj, prio = self._shading_pyramid[1].blocks(camera)
         self._tex_ids = self._blocks.ids(lv, bi, bj)
         _, pool, _, _ = self._renderers()
         flat = self._blocks.flat(pool.resident)
