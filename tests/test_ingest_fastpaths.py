@@ -94,3 +94,43 @@ def test_make_chunk_root_is_only_a_hint(tmp_path):
     first = make_chunk_root(str(root))
     assert root.is_dir() and isinstance(first, bool)
     assert make_chunk_root(str(root)) == first  # again: no error, same answer
+
+
+def test_run_ordered_keeps_workers_busy_behind_a_slow_task_and_delivers_in_order():
+    import threading
+
+    from massview.data.terrain.workers import run_ordered
+
+    release, started, lock = threading.Event(), [], threading.Lock()
+
+    def task(k):
+        def run():
+            with lock:
+                started.append(k)
+            if k == 0:  # the oldest task is slow: it waits until task 5 has started
+                assert release.wait(30), "later tasks were not started while the oldest ran"
+            if k == 5:
+                release.set()
+            return k
+        return run
+
+    got = []
+    run_ordered(2, (task(k) for k in range(12)), got.append, depth=2)
+    assert got == list(range(12))  # results in submission order
+    assert started.index(5) < len(started) and release.is_set()
+
+
+def test_run_ordered_hands_on_the_results_before_a_failure_then_raises():
+    from massview.data.terrain.workers import run_ordered
+
+    def task(k):
+        def run():
+            if k == 4:
+                raise ValueError("task 4")
+            return k
+        return run
+
+    got = []
+    with pytest.raises(ValueError, match="task 4"):
+        run_ordered(2, (task(k) for k in range(10)), got.append)
+    assert got == [0, 1, 2, 3]

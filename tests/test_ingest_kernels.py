@@ -108,6 +108,17 @@ def test_local_d2_matches_numpy():
     assert np.array_equal(out, roettger.local_d2(g, 8))
 
 
+@pytest.mark.parametrize("N,row0,h", [(1, 0, 2), (8, 0, 16), (8, 4, 6), (16, 14, 4), (16, 30, 2), (16, 8, 512)])
+def test_propagate_max_matches_numpy(N, row0, h):
+    rng = np.random.default_rng(N + row0)
+    fine = np.abs(rng.normal(size=(min(h, 2 * N - row0), 2 * N))).astype(np.float32)
+    start = np.abs(rng.normal(size=(N, N))).astype(np.float32) * np.float32(0.5)
+    want, got = start.copy(), start.copy()
+    roettger.propagate_into(want, fine, row0, roettger.k_factor(4.0))
+    roettger._propagate_compiled(got, fine, row0, roettger.k_factor(4.0))
+    assert np.array_equal(got, want) and not np.array_equal(got, start)
+
+
 # -- the exact K-patch error kernel (kernels.grid_errors) against the per-square loop it replaced --
 def _grid_inputs(b, s, f, bi, bj, m):
     from massview.data.terrain.deviation import _region_table, grid_error_args

@@ -97,11 +97,13 @@ class DeviationAccumulator:
         or the "window" ones (lattice squares larger than a block: they need ``coarse``)."""
         lay = self.lay
         b = np.ascontiguousarray(b, np.float32)
-        r = bi * (lay.M - 1) + np.arange(lay.M)
-        c = bj * (lay.M - 1) + np.arange(lay.M)
-        valid = np.ascontiguousarray((r[:, None] < lay.rows) & (c[None, :] < lay.cols))
-        if valid.all():
-            valid = None
+        valid = None
+        if (bi + 1) * (lay.M - 1) >= lay.rows or (bj + 1) * (lay.M - 1) >= lay.cols:  # the block may hold padding
+            r = bi * (lay.M - 1) + np.arange(lay.M)
+            c = bj * (lay.M - 1) + np.arange(lay.M)
+            valid = np.ascontiguousarray((r[:, None] < lay.rows) & (c[None, :] < lay.cols))
+            if valid.all():
+                valid = None
         self._eps = np.float32(8 * np.finfo(np.float32).eps * float(np.abs(b).max()))  # float32 rounding of z
         for j in range(lay.J):
             if part == "all" or (part == "grid") == (lay.J - j <= lay.m):

@@ -67,6 +67,17 @@ def _local_d2_compiled(grid: np.ndarray, d: int) -> np.ndarray:
     return out
 
 
+def _propagate_compiled(coarse: np.ndarray, fine: np.ndarray, row0: int, K: float) -> None:
+    """:func:`propagate_into` in one compiled pass, no temporaries (ingest only, as
+    :func:`_local_d2_compiled`)."""
+    from .rowkernels import propagate_max
+
+    if coarse.dtype != np.float32 or not coarse.flags.c_contiguous or fine.shape[0] % 2 or fine.shape[1] != 2 * coarse.shape[1]:
+        propagate_into(coarse, fine, row0, K)
+        return
+    propagate_max(coarse, np.ascontiguousarray(fine, np.float32), row0 // 2, np.float32(K))
+
+
 def propagate_into(coarse: np.ndarray, fine: np.ndarray, row0: int, K: float) -> None:
     """Max-merge ``K × fine`` into ``coarse`` (in place) for every coarse node that a fine node
     lies in or touches along an edge from outside. ``fine`` holds fine node rows
@@ -191,7 +202,7 @@ class TableBuilder:
         with self._lock:
             if t == n - 1:
                 if n >= 2:
-                    propagate_into(self.d2[n - 2], a, g0 // 2, self.K)
+                    _propagate_compiled(self.d2[n - 2], a, g0 // 2, self.K)
             else:
                 band = self.d2[t][g0 // 2: g0 // 2 + a.shape[0]]
                 np.maximum(a, band, out=band)
@@ -207,7 +218,7 @@ class TableBuilder:
         for t in range(n - 2, -1, -1):
             done, self.d2[t] = self.d2[t], None
             for r in range(0, done.shape[0] if t >= 1 else 0, 512):  # in row bands: bounded temporaries, same maxima
-                propagate_into(self.d2[t - 1], done[r: r + 512], r, self.K)
+                _propagate_compiled(self.d2[t - 1], done[r: r + 512], r, self.K)
             if progress:
                 progress("roettger", 1, n - 1)
             yield t, done

@@ -12,7 +12,9 @@ kernel with the numpy expression it replaces):
 * :func:`horn_row` / :func:`tent_row`: level-0 shading (Horn's slopes and the height fraction)
   and the [1 2 1]/4 mip step of :mod:`colors`, writing float16 with numpy's own rounding
   (:func:`_half_bits`: numba has no float16 type on the CPU);
-* :func:`local_d2`: Röttger's local roughness (:func:`roettger.local_d2`).
+* :func:`local_d2`: Röttger's local roughness (:func:`roettger.local_d2`);
+* :func:`propagate_max`: Röttger's propagation of a depth into the next coarser one
+  (:func:`roettger.propagate_into`, without its eight band-sized temporaries).
 
 Inputs beyond the domain border are clamped (edge replication), as the numpy versions pad.
 """
@@ -23,7 +25,7 @@ import numpy as np
 
 from .kernels import _jit
 
-__all__ = ["block_stats", "horn_row", "tent_row", "local_d2", "half_lut", "to_half"]
+__all__ = ["block_stats", "horn_row", "tent_row", "local_d2", "propagate_max", "half_lut", "to_half"]
 
 _HALF = np.float32(0.5)
 _QUART = np.float32(0.25)
@@ -196,3 +198,28 @@ def local_d2(g, d, out):
             dev = max(dev, abs(ctr - (c00 + c11) * _HALF))
             dev = max(dev, abs(ctr - (c01 + c10) * _HALF))
             out[i, j] = dev / fd
+
+
+@_jit
+def propagate_max(coarse, fine, q0, k):
+    """:func:`roettger.propagate_into` (``q0`` = row0 // 2, ``k`` float32): each 2 × 2 group of
+    ``fine`` times ``k`` max-merged into its coarse node (all four), the node above (top two),
+    below (bottom two), left (left two) and right (right two), where inside ``coarse``. The
+    same float32 products; maxima are exact in any order."""
+    H, W = coarse.shape
+    for i in range(fine.shape[0] // 2):
+        r = q0 + i
+        for j in range(fine.shape[1] // 2):
+            tl, tr = fine[2 * i, 2 * j] * k, fine[2 * i, 2 * j + 1] * k
+            bl, br = fine[2 * i + 1, 2 * j] * k, fine[2 * i + 1, 2 * j + 1] * k
+            top, bottom = max(tl, tr), max(bl, br)
+            if 0 <= r < H:
+                coarse[r, j] = max(coarse[r, j], max(top, bottom))
+                if j >= 1:
+                    coarse[r, j - 1] = max(coarse[r, j - 1], max(tl, bl))
+                if j + 1 < W:
+                    coarse[r, j + 1] = max(coarse[r, j + 1], max(tr, br))
+            if 0 <= r - 1 < H:
+                coarse[r - 1, j] = max(coarse[r - 1, j], top)
+            if 0 <= r + 1 < H:
+                coarse[r + 1, j] = max(coarse[r + 1, j], bottom)

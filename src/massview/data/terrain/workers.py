@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from typing import Callable, Iterable
 
 from ...core.errors import ConfigError
@@ -34,27 +34,45 @@ def resolve_workers(workers: int | None) -> int:
 def run_ordered(workers: int, tasks: Iterable[Callable[[], object]], done: Callable[[object], None] | None = None,
                 depth: int = 2) -> None:
     """Run ``tasks`` (zero-argument callables, produced lazily) on ``workers`` threads with at
-    most ``depth × workers`` in flight, and hand each result to ``done`` in submission order
-    (on the calling thread). One worker runs everything inline, in order. If producing a task
-    or a task fails, the tasks already submitted are still finished and handed to ``done`` in
-    order up to the first failure (so work that reached the disk is recorded as done, for a
-    resumed run), then the error is raised."""
+    most ``depth × workers`` of them unfinished (queued or running) at once, and hand each
+    result to ``done`` in submission order (on the calling thread). A task that finished
+    before an older one waits for it with only its result held, and the next task is submitted
+    at once: a slow task never leaves a worker idle (waiting for the oldest task, as this did
+    before issue 20's fifth round, left one of two workers idle while it ran), and no more
+    inputs are alive than before. One worker runs everything inline, in order. If producing a
+    task or a task fails, the tasks already submitted are still finished and handed to
+    ``done`` in order up to the first failure (so work that reached the disk is recorded as
+    done, for a resumed run), then the error is raised."""
     sink = done or (lambda r: None)
     if workers <= 1:
         for t in tasks:
             sink(t())
         return
+    limit = depth * workers
     pending: deque[Future] = deque()
+    failed = []
+
+    def take() -> None:  # the oldest result to ``done``; a failed task's error is raised
+        f = pending.popleft()
+        if f.exception() is not None:
+            failed.append(f)
+        sink(f.result())
+
     with ThreadPoolExecutor(workers, thread_name_prefix="ingest") as ex:
         try:
             for t in tasks:
                 pending.append(ex.submit(t))
-                while len(pending) >= depth * workers:
-                    sink(pending.popleft().result())
+                while True:
+                    while pending and pending[0].done():
+                        take()
+                    busy = [f for f in pending if not f.done()]
+                    if len(busy) < limit and len(pending) < 4 * limit:  # (finished results wait, but not without bound)
+                        break
+                    wait(busy, return_when=FIRST_COMPLETED)
             while pending:
-                sink(pending.popleft().result())
+                take()
         except BaseException:
-            while pending:
+            while pending and not failed:  # (producing a task failed, or ``done``: finish what was submitted)
                 try:
                     res = pending.popleft().result()
                 except BaseException:  # noqa: BLE001 - the first error is the one raised
