@@ -275,3 +275,19 @@ def test_shading_pyramid_is_shading_blocks(hier):
                         assert x.dtype == y.dtype and np.array_equal(x, y)
                     n += len(a[0])
         assert n > 0
+
+
+def test_bench_lod_against_another_checkout(terrain_store, tmp_path):
+    """``bench lod --against SRC`` times another checkout's stage beside this one in one process
+    and checks their output equal (here: this checkout against itself); a directory without a
+    massview package is a clear error naming the option."""
+    from pathlib import Path
+
+    import massview
+
+    src = Path(massview.__file__).parents[1]
+    out = run_cli("bench", "lod", "--store", terrain_store, "--targets", "3000", "--frames", "2", "--repeat", "1", "--tiles", "2",
+                  "--against", src).stdout
+    assert "(before) vs this checkout" in out and "identical" in out and "DIFFERENT" not in out
+    bad = run_cli("bench", "lod", "--store", terrain_store, "--against", tmp_path, check=False)
+    assert bad.returncode != 0 and "--against" in bad.stderr + bad.stdout
