@@ -251,7 +251,8 @@ def emit(h, parts, head, head_code):
     total = m + sum(len(p[2]) for p in parts)
     cols, zs, code = np.empty((11, total), np.int64), np.empty((2, total)), np.empty(total, np.int8)
     cols[:, :m] = top.rec_int.take(head, axis=1)
-    top.rec_flt.take(head, axis=1, out=zs[:, :m], mode="clip")
+    top.rec_flt[0].take(head, out=zs[0, :m], mode="clip")
+    top.rec_flt[1].take(head, out=zs[1, :m], mode="clip")
     head_code.take(head, out=code[:m], mode="wrap")  # half records: size + i is diamond i's half 1
     if total == m:
         return cols, zs, code
@@ -286,10 +287,12 @@ def _patch_records(lay, key, row, out) -> None:
     sa = verts[6].take(row)
     x0 = (key & _M) << sa
     y0 = ((key >> 30) & _M) << sa
-    verts[:6].take(row, axis=1, out=out[:6], mode="clip")
-    out[0:6:2] += x0
-    out[1:6:2] += y0
-    rec[:5].take(row, axis=1, out=out[6:], mode="clip")
+    for i in range(6):  # row by row: a take into a contiguous row needs no buffer (a (k, n) slice of out would)
+        o = out[i]
+        verts[i].take(row, out=o, mode="clip")
+        o += x0 if i % 2 == 0 else y0
+    for i in range(5):
+        rec[i].take(row, out=out[6 + i], mode="clip")
     sh = rec[5].take(row)
     out[8] += y0
     out[8] >>= sh
