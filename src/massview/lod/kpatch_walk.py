@@ -153,8 +153,11 @@ def _edge_kids(ks, hb, dk, di, m: int):
     as a key (``di``: the same offsets in ids v·m + u)."""
     c = (ks & _VU) << 1
     w = ((c >> 30) * m) | (c & _M)
-    keys = np.concatenate([c - dk[0], c - dk[1], c - dk[2], c - dk[3]])
-    ids = np.concatenate([w - di[0], w - di[1], w - di[2], w - di[3]])
+    n = len(c)
+    keys, ids = np.empty(4 * n, np.int64), np.empty(4 * n, np.int64)
+    for i in range(4):  # written in place: c − dk[0], c − dk[1], ... one after the other
+        np.subtract(c, dk[i], out=keys[i * n:(i + 1) * n])
+        np.subtract(w, di[i], out=ids[i * n:(i + 1) * n])
     if len(hb) and not (hb == 3).all():  # border edges: one half
         h0, h1 = (hb & 1) != 0, hb >= 2
         ok = np.flatnonzero(np.concatenate([h0, h0, h1, h1]))
