@@ -272,7 +272,11 @@ def emit(h, parts, head, head_code):
     row |= key & 1
     row |= (key >> 29) & 2
     row |= (key >> 57) & 8
-    _patch_records(h.dims, key, row, cols[:, m:])
+    spans, e = [], 0
+    for p in parts:
+        b, e = e, e + len(p[2])
+        spans.append((b, e, p[0]))
+    _patch_records(h.dims, key, row, cols[:, m:], spans)
     return cols, zs, code
 
 
@@ -283,21 +287,33 @@ def _take_into(src: np.ndarray, idx, dst: np.ndarray) -> None:
         dst[...] = src.take(idx)
 
 
-def _patch_records(lay, key, row, out) -> None:
+def _patch_records(lay, key, row, out, spans) -> None:
     """Write the 11 integer Front columns (``out``, (11, n)) of the patches ``key`` (table rows
-    ``row``): vertices (u·a, v·a) + offset, depth, level, block (centroid ≫ shift), stride."""
+    ``row``): vertices (u·a, v·a) + offset, depth, level, block (centroid ≫ shift), stride.
+    ``spans``: (begin, end, depth t) of each depth's patches, whose depth, level, stride, side
+    and block shift are the depth's constants (the tables' values for t), so those columns are
+    filled and shifted per span rather than gathered per patch."""
     verts, rec = _vertex_tables(lay.n, lay.J, lay.L, lay.m)
-    sa = verts[6].take(row)
-    x0 = (key & _M) << sa
-    y0 = ((key >> 30) & _M) << sa
+    x0 = key & _M
+    y0 = key >> 30
+    y0 &= _M
+    for b, e, t in spans:
+        r = 16 * t
+        sa = int(verts[6, r])
+        x0[b:e] <<= sa
+        y0[b:e] <<= sa
+        out[6, b:e] = rec[0, r]
+        out[7, b:e] = rec[1, r]
+        out[10, b:e] = rec[4, r]
     for i in range(6):  # row by row: a take into a contiguous row needs no buffer (a (k, n) slice of out would)
         o = out[i]
         verts[i].take(row, out=o, mode="clip")
         o += x0 if i % 2 == 0 else y0
-    for i in range(5):
-        rec[i].take(row, out=out[6 + i], mode="clip")
-    sh = rec[5].take(row)
+    rec[2].take(row, out=out[8], mode="clip")
+    rec[3].take(row, out=out[9], mode="clip")
     out[8] += y0
-    out[8] >>= sh
     out[9] += x0
-    out[9] >>= sh
+    for b, e, t in spans:
+        sh = int(rec[5, 16 * t])
+        out[8, b:e] >>= sh
+        out[9, b:e] >>= sh
