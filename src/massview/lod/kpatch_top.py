@@ -156,7 +156,7 @@ class TopBatch:
             np.greater(ok[s], bad[0] | bad[1], out=S[s])  # ok and no half is wrong
         H0, H1 = S.take(self.p01)
         split = S[:self.size]
-        if r0 is not None and request is not None:
+        if r0 is not None and request is not None and not np.array_equal(ok, crit):  # some critical half's blocks missing
             for rk, Hk, key in ((r0, H0, self.bkey[0]), (r1, H1, self.bkey[1])):
                 miss = crit & Hk & ~rk
                 if miss.any():
