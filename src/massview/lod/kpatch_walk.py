@@ -106,7 +106,7 @@ def _kept(t: int, ids, key, code, hb, crit, split):
     h0, h1 = (hb & 1) != 0, hb >= 2
     stay = ~split
     wait = crit & stay
-    deferred = int(np.count_nonzero(wait & h0)) + int(np.count_nonzero(wait & h1))
+    deferred = int(np.count_nonzero(wait & h0)) + int(np.count_nonzero(wait & h1)) if wait.any() else 0
     s0 = np.flatnonzero(stay & h0)
     sel = np.concatenate([s0, np.flatnonzero(stay & h1)])
     return (t, len(s0), ids.take(sel), key.take(sel), code.take(sel)), deferred
