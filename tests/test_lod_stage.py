@@ -291,3 +291,26 @@ def test_bench_lod_against_another_checkout(terrain_store, tmp_path):
     assert "(before) vs this checkout" in out and "identical" in out and "DIFFERENT" not in out
     bad = run_cli("bench", "lod", "--store", terrain_store, "--against", tmp_path, check=False)
     assert bad.returncode != 0 and "--against" in bad.stderr + bad.stdout
+
+
+def test_front_block_ids_written_by_the_walk(hier):
+    """The block ids the walk writes into the front (and keeps through ``take``) are the ones
+    ``Front.block_ids`` computes from the front's columns."""
+    import dataclasses
+
+    from massview.lod.blockindex import BlockIndex
+
+    st, _, hn = hier
+    lay = st.layout
+    index = BlockIndex(lay.levels, lay.L)
+    grids = [np.ones((2 ** (lay.L - lv),) * 2, bool) for lv in range(lay.levels)]
+    grids[0][::2] = False
+    for path, at, tau, vp in (("flyover", 0.3, 0.5, None), ("zoom", 0.7, 0.2, None), ("turn", 0.5, 1.0, grid_tiles(480, 270, 2, 2)[1])):
+        cam = load_path(path, *hn.bounds()).camera(at, 480, 270)
+        for res in (None, grids):
+            f = new.select_front(hn, cam, tau, res, viewport=vp)
+            assert f.bid is not None and len(f) > 100
+            plain = dataclasses.replace(f, bid=None)
+            assert np.array_equal(f.block_ids(index.offset, index.nb), plain.block_ids(index.offset, index.nb))
+            idx = np.arange(0, len(f), 3)
+            assert np.array_equal(f.take(idx).block_ids(index.offset, index.nb), plain.take(idx).block_ids(index.offset, index.nb))

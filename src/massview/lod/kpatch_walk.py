@@ -245,7 +245,7 @@ def _vertex_tables(n: int, J: int, L: int, m: int):
 
 def emit(h, parts, head, head_code):
     """The Front's columns: (int64 (11, n): ax … stride, float64 (2, n): zmin, zmax, int8 (n,):
-    codes) — the batched top's kept halves first (``head``: positions in its half records,
+    codes, int64 (n,): flat block ids) — the batched top's kept halves first (``head``: positions in its half records,
     ``head_code``: its diamonds' codes), then the kept halves of ``parts``
     (square depths, then edge depths; in each depth its half-0 patches before its half-1
     patches), each column written once."""
@@ -253,12 +253,14 @@ def emit(h, parts, head, head_code):
     top, m = h.top, len(head)
     total = m + sum(len(p[2]) for p in parts)
     cols, zs, code = np.empty((11, total), np.int64), np.empty((2, total)), np.empty(total, np.int8)
+    bid = np.empty(total, np.int64)  # flat block ids (Front.block_ids)
+    top.rec_bid.take(head, out=bid[:m])
     cols[:, :m] = top.rec_int.take(head, axis=1)
     top.rec_flt[0].take(head, out=zs[0, :m], mode="clip")
     top.rec_flt[1].take(head, out=zs[1, :m], mode="clip")
     head_code.take(head, out=code[:m], mode="wrap")  # half records: size + i is diamond i's half 1
     if total == m:
-        return cols, zs, code
+        return cols, zs, code, bid
     key = np.concatenate([p[3] for p in parts])
     np.concatenate([p[4] for p in parts], out=code[m:])
     e = m
@@ -277,7 +279,14 @@ def emit(h, parts, head, head_code):
         b, e = e, e + len(p[2])
         spans.append((b, e, p[0]))
     _patch_records(h.dims, key, row, cols[:, m:], spans)
-    return cols, zs, code
+    lay, L = h.dims, h.dims.L
+    for b, e, t in spans:  # one block level per depth
+        blvl = min(draw_level(lay.J, t), L)
+        o = bid[m + b:m + e]
+        np.left_shift(cols[8, m + b:m + e], L - blvl, out=o)
+        o += cols[9, m + b:m + e]
+        o += int(top.block_offsets[blvl])
+    return cols, zs, code, bid
 
 
 def _take_into(src: np.ndarray, idx, dst: np.ndarray) -> None:
