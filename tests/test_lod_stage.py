@@ -143,3 +143,174 @@ def test_per_tile_cuts_with_loads_assemble_to_the_serial_image(tmp_path, terrain
     recs = [json.loads(x) for x in (tmp_path / "stats.jsonl").read_text().splitlines()]
     assert sum(r["counters"].get("blocks_loaded", 0) for r in recs) > 0
     assert sum(r["counters"].get("deferred_splits", 0) for r in recs) > 0  # data was missing at times
+
+
+# -- issue 20, lod5: the faster stage selects today's cut, in today's order -----------------------
+#
+# Digests of the whole LOD stage's output recorded with the code before the lod5 speed-ups (main
+# 8e7be8a) by ``_stage_digests`` below: per (path, at, τ) the front (every column, in order, the
+# culling codes and the deferred count), the shading blocks wanted, and every task's share for
+# sort-last (kpatch, linear, quadtree at 3 ranks) and sort-first (horizontal at 4 ranks, grid at
+# 4: each rank's own tile cut and its visible patches). Any change of a value or of the order
+# changes a digest.
+STAGE_CASES = [("flyover", 0.3, 1.0), ("flyover", 0.8, 0.35), ("zoom", 0.6, 0.5), ("turn", 0.4, 2.0), ("forward", 0.9, 0.25)]
+STAGE_DIGESTS = {
+    'flyover@0.3/1.0': '8455def47fe640c87ab4',
+    'flyover@0.3/1.0:kpatch': '24f8ec1965cbd78a184b',
+    'flyover@0.3/1.0:linear': '8c18223300f54e6f9a77',
+    'flyover@0.3/1.0:quadtree': 'ec4d4ced9633c329c657',
+    'flyover@0.3/1.0:horizontal': '95d37d31f24f347afab9',
+    'flyover@0.3/1.0:grid': 'c9dcf54f10c9b2208526',
+    'flyover@0.8/0.35': '8816c51a459e7f56546c',
+    'flyover@0.8/0.35:kpatch': '172ce84c5fce67d76381',
+    'flyover@0.8/0.35:linear': 'a40ba8c55ab57875d70b',
+    'flyover@0.8/0.35:quadtree': '3a8ed6542c53a8c2774a',
+    'flyover@0.8/0.35:horizontal': '9b7d2174357ae0c2774d',
+    'flyover@0.8/0.35:grid': '721257d9ea64642758b7',
+    'zoom@0.6/0.5': 'be61dd19d8fae5a6cb11',
+    'zoom@0.6/0.5:kpatch': '191ca7fc6082b2d3e061',
+    'zoom@0.6/0.5:linear': 'df8fd66540c588e04484',
+    'zoom@0.6/0.5:quadtree': '6473a1eb7aeb8e705e39',
+    'zoom@0.6/0.5:horizontal': '3e0f99820339daba423f',
+    'zoom@0.6/0.5:grid': '53b4f19325ebda68a0de',
+    'turn@0.4/2.0': 'f9c6f8ce62bd5e94477e',
+    'turn@0.4/2.0:kpatch': '29aa01b4355970064e3a',
+    'turn@0.4/2.0:linear': 'e66497aec3c4daf0d5b9',
+    'turn@0.4/2.0:quadtree': 'b70ec5e1796f2bde1f23',
+    'turn@0.4/2.0:horizontal': '001ca68b197d3ce789fe',
+    'turn@0.4/2.0:grid': 'c716de2d1da13475907f',
+    'forward@0.9/0.25': 'ef3d75e9e7ee1a9d3c1d',
+    'forward@0.9/0.25:kpatch': '26f19339d6ff1a8dddd6',
+    'forward@0.9/0.25:linear': 'a8db50ae2829b927233b',
+    'forward@0.9/0.25:quadtree': 'a273fa6fa908d46f5c75',
+    'forward@0.9/0.25:horizontal': '8ae18d3759c586c56f8f',
+    'forward@0.9/0.25:grid': '3238e79edf0e258f5e14',
+}
+
+
+class _Ranks:
+    """Rank r of n in one process (collectives return this rank's own data)."""
+
+    def __init__(self, r: int = 0, n: int = 1):
+        self.r, self.n = r, n
+
+    def Get_rank(self):
+        return self.r
+
+    def Get_size(self):
+        return self.n
+
+    def Allreduce(self, mine, out, op=None):
+        out[...] = mine
+
+    def allreduce(self, v, op=None):
+        return v
+
+
+def _stage_digests(store) -> dict:
+    import hashlib
+
+    from massview.systems.terrain import TerrainSystem
+
+    def h(*arrays) -> str:
+        d = hashlib.sha256()
+        for a in arrays:
+            a = np.ascontiguousarray(a)
+            d.update(str((a.dtype.str, a.shape)).encode())
+            d.update(a.tobytes())
+        return d.hexdigest()[:20]
+
+    out = {}
+    sysm = TerrainSystem(store, loading="complete")
+    try:
+        w, hh = 400, 240
+        for path, at, tau in STAGE_CASES:
+            cam = load_path(path, *sysm.bounds).camera(at, w, hh)
+            key = f"{path}@{at}/{tau}"
+            for mode in ("kpatch", "linear", "quadtree"):
+                cfg = RenderConfig(width=w, height=hh, tau=tau, loading="complete", decomposition=f"sort-last:{mode}")
+                sysm.prepare_frame(_Ranks(), cam, cfg, FrameStats(0, 0))
+                f = sysm.front
+                out[key] = h(*(getattr(f, k) for k in FIELDS), f.code, np.array([f.deferred]), sysm._tex_ids)
+                out[f"{key}:{mode}"] = h(*(sysm.select(t, cam, cfg) for t in sysm.plan(cam, cfg, 3)))
+            for layout in ("horizontal", "grid"):
+                cfg = RenderConfig(width=w, height=hh, tau=tau, loading="complete", decomposition=f"sort-first:{layout}")
+                shares = []
+                for r in range(4):
+                    sysm.prepare_frame(_Ranks(r, 4), cam, cfg, FrameStats(0, 0))
+                    f = sysm.front
+                    shares += [*(getattr(f, k) for k in FIELDS), f.code, sysm.select(sysm.plan(cam, cfg, 4)[r], cam, cfg)]
+                out[f"{key}:{layout}"] = h(*shares)
+    finally:
+        sysm.close()
+    return out
+
+
+def test_stage_output_is_todays(terrain_store):
+    """The whole LOD stage (front, shading wants, every task's share) is bit for bit what it was
+    before the lod5 speed-ups, in the same order, for sort-last and per-tile sort-first."""
+    got = _stage_digests(terrain_store)
+    assert got.keys() == STAGE_DIGESTS.keys()
+    bad = [k for k in got if got[k] != STAGE_DIGESTS[k]]
+    assert not bad, bad
+
+
+def test_shading_pyramid_is_shading_blocks(hier):
+    """ShadingPyramid (boxes once per hierarchy) wants exactly shading_blocks' blocks and priorities."""
+    from massview.lod.texlod import ShadingPyramid, shading_blocks
+
+    st, _, hn = hier
+    mm = [st.block_minmax(lv) for lv in range(st.layout.levels)]
+    for Z in (1.0, 2.5):
+        zmap = lambda z: hn.base + Z * (z * hn.vs - hn.base)  # noqa: E731
+        pyr = ShadingPyramid(mm, st.layout.M, st.spacing, zmap)
+        n = 0
+        for path in ("flyover", "zoom", "turn", "forward"):
+            p = load_path(path, *hn.bounds())
+            for at in np.linspace(0, 1, 9):
+                for size, limit in (((640, 360), 4096), ((1920, 1080), 4096), ((320, 240), 6)):
+                    cam = p.camera(float(at), *size)
+                    a, b = shading_blocks(mm, st.layout.M, st.spacing, zmap, cam, limit), pyr.blocks(cam, limit)
+                    for x, y in zip(a, b):
+                        assert x.dtype == y.dtype and np.array_equal(x, y)
+                    n += len(a[0])
+        assert n > 0
+
+
+def test_bench_lod_against_another_checkout(terrain_store, tmp_path):
+    """``bench lod --against SRC`` times another checkout's stage beside this one in one process
+    and checks their output equal (here: this checkout against itself); a directory without a
+    massview package is a clear error naming the option."""
+    from pathlib import Path
+
+    import massview
+
+    src = Path(massview.__file__).parents[1]
+    out = run_cli("bench", "lod", "--store", terrain_store, "--targets", "3000", "--frames", "2", "--repeat", "1", "--tiles", "2",
+                  "--against", src).stdout
+    assert "(before) vs this checkout" in out and "identical" in out and "DIFFERENT" not in out
+    bad = run_cli("bench", "lod", "--store", terrain_store, "--against", tmp_path, check=False)
+    assert bad.returncode != 0 and "--against" in bad.stderr + bad.stdout
+
+
+def test_front_block_ids_written_by_the_walk(hier):
+    """The block ids the walk writes into the front (and keeps through ``take``) are the ones
+    ``Front.block_ids`` computes from the front's columns."""
+    import dataclasses
+
+    from massview.lod.blockindex import BlockIndex
+
+    st, _, hn = hier
+    lay = st.layout
+    index = BlockIndex(lay.levels, lay.L)
+    grids = [np.ones((2 ** (lay.L - lv),) * 2, bool) for lv in range(lay.levels)]
+    grids[0][::2] = False
+    for path, at, tau, vp in (("flyover", 0.3, 0.5, None), ("zoom", 0.7, 0.2, None), ("turn", 0.5, 1.0, grid_tiles(480, 270, 2, 2)[1])):
+        cam = load_path(path, *hn.bounds()).camera(at, 480, 270)
+        for res in (None, grids):
+            f = new.select_front(hn, cam, tau, res, viewport=vp)
+            assert f.bid is not None and len(f) > 100
+            plain = dataclasses.replace(f, bid=None)
+            assert np.array_equal(f.block_ids(index.offset, index.nb), plain.block_ids(index.offset, index.nb))
+            idx = np.arange(0, len(f), 3)
+            assert np.array_equal(f.take(idx).block_ids(index.offset, index.nb), plain.take(idx).block_ids(index.offset, index.nb))

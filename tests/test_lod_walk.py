@@ -41,13 +41,14 @@ def test_patch_records_match_the_geometry(rows, M, K):
     patch centroid ((ay + ly + ry) // 3 >> (level + m)), depth, block level and stride."""
     lay = Dims(TerrainLayout(rows, rows, M, K))
     rng = np.random.default_rng(rows)
+    keys, rows_, wants = [], [], []
     for t in range(2 * lay.J + 1):
         o, v, u = _diamonds(rng, t, 300)
         half = rng.integers(0, 2, len(v)).astype(bool)
         key = walk.pack(o, v, u, ~half, half)
         row = 16 * t + (u & 1) + 2 * (v & 1) + 4 * half + 8 * o
         out = np.zeros((11, len(v)), np.int64)
-        walk._patch_records(lay, key, row, out)
+        walk._patch_records(lay, key, row, out, [(0, len(v), t)])
         ax, ay, lx, ly, rx, ry = patch_vertices(t, o, v, u, half, lay.square_side(t // 2))
         lvl = draw_level(lay.J, t)
         blvl = min(lvl, lay.L)
@@ -56,6 +57,12 @@ def test_patch_records_match_the_geometry(rows, M, K):
                 (ax + lx + rx) // 3 // span, np.full(len(v), 2 ** (lvl - blvl))]
         for k, (got, exp) in enumerate(zip(out, want)):
             assert np.array_equal(got, exp), (t, FIELDS[k])
+        keys.append(key), rows_.append(row), wants.append(np.stack(want))
+    # every depth in one call, one span each (as emit writes a front)
+    n = np.cumsum([0] + [len(k) for k in keys])
+    out = np.zeros((11, n[-1]), np.int64)
+    walk._patch_records(lay, np.concatenate(keys), np.concatenate(rows_), out, [(n[t], n[t + 1], t) for t in range(len(keys))])
+    assert np.array_equal(out, np.concatenate(wants, axis=1))
 
 
 @pytest.mark.parametrize("rows,M,K", LAYOUTS)

@@ -37,7 +37,7 @@ tests/test_lod_stage.py), and it can be restricted to a sort-first tile's sub-fr
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from typing import Callable
 
@@ -212,6 +212,8 @@ class Front:
     deferred: int = 0  # diamonds that wanted to split but waited for data
     code: np.ndarray | None = None
     code_vp: Viewport | None = None
+    bid: np.ndarray | None = field(default=None, repr=False, compare=False)  # flat block ids (:meth:`block_ids`), as the walk wrote them
+    bid_offsets: np.ndarray | None = field(default=None, repr=False, compare=False)  # ... for these per-level offsets
 
     FIELDS = ("ax", "ay", "lx", "ly", "rx", "ry", "depth", "level", "bi", "bj", "stride", "zmin", "zmax")
 
@@ -220,14 +222,19 @@ class Front:
 
     def take(self, idx) -> "Front":
         f = {k: getattr(self, k)[idx] for k in self.FIELDS}
-        return Front(**f, deferred=self.deferred, code=None if self.code is None else self.code[idx], code_vp=self.code_vp)
+        return Front(**f, deferred=self.deferred, code=None if self.code is None else self.code[idx], code_vp=self.code_vp,
+                     bid=None if self.bid is None else self.bid[idx], bid_offsets=self.bid_offsets)
 
     @classmethod
     def empty(cls) -> "Front":
         return cls(*(np.zeros(0, np.int64) for _ in range(11)), np.zeros(0), np.zeros(0), code=np.zeros(0, np.int8))
 
     def block_ids(self, offsets: np.ndarray, nb: list[int]) -> np.ndarray:
-        """Flat ids of the blocks the patches draw from (``offsets[level] + bi·nb[level] + bj``)."""
+        """Flat ids of the blocks the patches draw from (``offsets[level] + bi·nb[level] + bj``,
+        levels stacked finest first with ``nb[level] = 2^(top − level)`` blocks per side; the walk
+        writes them as it emits the front, then they are returned as they are)."""
+        if self.bid is not None and np.array_equal(self.bid_offsets, offsets[:len(self.bid_offsets)]):
+            return self.bid
         ids = np.asarray(offsets).take(self.level)
         ids += self.bi * np.asarray(nb).take(self.level)
         ids += self.bj
@@ -266,8 +273,8 @@ def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident=N
     head = top.kept(split, H0, H1)
     seed = kpatch_walk.edge_children(h, 2 ** (top.depths // 2 - 1), *top.seeds(split, H0, H1))
     parts, d = kpatch_walk.walk(h, view, res, request, top.depths, seed)
-    cols, zs, codes = kpatch_walk.emit(h, parts, head, code)
-    return Front(*cols, *zs, deferred=deferred + d, code=codes, code_vp=view_vp(camera, viewport))
+    cols, zs, codes, bid = kpatch_walk.emit(h, parts, head, code)
+    return Front(*cols, *zs, deferred=deferred + d, code=codes, code_vp=view_vp(camera, viewport), bid=bid, bid_offsets=top.block_offsets)
 
 
 def view_vp(camera: Camera, vp: Viewport | None) -> Viewport | None:

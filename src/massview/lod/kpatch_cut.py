@@ -87,8 +87,10 @@ class View:
     def to_camera(self, xyz: np.ndarray) -> np.ndarray:
         """(3, n) world points to camera space, the same float64 values as :meth:`camera_space`."""
         p = self._rot[:, 0] * xyz[0]
-        p += self._rot[:, 1] * xyz[1]
-        p += self._rot[:, 2] * xyz[2]
+        q = self._rot[:, 1] * xyz[1]
+        p += q
+        np.multiply(self._rot[:, 2], xyz[2], out=q)
+        p += q
         p += self._t
         return p
 
@@ -101,8 +103,9 @@ class View:
         """(touches every plane, inside every plane) for spheres at camera-space ``p`` (3, n):
         the least signed distance of the centre to the six planes against ∓r."""
         pz = p[2]
-        d = p.take([0, 0, 1, 1], axis=0)
-        d *= self._side_a
+        d = np.empty((4, p.shape[1]))
+        np.multiply(p[0], self._side_a[:2], out=d[:2])  # x·a on the two x planes, y·a on the two y planes
+        np.multiply(p[1], self._side_a[2:], out=d[2:])
         d += np.multiply(pz, self._side_c)
         m = d.min(axis=0)
         np.minimum(m, pz + self.far, out=m)

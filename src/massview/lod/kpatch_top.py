@@ -136,6 +136,11 @@ class TopBatch:
         rec = np.stack([np.concatenate([self.rec[0][i], self.rec[1][i]]) for i in range(11)])
         self.rec_int = rec.astype(np.int32 if rec.max() < 2**31 else np.int64)  # vertices ≤ 2^n: int32 halves the table
         self.rec_flt = np.stack([np.concatenate([self.rec[0][i], self.rec[1][i]]) for i in (11, 12)])
+        # flat block id of each half record (Front.block_ids: offset[level] + bi·2^(L − level) + bj)
+        lay = h.lay
+        self.block_offsets = np.cumsum([0] + [4 ** (lay.L - lv) for lv in range(lay.levels)])
+        lvl, bi, bj = (rec[i].astype(np.int64) for i in (7, 8, 9))
+        self.rec_bid = self.block_offsets.take(lvl) + (bi << (lay.L - lvl)) + bj
         del self.rec
 
     def walk(self, view: View, res: Residency, request):
@@ -156,7 +161,7 @@ class TopBatch:
             np.greater(ok[s], bad[0] | bad[1], out=S[s])  # ok and no half is wrong
         H0, H1 = S.take(self.p01)
         split = S[:self.size]
-        if r0 is not None and request is not None:
+        if r0 is not None and request is not None and not np.array_equal(ok, crit):  # some critical half's blocks missing
             for rk, Hk, key in ((r0, H0, self.bkey[0]), (r1, H1, self.bkey[1])):
                 miss = crit & Hk & ~rk
                 if miss.any():

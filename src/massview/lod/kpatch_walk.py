@@ -106,7 +106,7 @@ def _kept(t: int, ids, key, code, hb, crit, split):
     h0, h1 = (hb & 1) != 0, hb >= 2
     stay = ~split
     wait = crit & stay
-    deferred = int(np.count_nonzero(wait & h0)) + int(np.count_nonzero(wait & h1))
+    deferred = int(np.count_nonzero(wait & h0)) + int(np.count_nonzero(wait & h1)) if wait.any() else 0
     s0 = np.flatnonzero(stay & h0)
     sel = np.concatenate([s0, np.flatnonzero(stay & h1)])
     return (t, len(s0), ids.take(sel), key.take(sel), code.take(sel)), deferred
@@ -153,8 +153,11 @@ def _edge_kids(ks, hb, dk, di, m: int):
     as a key (``di``: the same offsets in ids v·m + u)."""
     c = (ks & _VU) << 1
     w = ((c >> 30) * m) | (c & _M)
-    keys = np.concatenate([c - dk[0], c - dk[1], c - dk[2], c - dk[3]])
-    ids = np.concatenate([w - di[0], w - di[1], w - di[2], w - di[3]])
+    n = len(c)
+    keys, ids = np.empty(4 * n, np.int64), np.empty(4 * n, np.int64)
+    for i in range(4):  # written in place: c − dk[0], c − dk[1], ... one after the other
+        np.subtract(c, dk[i], out=keys[i * n:(i + 1) * n])
+        np.subtract(w, di[i], out=ids[i * n:(i + 1) * n])
     if len(hb) and not (hb == 3).all():  # border edges: one half
         h0, h1 = (hb & 1) != 0, hb >= 2
         ok = np.flatnonzero(np.concatenate([h0, h0, h1, h1]))
@@ -242,7 +245,7 @@ def _vertex_tables(n: int, J: int, L: int, m: int):
 
 def emit(h, parts, head, head_code):
     """The Front's columns: (int64 (11, n): ax … stride, float64 (2, n): zmin, zmax, int8 (n,):
-    codes) — the batched top's kept halves first (``head``: positions in its half records,
+    codes, int64 (n,): flat block ids) — the batched top's kept halves first (``head``: positions in its half records,
     ``head_code``: its diamonds' codes), then the kept halves of ``parts``
     (square depths, then edge depths; in each depth its half-0 patches before its half-1
     patches), each column written once."""
@@ -250,11 +253,14 @@ def emit(h, parts, head, head_code):
     top, m = h.top, len(head)
     total = m + sum(len(p[2]) for p in parts)
     cols, zs, code = np.empty((11, total), np.int64), np.empty((2, total)), np.empty(total, np.int8)
+    bid = np.empty(total, np.int64)  # flat block ids (Front.block_ids)
+    top.rec_bid.take(head, out=bid[:m])
     cols[:, :m] = top.rec_int.take(head, axis=1)
-    top.rec_flt.take(head, axis=1, out=zs[:, :m], mode="clip")
+    top.rec_flt[0].take(head, out=zs[0, :m], mode="clip")
+    top.rec_flt[1].take(head, out=zs[1, :m], mode="clip")
     head_code.take(head, out=code[:m], mode="wrap")  # half records: size + i is diamond i's half 1
     if total == m:
-        return cols, zs, code
+        return cols, zs, code, bid
     key = np.concatenate([p[3] for p in parts])
     np.concatenate([p[4] for p in parts], out=code[m:])
     e = m
@@ -268,8 +274,19 @@ def emit(h, parts, head, head_code):
     row |= key & 1
     row |= (key >> 29) & 2
     row |= (key >> 57) & 8
-    _patch_records(h.dims, key, row, cols[:, m:])
-    return cols, zs, code
+    spans, e = [], 0
+    for p in parts:
+        b, e = e, e + len(p[2])
+        spans.append((b, e, p[0]))
+    _patch_records(h.dims, key, row, cols[:, m:], spans)
+    lay, L = h.dims, h.dims.L
+    for b, e, t in spans:  # one block level per depth
+        blvl = min(draw_level(lay.J, t), L)
+        o = bid[m + b:m + e]
+        np.left_shift(cols[8, m + b:m + e], L - blvl, out=o)
+        o += cols[9, m + b:m + e]
+        o += int(top.block_offsets[blvl])
+    return cols, zs, code, bid
 
 
 def _take_into(src: np.ndarray, idx, dst: np.ndarray) -> None:
@@ -279,19 +296,33 @@ def _take_into(src: np.ndarray, idx, dst: np.ndarray) -> None:
         dst[...] = src.take(idx)
 
 
-def _patch_records(lay, key, row, out) -> None:
+def _patch_records(lay, key, row, out, spans) -> None:
     """Write the 11 integer Front columns (``out``, (11, n)) of the patches ``key`` (table rows
-    ``row``): vertices (u·a, v·a) + offset, depth, level, block (centroid ≫ shift), stride."""
+    ``row``): vertices (u·a, v·a) + offset, depth, level, block (centroid ≫ shift), stride.
+    ``spans``: (begin, end, depth t) of each depth's patches, whose depth, level, stride, side
+    and block shift are the depth's constants (the tables' values for t), so those columns are
+    filled and shifted per span rather than gathered per patch."""
     verts, rec = _vertex_tables(lay.n, lay.J, lay.L, lay.m)
-    sa = verts[6].take(row)
-    x0 = (key & _M) << sa
-    y0 = ((key >> 30) & _M) << sa
-    verts[:6].take(row, axis=1, out=out[:6], mode="clip")
-    out[0:6:2] += x0
-    out[1:6:2] += y0
-    rec[:5].take(row, axis=1, out=out[6:], mode="clip")
-    sh = rec[5].take(row)
+    x0 = key & _M
+    y0 = key >> 30
+    y0 &= _M
+    for b, e, t in spans:
+        r = 16 * t
+        sa = int(verts[6, r])
+        x0[b:e] <<= sa
+        y0[b:e] <<= sa
+        out[6, b:e] = rec[0, r]
+        out[7, b:e] = rec[1, r]
+        out[10, b:e] = rec[4, r]
+    for i in range(6):  # row by row: a take into a contiguous row needs no buffer (a (k, n) slice of out would)
+        o = out[i]
+        verts[i].take(row, out=o, mode="clip")
+        o += x0 if i % 2 == 0 else y0
+    rec[2].take(row, out=out[8], mode="clip")
+    rec[3].take(row, out=out[9], mode="clip")
     out[8] += y0
-    out[8] >>= sh
     out[9] += x0
-    out[9] >>= sh
+    for b, e, t in spans:
+        sh = int(rec[5, 16 * t])
+        out[8, b:e] >>= sh
+        out[9, b:e] >>= sh

@@ -92,18 +92,24 @@ class ShadingPyramid:
             finer = np.flatnonzero(2.0**lv > d / f / min(self.dx, self.dy))  # the footprint test, same operations
             if lv == 0 or not len(finer) or count > limit:
                 break
-            nb = self.nb[lv]
-            p = cand.take(finer)
-            bi, bj = p // nb, p % nb
-            base = bi * (4 * nb) + 2 * bj  # child (2bi + a, 2bj + b) at 2nb per side
-            c = np.empty((4, len(p)), np.int64)
-            c[0] = base
-            np.add(base, 1, out=c[1])
-            np.add(base, 2 * nb, out=c[2])
-            np.add(c[2], 1, out=c[3])
-            cand = c.ravel()
+            cand = self._children(cand.take(finer), self.nb[lv])
             lv -= 1
-        total = count
+        return self._assemble(out, count)
+
+    @staticmethod
+    def _children(p: np.ndarray, nb: int) -> np.ndarray:
+        """Flat indices one level down of the 4 children of blocks ``p`` (nb per side), in
+        :func:`shading_blocks`' order: all (2i, 2j), then (2i, 2j + 1), (2i + 1, 2j), (2i + 1, 2j + 1)."""
+        base = (p // nb) * (4 * nb) + 2 * (p % nb)  # child (2bi + a, 2bj + b) at 2nb per side
+        c = np.empty((4, len(p)), np.int64)
+        c[0] = base
+        np.add(base, 1, out=c[1])
+        np.add(base, 2 * nb, out=c[2])
+        np.add(c[2], 1, out=c[3])
+        return c.ravel()
+
+    def _assemble(self, out, total: int):
+        """(level, i, j, priority) arrays from per-level (level, flat indices, distances)."""
         lvl, bi, bj, pri = np.empty(total, np.int64), np.empty(total, np.int64), np.empty(total, np.int64), np.empty(total)
         e = 0
         for lv, c, d in out:
@@ -112,6 +118,6 @@ class ShadingPyramid:
             lvl[b:e] = lv
             np.floor_divide(c, nb, out=bi[b:e])
             np.remainder(c, nb, out=bj[b:e])
-            np.add(d, 1.0, out=pri[b:e])
+            np.add(d, 1.0, out=pri[b:e])  # 1 / (1 + d), as shading_blocks
         np.divide(1.0, pri, out=pri)
         return lvl, bi, bj, pri

@@ -15,6 +15,12 @@ tile (what each rank of a real ``--ranks N`` run does) against the whole-frame L
 the same cameras in the same process. Printed per target: whole-frame ms, each rank's ms, the
 slowest rank's ratio to the whole frame, and the patches each rank's cut holds.
 
+Part 3, with ``--against SRC`` (another checkout's ``src/``, e.g. the commit before a change,
+unpacked with ``git archive``): that checkout's whole LOD stage is imported under another
+package name and timed beside this one's on the same cameras, alternating, best of ``--repeat``;
+printed per target: ms and CPU ms of each, their ratio, and whether the two fronts and task
+shares are identical.
+
 The default store is the demo terrain (``~/.cache/massview/demo_terrain_4097.zarr``, generated
 as ``massview demo`` does when missing). Timings on a shared machine are noisy: compare the
 ratios, which are measured in one run.
@@ -44,6 +50,10 @@ def add_arguments(p) -> None:
     p.add_argument("--tiles", type=int, default=4, help="sort-first ranks for part 2")
     p.add_argument("--layout", default="horizontal", choices=("horizontal", "vertical", "grid"))
     p.add_argument("--repeat", type=int, default=3, help="timings per frame (the best is kept)")
+    p.add_argument("--against", default=None, metavar="SRC",
+                   help="another checkout's src/ directory (e.g. `git archive 8e7be8a src | tar -x -C /tmp/b` gives "
+                        "/tmp/b/src): its LOD stage is timed beside this one, alternating frame by frame in this process, "
+                        "and its output (the front and the task's share) checked equal")
 
 
 def _store(arg) -> Path:
@@ -121,6 +131,31 @@ def _old_stage(old, comm, cam, cfg):
     return go
 
 
+def _against(src: str):
+    """``src``'s massview package imported under another name (a copy of it named
+    ``massview_against``: its imports are relative), for timing two versions in one process."""
+    import importlib
+    import shutil
+    import sys
+    import tempfile
+
+    pkg = Path(src) / "massview"
+    if not (pkg / "systems" / "terrain.py").exists():
+        raise SystemExit(f"--against {src}: no massview package there (give a checkout's src/ directory)")
+    tmp = Path(tempfile.mkdtemp(prefix="massview_against_"))
+    shutil.copytree(pkg, tmp / "massview_against", ignore=shutil.ignore_patterns("__pycache__"))
+    sys.path.insert(0, str(tmp))
+    return importlib.import_module("massview_against.systems.terrain"), importlib.import_module("massview_against.core.config"), \
+        importlib.import_module("massview_against.core.stats")
+
+
+def _same_stage(a, b, cam, cfg, ocfg) -> bool:
+    fa, fb = a.front, b.front
+    cols = (*a.front.FIELDS, "code")
+    return (all(np.array_equal(getattr(fa, k), getattr(fb, k)) for k in cols) and fa.deferred == fb.deferred
+            and np.array_equal(a.select(a.plan(cam, cfg, 1)[0], cam, cfg), b.select(b.plan(cam, ocfg, 1)[0], cam, ocfg)))
+
+
 def _cameras(path, bounds, at: float, frames: int, w: int, h: int):
     p = load_path(path, *bounds)
     return [p.camera(min(1.0, at + 0.004 * i), w, h) for i in range(frames)]
@@ -135,11 +170,16 @@ def run(args) -> int:
     from .lod_baseline import BaselineStage
 
     console = Console(width=None if Console().is_terminal else 160)
+    other = _against(args.against) if args.against else None
     w, hh = parse_size(args.size)
     store = _store(args.store)
     t_start = time.perf_counter()
     sysm = TerrainSystem(store, cache_bytes=1 << 30, gpu_bytes=1 << 30, loading="complete")
     old = BaselineStage(sysm)
+    before = other[0].TerrainSystem(store, cache_bytes=1 << 30, gpu_bytes=1 << 30, loading="complete") if other else None
+    t3 = Table(title=f"whole LOD stage per frame, --against {args.against} (before) vs this checkout (now), alternating, one rank")
+    for c in ("target", "front patches", "before ms", "now ms", "now ÷ before", "before CPU ms", "now CPU ms", "now ÷ before CPU", "output"):
+        t3.add_column(c, justify="right")
     comm = self_comm()
     targets = [int(v) for v in args.targets.split(",") if v.strip()]
     t1 = Table(title=f"whole LOD stage per frame, old vs new: {store.name}, {w}x{hh}, orbit, {args.frames} frames, one rank")
@@ -158,6 +198,22 @@ def run(args) -> int:
             for cam in cams:  # warm: every block these views need, for the whole frame and for the tiles
                 sysm.prepare_frame(comm, cam, cfg, FrameStats(0, 0))
             sysm.loading = "async"
+            if before is not None:
+                ocfg = other[1].RenderConfig(width=w, height=hh, tau=tau, loading="complete")
+                before.loading = "complete"
+                for cam in cams:
+                    before.prepare_frame(comm, cam, ocfg, other[2].FrameStats(0, 0))
+                before.loading = "async"
+                b_ms, n_ms, same = [], [], True
+                for cam in cams:
+                    fb, fn = _new_stage(before, comm, cam, ocfg, 1), _new_stage(sysm, comm, cam, cfg, 1)
+                    for _ in range(3):  # alternating, best of --repeat each time
+                        b_ms.append(_best(fb, args.repeat))
+                        n_ms.append(_best(fn, args.repeat))
+                    same = same and _same_stage(sysm, before, cam, cfg, ocfg)
+                (bw, bc), (nw, nc) = np.mean(b_ms, axis=0), np.mean(n_ms, axis=0)
+                t3.add_row(f"{target / 1e3:.0f} k", f"{len(sysm.front)}", f"{bw:.2f}", f"{nw:.2f}", f"{nw / bw:.3f}", f"{bc:.2f}",
+                           f"{nc:.2f}", f"{nc / bc:.3f}", "identical" if same else "DIFFERENT")
             old_ms, new_ms, sizes, vis, whole, ranks = [], [], [], [], [], [[] for _ in range(args.tiles)]
             rank_sizes = [[] for _ in range(args.tiles)]
             for cam in cams:
@@ -181,8 +237,12 @@ def run(args) -> int:
                           highlight=False)
     finally:
         sysm.close()
+        if before is not None:
+            before.close()
     console.print(t1)
     console.print(t2)
+    if before is not None:
+        console.print(t3)
     console.print(f"bench lod: {time.perf_counter() - t_start:.0f} s (timings taken best of {args.repeat} per frame; "
                   "compare ratios, measured in the same run)", highlight=False)
     return 0
