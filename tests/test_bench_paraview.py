@@ -77,3 +77,27 @@ def test_pvbatch_surfaces_have_the_bracketed_triangle_counts(tmp_path):
         out = run_pvbatch(grid, cams, step, 1, tmp_path)
         assert out["triangles"] == surface_triangles(rows, cols, step)
         assert len(out["seconds"]) == 1 and out["seconds"][0] > 0
+
+
+def test_massview_jobs_are_launched_with_arguments_bench_frame_accepts(monkeypatch, tmp_path):
+    """bench paraview runs massview's frames through bench frame's job launcher: every argument
+    that launcher passes must exist on the namespace bench paraview builds (a missing one broke
+    the whole comparison once) and parse as a real ``bench frame`` command line. The MPI launch
+    itself is replaced: this test is about the code around it."""
+    from types import SimpleNamespace
+
+    from massview.app.bench import frame, paraview
+    from massview.app.cli import build_parser
+
+    launched = []
+
+    def fake_relaunch(argv, n):
+        launched.append((argv, n))
+        ns = build_parser().parse_args(argv)
+        ns.worker.write_text(json.dumps({"ranks": n, "codec": ns.codec, "decomposition": ns.decomposition}))
+        return 0
+
+    monkeypatch.setattr(frame, "relaunch", fake_relaunch)
+    out = paraview._massview(SimpleNamespace(size="320x240", frames=2), tmp_path / "store.zarr", [1, 2])
+    assert len(launched) == 4 and {k for k in out} == {("sort-last", 1), ("sort-last", 2), ("sort-first", 1), ("sort-first", 2)}
+    assert all(v["codec"] == "auto" for v in out.values())

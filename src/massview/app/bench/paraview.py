@@ -188,7 +188,7 @@ def _massview(args, store: Path, ranks: list[int]) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         for mode, dec in (("sort-last", "sort-last:kpatch"), ("sort-first", "sort-first:kd")):
             for n in ranks:
-                a = SimpleNamespace(size=args.size, frames=args.frames, decomposition=dec, compositor="binary-swap")
+                a = SimpleNamespace(size=args.size, frames=args.frames, decomposition=dec, compositor="binary-swap", codec="auto")
                 out[(mode, n)] = _launch(a, store, n, "auto", tmp)
     return out
 
