@@ -7,16 +7,17 @@ Wire format (little-endian)::
 
 ``codec="auto"`` (the default) picks per communicator (:func:`resolve_codec`): when every rank
 runs on this node (the launcher says so: MPICH's ``MPI_LOCALNRANKS``, Open MPI's
-``OMPI_COMM_WORLD_LOCAL_SIZE``, a Slurm allocation of one node) messages move through shared memory at several GB/s, faster
-than any byte codec packs them, so sub-images travel as runs without byte compression
-(``none``) and :func:`massview.parallel.composite.deliver` sends final regions as raw rows
-straight into the display tile; otherwise ``blosc2``. Every rank of a job decides the same way.
+``OMPI_COMM_WORLD_LOCAL_SIZE``, a Slurm allocation of one node) messages move through shared
+memory at several GB/s, faster than any byte codec packs them, so sub-images travel as runs
+without byte compression (``none``) and :func:`massview.parallel.composite.deliver` sends final
+regions as raw rows straight into the display tile; otherwise ``blosc2``. Every rank of a job
+decides the same way.
 
 Runs alternate background/active starting with background, over the row-major pixels of the
 viewport; a pixel is background when its depth is exactly 1.0. Only active pixels' color and
-depth are stored. Byte codecs: ``blosc2`` (LZ4 + byte shuffle, level 1; the default: it packs
-a 1.3 MB band in 0.2 ms here against 1.8 ms for lz4.frame, at a better ratio), ``lz4``
-(lz4.frame) and ``none``. Each runs on one thread per rank (ranks share the cores).
+depth are stored. Byte codecs: ``blosc2`` (LZ4 + byte shuffle, level 1; ``auto``'s choice
+between nodes: it packs a 1.3 MB band in 0.2 ms here against 1.8 ms for lz4.frame, at a better
+ratio), ``lz4`` (lz4.frame) and ``none``. Each runs on one thread per rank (ranks share the cores).
 
 Encoding writes runs, colors and depths straight into the wire buffer from views of the image
 (no crop, no concatenation); receivers combine (:func:`merge_into`) or paste
@@ -36,8 +37,8 @@ from ..core.errors import ConfigError, ParallelError
 from ..core.image import BACKGROUND_RGBA, Image, blank_image
 from . import kernels
 
-__all__ = ["CODECS", "CODEC_CHOICES", "resolve_codec", "all_ranks_local", "encode_image", "encode_region", "decode_image", "decode_runs", "message_counts", "merge_into",
-           "merge_decoded", "paste_into", "paste_decoded"]
+__all__ = ["CODECS", "CODEC_CHOICES", "resolve_codec", "all_ranks_local", "encode_image", "encode_region", "decode_image",
+           "decode_runs", "message_counts", "merge_into", "merge_decoded", "paste_into", "paste_decoded"]
 
 _HEADER = struct.Struct("<4s4i3I")
 _MAGIC = b"MVI1"

@@ -34,8 +34,8 @@ from mpi4py import MPI
 from ..core.errors import ConfigError
 from ..core.stats import FrameStats
 
-__all__ = ["Outbox", "receive", "receive_any", "receive_into", "exchange", "measure_bandwidth", "measure_memory_bandwidth", "max_over_ranks",
-           "agree_all", "any_rank", "WAIT_MODES", "WAIT_ENV_VAR", "wait_mode", "set_wait_mode", "wait_all", "barrier"]
+__all__ = ["Outbox", "receive", "receive_any", "receive_into", "exchange", "measure_bandwidth", "measure_memory_bandwidth",
+           "max_over_ranks", "agree_all", "any_rank", "WAIT_MODES", "WAIT_ENV_VAR", "wait_mode", "set_wait_mode", "wait_all", "barrier"]
 
 WAIT_MODES = ("poll", "sleep")
 WAIT_ENV_VAR = "MASSVIEW_MPI_WAIT"
