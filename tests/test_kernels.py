@@ -136,3 +136,40 @@ def test_a_pooled_tile_is_reused_only_when_nothing_holds_it():
     del again
     other = _tile_buffer(Viewport(0, 0, 8, 8), blank=False)  # a new size replaces a free buffer
     assert len(_TILES) == 3 and any(np.shares_memory(other.color, c) for c, _ in _TILES)
+
+
+@given(st.integers(0, 2**31), st.booleans(), st.sampled_from([0.0, 0.3, 0.9, 1.0]), st.sampled_from(sorted(CODECS)))
+@settings(max_examples=60, deadline=None)
+def test_a_part_sent_with_every_pixel_active_combines_and_pastes_to_the_same_pixels(seed, front, fill, codec):
+    """codec.encode_message(dense_above=...) sends full parts with every pixel active
+    (kernels.pack_dense: background pixels as active ones with depth 1.0 and the background
+    color): merged in front of or behind an accumulator (contiguous or a strided crop) and
+    pasted, it gives the run-coded part's pixels, bit for bit; below the threshold the message
+    is the run-coded one."""
+    from massview.parallel.codec import encode_message
+
+    rng = np.random.default_rng(seed)
+    w, h = int(rng.integers(1, 40)), int(rng.integers(1, 30))
+    vp = Viewport(0, 0, w, h)
+    part = contract_image(rng, vp, fill, levels=4)
+    acc = contract_image(rng, vp, 0.6, levels=4)
+    sparse, dense = encode_message(part, vp, codec), encode_message(part, vp, codec, dense_above=-1.0)
+    assert bytes(encode_message(part, vp, codec, dense_above=1.0)) == bytes(sparse) == encode_image(part, codec)
+    _, runs, _, d = decode_runs(dense)
+    assert list(runs) == [0, w * h] and d.size == w * h
+    wide = contract_image(rng, Viewport(0, 0, w + 5, h), 0.5)
+    wide.color[:, 2:2 + w], wide.depth[:, 2:2 + w] = acc.color, acc.depth
+    def crop():  # a strided crop of a fresh copy of the wider image
+        c = Image(wide.color.copy(), wide.depth.copy(), wide.viewport)
+        return Image(c.color[:, 2:2 + w], c.depth[:, 2:2 + w], vp)
+
+    for target in (lambda: Image(acc.color.copy(), acc.depth.copy(), vp), crop):
+        a, b = target(), target()
+        merge_into(a, sparse, front)
+        merge_into(b, dense, front)
+        assert same(a, b)
+    for fill_bg in (False, True):
+        a, b = blank_image(vp), blank_image(vp)
+        paste_into(a, sparse, fill=True)
+        paste_into(b, dense, fill=fill_bg)  # a dense part writes every pixel either way
+        assert same(a, b)

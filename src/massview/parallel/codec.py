@@ -37,7 +37,7 @@ from ..core.errors import ConfigError, ParallelError
 from ..core.image import BACKGROUND_RGBA, Image, blank_image
 from . import kernels
 
-__all__ = ["CODECS", "CODEC_CHOICES", "resolve_codec", "all_ranks_local", "encode_image", "encode_region", "decode_image",
+__all__ = ["CODECS", "CODEC_CHOICES", "resolve_codec", "all_ranks_local", "encode_image", "encode_region", "encode_message", "decode_image",
            "decode_runs", "message_counts", "merge_into", "merge_decoded", "paste_into", "paste_decoded"]
 
 _HEADER = struct.Struct("<4s4i3I")
@@ -119,12 +119,25 @@ def _views(img: Image, vp: Viewport) -> tuple[np.ndarray, np.ndarray, Viewport]:
 def encode_region(img: Image, vp: Viewport, codec: str = "blosc2") -> bytes:
     """Encode the part of ``img`` inside ``vp`` (destination pixels) without cropping it first:
     runs, colors and depths are written into the wire buffer in place."""
+    return bytes(encode_message(img, vp, codec))
+
+
+def encode_message(img: Image, vp: Viewport, codec: str = "blosc2", dense_above: float | None = None):
+    """:func:`encode_region` as compositing sends it: with codec ``none`` one uint8 array, the
+    header packed in place in front of the body (no copy of the body); else bytes. With
+    ``dense_above``, a region whose share of active pixels exceeds it is sent with every pixel
+    active (:func:`kernels.pack_dense`: the same format and the same combined pixels, a copy
+    instead of a scan — on one node, where bytes are cheap)."""
     if codec not in CODECS:
         raise ConfigError(f"unknown image codec {codec!r}; use one of {', '.join(CODECS)}")
     depth, color, v = _views(img, vp)
-    raw, nruns, nact = kernels.pack_runs(depth, color)
-    head = _HEADER.pack(_MAGIC, v.x, v.y, v.w, v.h, CODECS[codec], nruns, nact)
-    return head + (raw.tobytes() if codec == "none" else _compress(codec, raw))
+    dense = dense_above is not None and depth.size > 0 and np.count_nonzero(depth != np.float32(1.0)) > dense_above * depth.size
+    head = _HEADER.size if codec == "none" else 0
+    raw, nruns, nact = (kernels.pack_dense if dense else kernels.pack_runs)(depth, color, head)
+    if codec == "none":
+        _HEADER.pack_into(raw, 0, _MAGIC, v.x, v.y, v.w, v.h, CODECS[codec], nruns, nact)
+        return raw
+    return _HEADER.pack(_MAGIC, v.x, v.y, v.w, v.h, CODECS[codec], nruns, nact) + _compress(codec, raw)
 
 
 def encode_image(img: Image, codec: str = "blosc2") -> bytes:

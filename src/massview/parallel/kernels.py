@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["pack_runs", "active_index", "active_mask", "merge_runs", "paste_runs"]
+__all__ = ["pack_runs", "pack_dense", "active_index", "active_mask", "merge_runs", "paste_runs"]
 
 _ONE = np.float32(1.0)
 
@@ -53,9 +53,10 @@ def _gather(src: np.ndarray, idx: np.ndarray, mask: np.ndarray, out: np.ndarray)
         out[:] = src[mask]
 
 
-def pack_runs(depth: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, int, int]:
+def pack_runs(depth: np.ndarray, color: np.ndarray, head: int = 0) -> tuple[np.ndarray, int, int]:
     """The body of a wire message for a 2-D view: ``runs uint32 | color uint32[active] |
-    depth float32[active]`` in one new uint8 buffer; returns (buffer, run count, active count).
+    depth float32[active]`` in one new uint8 buffer, after ``head`` spare bytes (a multiple of
+    4: room for the message header); returns (buffer, run count, active count).
 
     One pass over the depths finds the active pixels' flat indices; runs come from the breaks
     in those indices and colors/depths are gathered by index: every step after the first costs
@@ -64,14 +65,15 @@ def pack_runs(depth: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, int, in
     idx = np.flatnonzero(active)
     nact, size = idx.size, active.size
     if nact == 0:  # one background run (also for an empty region: a run of 0)
-        raw = np.empty(4, np.uint8)
-        raw.view(np.uint32)[0] = size
+        raw = np.empty(head + 4, np.uint8)
+        raw[head:].view(np.uint32)[0] = size
         return raw, 1, 0
     brk = np.flatnonzero(np.diff(idx) != 1)  # last index of every active run but the last
     na = brk.size + 1
     tail = int(idx[-1] + 1 < size)  # a background run after the last active one
     nruns = 2 * na + tail
-    raw = np.empty(nruns * 4 + nact * 8, np.uint8)
+    out = np.empty(head + nruns * 4 + nact * 8, np.uint8)
+    raw = out[head:]
     runs = raw[: nruns * 4].view(np.uint32)
     starts, ends = np.empty(na, np.intp), np.empty(na, np.intp)
     starts[0], ends[-1] = idx[0], idx[-1]
@@ -86,7 +88,29 @@ def pack_runs(depth: np.ndarray, color: np.ndarray) -> tuple[np.ndarray, int, in
     a, b = nruns * 4, nruns * 4 + nact * 4
     _gather(color, idx, active, raw[a:b].view(np.uint32))
     _gather(depth, idx, active, raw[b:].view(np.float32))
-    return raw, nruns, nact
+    return out, nruns, nact
+
+
+def pack_dense(depth: np.ndarray, color: np.ndarray, head: int = 0) -> tuple[np.ndarray, int, int]:
+    """The same message body with every pixel active: runs ``[0, size]``, then all colors and
+    all depths, copied as they are (no scan, no gather). A valid message of the same format —
+    background pixels travel as active ones with depth 1.0 and the background color, which
+    combine and paste to the same pixels as skipping them (a part behind never wins with depth
+    1.0; a part in front wins only against background, with background) — for regions so full
+    of active pixels that finding them costs more than sending the rest: ``pack_runs`` takes
+    1–2 ns an active pixel, this a copy. Needs a non-empty region; ``head`` as there."""
+    size = depth.size
+    out = np.empty(head + 8 + size * 8, np.uint8)
+    raw = out[head:]
+    raw[:8].view(np.uint32)[:] = (0, size)
+    np.copyto(raw[8: 8 + size * 4].view(np.uint32).reshape(depth.shape), color)
+    np.copyto(raw[8 + size * 4:].view(np.float32).reshape(depth.shape), depth)
+    return out, 2, size
+
+
+def _all_active(runs: np.ndarray, n: int, size: int) -> bool:
+    """Whether a run list is the single active run over the whole region (:func:`pack_dense`)."""
+    return runs.size == 2 and n == size and int(runs[0]) == 0
 
 
 def active_index(runs: np.ndarray, nact: int) -> np.ndarray:
@@ -120,6 +144,12 @@ def merge_runs(runs, c_in, d_in, acc_color, acc_depth, front: bool) -> None:
     from a lower rank (it wins ties)."""
     if not d_in.size:
         return
+    if _all_active(runs, d_in.size, acc_depth.size):  # every pixel: elementwise, no indices
+        d2, c2 = d_in.reshape(acc_depth.shape), c_in.reshape(acc_depth.shape)
+        take = ~(acc_depth < d2) if front else np.less(d2, acc_depth)
+        np.copyto(acc_depth, d2, where=take)
+        np.copyto(acc_color, c2, where=take)
+        return
     fd, fc = _flat(acc_depth), _flat(acc_color)
     if fd is None or fc is None:  # a strided crop: through the mask
         mask = active_mask(runs, acc_depth.shape)
@@ -141,6 +171,10 @@ def paste_runs(runs, c_in, d_in, out_color, out_depth) -> None:
     """Write a run-coded part's active pixels into the 2-D ``out_*`` views; background
     pixels are left as they are."""
     if not d_in.size:
+        return
+    if _all_active(runs, d_in.size, out_depth.size):
+        np.copyto(out_depth, d_in.reshape(out_depth.shape))
+        np.copyto(out_color, c_in.reshape(out_depth.shape))
         return
     fd, fc = _flat(out_depth), _flat(out_color)
     if fd is None or fc is None:
