@@ -10,6 +10,7 @@ import pytest
 
 from conftest import run_cli, summary
 from massview.app.bench import lod_baseline as old
+from massview.app.bench.lod import _Rank
 from massview.core.config import RenderConfig
 from massview.core.paths import load_path
 from massview.core.stats import FrameStats
@@ -188,25 +189,6 @@ STAGE_DIGESTS = {
 }
 
 
-class _Ranks:
-    """Rank r of n in one process (collectives return this rank's own data)."""
-
-    def __init__(self, r: int = 0, n: int = 1):
-        self.r, self.n = r, n
-
-    def Get_rank(self):
-        return self.r
-
-    def Get_size(self):
-        return self.n
-
-    def Allreduce(self, mine, out, op=None):
-        out[...] = mine
-
-    def allreduce(self, v, op=None):
-        return v
-
-
 def _stage_digests(store) -> dict:
     import hashlib
 
@@ -229,7 +211,7 @@ def _stage_digests(store) -> dict:
             key = f"{path}@{at}/{tau}"
             for mode in ("kpatch", "linear", "quadtree"):
                 cfg = RenderConfig(width=w, height=hh, tau=tau, loading="complete", decomposition=f"sort-last:{mode}")
-                sysm.prepare_frame(_Ranks(), cam, cfg, FrameStats(0, 0))
+                sysm.prepare_frame(_Rank(0, 1), cam, cfg, FrameStats(0, 0))
                 f = sysm.front
                 out[key] = h(*(getattr(f, k) for k in FIELDS), f.code, np.array([f.deferred]), sysm._tex_ids)
                 out[f"{key}:{mode}"] = h(*(sysm.select(t, cam, cfg) for t in sysm.plan(cam, cfg, 3)))
@@ -237,7 +219,7 @@ def _stage_digests(store) -> dict:
                 cfg = RenderConfig(width=w, height=hh, tau=tau, loading="complete", decomposition=f"sort-first:{layout}")
                 shares = []
                 for r in range(4):
-                    sysm.prepare_frame(_Ranks(r, 4), cam, cfg, FrameStats(0, 0))
+                    sysm.prepare_frame(_Rank(r, 4), cam, cfg, FrameStats(0, 0))
                     f = sysm.front
                     shares += [*(getattr(f, k) for k in FIELDS), f.code, sysm.select(sysm.plan(cam, cfg, 4)[r], cam, cfg)]
                 out[f"{key}:{layout}"] = h(*shares)

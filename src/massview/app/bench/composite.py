@@ -120,22 +120,22 @@ def worker(args) -> int:
     return 0
 
 
+def _parse_list(text: str, option: str, what: str, choices) -> list[str]:
+    """A comma-separated ``option`` value: each item one of ``choices``, at least one."""
+    items = [v.strip() for v in text.split(",") if v.strip()]
+    if not items or any(v not in choices for v in items):
+        raise ConfigError(f"{option} {text!r}: use {what} from {', '.join(choices)}, comma-separated")
+    return items
+
+
 def parse_codecs(text: str) -> list[str]:
     from ...parallel.codec import CODEC_CHOICES
 
-    codecs = [c.strip() for c in text.split(",") if c.strip()]
-    bad = [c for c in codecs if c not in CODEC_CHOICES]
-    if bad or not codecs:
-        raise ConfigError(f"--codec {text!r}: use codecs from {', '.join(CODEC_CHOICES)}, comma-separated")
-    return codecs
+    return _parse_list(text, "--codec", "codecs", CODEC_CHOICES)
 
 
 def parse_modes(text: str) -> list[str]:
-    modes = [m.strip() for m in text.split(",") if m.strip()]
-    bad = [m for m in modes if m not in WAIT_MODES]
-    if bad or not modes:
-        raise ConfigError(f"--wait {text!r}: use wait modes from {', '.join(WAIT_MODES)}, comma-separated")
-    return modes
+    return _parse_list(text, "--wait", "wait modes", WAIT_MODES)
 
 
 def _sched() -> tuple[float, float, int, int]:
