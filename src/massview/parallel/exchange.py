@@ -35,7 +35,8 @@ from ..core.errors import ConfigError
 from ..core.stats import FrameStats
 
 __all__ = ["Outbox", "receive", "receive_any", "receive_into", "exchange", "measure_bandwidth", "measure_memory_bandwidth",
-           "max_over_ranks", "agree_all", "any_rank", "WAIT_MODES", "WAIT_ENV_VAR", "wait_mode", "set_wait_mode", "wait_all", "barrier"]
+           "max_over_ranks", "agree_all", "any_rank", "WAIT_MODES", "WAIT_ENV_VAR", "wait_mode", "set_wait_mode", "wait_all",
+           "sleep_until", "barrier"]
 
 WAIT_MODES = ("poll", "sleep")
 WAIT_ENV_VAR = "MASSVIEW_MPI_WAIT"
@@ -83,26 +84,30 @@ def _low_timer_slack() -> None:
         pass
 
 
-def _sleep_until(done):
-    """Call ``done()`` until it returns something true: for 50 µs back to back (a peer that is
-    running answers within that), then with sleeps in between (20 µs doubling to 160 µs).
-    The spin was measured: without it, 2 ranks took 1.17× poll's time (under load)."""
+def sleep_until(done, spin_s: float = _SPIN_S, first_s: float = _SLEEP_FIRST_S, max_s: float = _SLEEP_MAX_S,
+                low_slack: bool = True):
+    """Call ``done()`` until it returns something true, and return that: for ``spin_s`` back to
+    back, then with sleeps in between (``first_s`` doubling to ``max_s``), with this thread's
+    timer slack at 1 ns when ``low_slack``. The defaults are the ``sleep`` wait mode's: a 50 µs
+    spin (a peer that is running answers within that; without it, 2 ranks took 1.17× poll's
+    time, under load), then 20 µs doubling to 160 µs."""
     out = done()
     if out:
         return out
-    t_end = time.perf_counter() + _SPIN_S
+    t_end = time.perf_counter() + spin_s
     while time.perf_counter() < t_end:
         out = done()
         if out:
             return out
-    _low_timer_slack()
-    delay = _SLEEP_FIRST_S
+    if low_slack:
+        _low_timer_slack()
+    delay = first_s
     while True:
         time.sleep(delay)
         out = done()
         if out:
             return out
-        delay = min(2 * delay, _SLEEP_MAX_S)
+        delay = min(2 * delay, max_s)
 
 
 def wait_all(requests: list) -> None:
@@ -110,7 +115,7 @@ def wait_all(requests: list) -> None:
     if not requests:
         return
     if wait_mode() == "sleep":
-        _sleep_until(lambda: MPI.Request.Testall(requests))
+        sleep_until(lambda: MPI.Request.Testall(requests))
     else:
         MPI.Request.Waitall(requests)
 
@@ -160,7 +165,7 @@ def receive_any(comm, tag: int, stats: FrameStats | None = None, source: int = M
     ``source``): matched probe, sized from its status, received into a new uint8 buffer."""
     status = MPI.Status()
     if wait_mode() == "sleep":
-        msg = _sleep_until(lambda: comm.Improbe(source=source, tag=_tag(tag), status=status))
+        msg = sleep_until(lambda: comm.Improbe(source=source, tag=_tag(tag), status=status))
         buf = np.empty(status.Get_count(MPI.BYTE), np.uint8)
         wait_all([msg.Irecv(buf)])
     else:

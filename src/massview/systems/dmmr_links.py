@@ -7,11 +7,11 @@ import os
 import queue
 import sys
 import threading
-import time
 
 import numpy as np
 
 from ..core.errors import ConfigError
+from ..parallel.exchange import sleep_until
 from ..parallel.roles import Role
 from .dmmr_client import ClientTask
 
@@ -36,11 +36,9 @@ def _sleeping() -> bool:
 
 
 def wait_until(ready) -> None:
-    """Call ``ready()`` until it returns true, sleeping 50 µs → 1 ms (doubling) between calls."""
-    pause = _BACKOFF[0]
-    while not ready():
-        time.sleep(pause)
-        pause = min(pause * 2, _BACKOFF[1])
+    """Call ``ready()`` until it returns true, sleeping 50 µs → 1 ms (doubling) between calls
+    (no spin, the default timer slack)."""
+    sleep_until(ready, spin_s=0.0, first_s=_BACKOFF[0], max_s=_BACKOFF[1], low_slack=False)
 
 
 class MpiLink:
