@@ -131,9 +131,12 @@ def encode_message(img: Image, vp: Viewport, codec: str = "blosc2", dense_above:
     if codec not in CODECS:
         raise ConfigError(f"unknown image codec {codec!r}; use one of {', '.join(CODECS)}")
     depth, color, v = _views(img, vp)
-    dense = dense_above is not None and depth.size > 0 and np.count_nonzero(depth != np.float32(1.0)) > dense_above * depth.size
     head = _HEADER.size if codec == "none" else 0
-    raw, nruns, nact = (kernels.pack_dense if dense else kernels.pack_runs)(depth, color, head)
+    active = depth != np.float32(1.0) if dense_above is not None else None  # computed once: pack_runs takes it
+    if active is not None and depth.size > 0 and np.count_nonzero(active) > dense_above * depth.size:
+        raw, nruns, nact = kernels.pack_dense(depth, color, head)
+    else:
+        raw, nruns, nact = kernels.pack_runs(depth, color, head, active)
     if codec == "none":
         _HEADER.pack_into(raw, 0, _MAGIC, v.x, v.y, v.w, v.h, CODECS[codec], nruns, nact)
         return raw

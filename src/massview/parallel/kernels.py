@@ -53,15 +53,18 @@ def _gather(src: np.ndarray, idx: np.ndarray, mask: np.ndarray, out: np.ndarray)
         out[:] = src[mask]
 
 
-def pack_runs(depth: np.ndarray, color: np.ndarray, head: int = 0) -> tuple[np.ndarray, int, int]:
+def pack_runs(depth: np.ndarray, color: np.ndarray, head: int = 0,
+              active: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
     """The body of a wire message for a 2-D view: ``runs uint32 | color uint32[active] |
     depth float32[active]`` in one new uint8 buffer, after ``head`` spare bytes (a multiple of
-    4: room for the message header); returns (buffer, run count, active count).
+    4: room for the message header); returns (buffer, run count, active count). ``active``:
+    the mask ``depth != 1`` when the caller has it already.
 
     One pass over the depths finds the active pixels' flat indices; runs come from the breaks
     in those indices and colors/depths are gathered by index: every step after the first costs
     in proportion to the active pixels, not the region."""
-    active = depth != _ONE
+    if active is None:
+        active = depth != _ONE
     idx = np.flatnonzero(active)
     nact, size = idx.size, active.size
     if nact == 0:  # one background run (also for an empty region: a run of 0)
