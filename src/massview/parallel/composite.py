@@ -11,8 +11,11 @@ differ only in digit i splits its current region into k_i row bands and each mem
 and combines one band from all members, in rank order.
 
 * ``direct-send``: one round with k = N.
-* ``binary-swap``: pairs (2i, 2i+1) first fold the ranks above the largest power of two P ≤ N
-  (the odd one sends its whole image), then log2(P) rounds of k = 2.
+* ``binary-swap``: log2(P) rounds of k = 2 over P ranks, P the largest power of two ≤ N. The
+  N − P ranks above P are folded in: odd rank 2i+1 (i < N − P) joins the first round of its
+  partner 2i as a sender only, sending each of that round's two bands straight to the rank that
+  gathers it (the classic fold sent its whole image to 2i, which had to combine all of it before
+  the first round could start: at 3 ranks rank 0 took 1.5 images on its critical path, now 1).
 * ``radix-k``: N factored into digits ≤ k (a prime factor larger than k is one digit).
 
 Kernels work in place (issue 20): bands are encoded from views of the image, received
@@ -180,23 +183,34 @@ def _merge_round(own: Image, parts: list, digit: int) -> Image:
     return own
 
 
+def _round_group(members: list[int], idx: int, stride: int, k: int) -> list[int]:
+    """The ``k`` members (rank order) that swap bands with ``members[idx]`` in the round of
+    ``stride``; member j of the group gathers band j."""
+    digit = (idx // stride) % k
+    return [members[idx + (j - digit) * stride] for j in range(k)]
+
+
 def _radix_rounds(comm, img: Image, members: list[int], factors: list[int], stats, codec, box: Outbox, owned: bool = False,
-                  dense: float | None = None) -> Image:
+                  dense: float | None = None, extra: int = 0) -> Image:
     """The rounds of radix-k over ``members``. Per round: encode each outgoing band and send it
     at once (nearest peers first: they combine this rank's part first), copy the own band while
-    those fly, then receive each part just before combining it, in merge order."""
-    idx = members.index(comm.Get_rank())
+    those fly, then receive each part just before combining it, in merge order. In the first
+    round, members below ``2 * extra`` also receive from their folded partner (binary-swap)."""
+    me = comm.Get_rank()
+    idx = members.index(me)
     current = img
     stride = 1
     for rnd, k in enumerate(factors):
         digit = (idx // stride) % k
-        group = [members[idx + (j - digit) * stride] for j in range(k)]
+        group = _round_group(members, idx, stride, k)
         bands = split_rows(current.viewport, k)
         for j in sorted((j for j in range(k) if j != digit), key=lambda j: abs(j - digit)):
             _encode_to(box, group[j], current, bands[j], codec, rnd, stats, dense)
         current = _owned(_band(current, bands[digit]), owned or rnd > 0, stats)
-        for j in _merge_order(k, digit):
-            _merge_part(current, comm, group[j], rnd, j < digit, stats)
+        senders = sorted(group + [g + 1 for g in group if g < 2 * extra]) if rnd == 0 else group
+        pos = senders.index(me)
+        for j in _merge_order(len(senders), pos):
+            _merge_part(current, comm, senders[j], rnd, j < pos, stats)
         stride *= k
     return current
 
@@ -279,31 +293,21 @@ def composite(comm, img: Image, method: str = "binary-swap", k: int = 4, stats: 
         return img
     members, factors, extra = _plan(n, method, k)
     box = outbox if outbox is not None else Outbox(comm, stats)
-    if me < 2 * extra and me % 2:  # fold pairs (2i, 2i+1) so that P ranks remain, in order
-        for chunk in _chunks(img.viewport):  # the partner combines one while the next is encoded
-            _encode_to(box, me - 1, img, chunk, codec, _FOLD_TAG, stats, dense)
+    if me < 2 * extra and me % 2:  # folded: a sender only, in its partner's first round
+        group = _round_group(members, members.index(me - 1), 1, factors[0])
+        bands = split_rows(img.viewport, factors[0])
+        for j in sorted(range(len(group)), key=lambda j: abs(group[j] - me)):  # nearest first
+            _encode_to(box, group[j], img, bands[j], codec, 0, stats, dense)
         piece = Image(img.color[:0, :0], img.depth[:0, :0], Viewport(0, 0, 0, 0))
     else:
-        piece = _fold_and_rounds(comm, img, members, factors, extra, stats, codec, box, owned, dense)
+        piece = _radix_rounds(comm, img, members, factors, stats, codec, box, owned=owned, dense=dense, extra=extra)
     if outbox is None:
         with _timed(stats, "wait"):
             box.wait()
     return piece
 
 
-def _fold_and_rounds(comm, img: Image, members, factors, extra: int, stats, codec, box: Outbox, owned: bool = False,
-                     dense: float | None = None) -> Image:
-    """A rank that takes part in the rounds: the lower of a folded pair first combines its
-    partner's whole image into a copy of its own (into its own, when ``owned``)."""
-    me = comm.Get_rank()
-    if me < 2 * extra:
-        img = _owned(img, owned, stats)
-        for chunk in _chunks(img.viewport):
-            _merge_part(_band(img, chunk), comm, me + 1, _FOLD_TAG, False, stats)
-    return _radix_rounds(comm, img, members, factors, stats, codec, box, owned=owned or me < 2 * extra, dense=dense)
-
-
-_FOLD_TAG, _DELIVER_TAG, _ROWS_TAG = 100, 200, 300
+_DELIVER_TAG, _ROWS_TAG = 200, 300
 # With codec "auto" on one node, a part more than this share active travels with every pixel
 # active (codec.encode_message): copying it costs less than finding its runs. Measured on
 # 1280×256 bands of real partial images (encode + bytes at 6–10 GB/s + merge): 6 % active, runs
