@@ -23,13 +23,69 @@ and the whole frame's walk decide every diamond they both reach identically.
 
 from __future__ import annotations
 
+import atexit
 import math
+import os
+import threading
 
 import numpy as np
 
 from ..core.camera import Camera, Viewport
+from ..core.errors import ConfigError
 
-__all__ = ["Dims", "View", "Residency", "square_halves", "edge_halves", "merge_halves", "draw_level", "edge_exists", "patch_vertices"]
+__all__ = ["Dims", "View", "load_split_kernel", "SPLIT_KERNELS", "Residency", "square_halves", "edge_halves", "merge_halves", "draw_level", "edge_exists", "patch_vertices"]
+
+
+SPLIT_KERNELS = ("auto", "numpy", "numba")
+SPLIT_KERNEL_ENV = "MASSVIEW_SPLIT_KERNEL"
+_LOADER: dict = {"thread": None, "mod": None, "error": None}
+_LOADER_LOCK = threading.Lock()
+
+
+def load_split_kernel(wait: bool = False):
+    """The compiled split test (the module :mod:`massview.data.lodkernel`) once it is loaded,
+    else None. The first call starts loading it (importing numba, loading or compiling the
+    cached kernels) on a thread, so no frame waits for it: until it is ready :class:`View`
+    tests with numpy, which gives the same bits. ``wait`` blocks until the load ends. Where
+    numba cannot load, None for good (numpy tests)."""
+    with _LOADER_LOCK:
+        if _LOADER["thread"] is None:
+            thread = threading.Thread(target=_load, name="massview-split-kernel", daemon=True)
+            _LOADER["thread"] = thread
+            thread.start()
+            atexit.register(thread.join)  # numba must not be torn down mid-compile
+    if wait:
+        _LOADER["thread"].join()
+    return _LOADER["mod"]
+
+
+def _load() -> None:
+    try:
+        from ..data import lodkernel
+
+        z, c, m = np.zeros(1), np.zeros(1, bool), np.zeros(1, np.int8)
+        lodkernel.split_test(z, z, z, z, z, np.zeros((3, 3)), z.repeat(3), z.repeat(4), z.repeat(4), 0.0, 0.0,
+                             z.repeat(2), 0.0, 0.0, 0.0, c, z.copy(), m)
+        lodkernel.planes(z, z, z, z, np.zeros((3, 3)), z.repeat(3), z.repeat(4), z.repeat(4), 0.0, 0.0, m)
+        _LOADER["mod"] = lodkernel
+    except Exception as exc:  # noqa: BLE001 - numba missing or broken: the numpy path stays
+        _LOADER["error"] = exc
+
+
+def split_kernel(kernel: str | None = None):
+    """The kernel module :class:`View` uses: ``kernel`` (default ``MASSVIEW_SPLIT_KERNEL``, else
+    ``auto``) ``numpy`` → None, ``numba`` → the compiled one (loaded first if need be), ``auto``
+    → the compiled one once loaded, None until then."""
+    choice = kernel or os.environ.get(SPLIT_KERNEL_ENV) or "auto"
+    if choice not in SPLIT_KERNELS:
+        where = "kernel" if kernel else SPLIT_KERNEL_ENV
+        raise ConfigError(f"{where}={choice!r} is not a split kernel; use one of {', '.join(SPLIT_KERNELS)}")
+    if choice == "numpy":
+        return None
+    mod = load_split_kernel(wait=choice == "numba")
+    if choice == "numba" and mod is None:
+        raise ConfigError(f"split kernel 'numba' could not be loaded ({_LOADER['error']}); use {SPLIT_KERNEL_ENV}=numpy")
+    return mod
 
 
 class Dims:
@@ -57,8 +113,9 @@ class View:
     rotation rows add in order, ((r₀x + r₁y) + r₂z) + t), so a sphere's result never depends
     on its batch; the work is a few dozen whole-array calls per batch."""
 
-    def __init__(self, camera: Camera, tau: float, viewport: Viewport | None = None):
+    def __init__(self, camera: Camera, tau: float, viewport: Viewport | None = None, kernel: str | None = None):
         self.tau = float(tau)
+        self.kernel = split_kernel(kernel)
         self.f = camera.height / 2 / math.tan(math.radians(camera.fovy) / 2)
         v = camera.view_matrix()
         self.rot = [[float(x) for x in row] for row in v[:3, :3]]
@@ -78,6 +135,8 @@ class View:
         self._side_a = np.array([a for a, _ in sides])[:, None]  # on x, x, y, y
         self._side_c = np.array([c for _, c in sides])[:, None]  # on z
         self._u = np.array([self.ux, self.uy])[:, None]
+        self._consts = (np.array(self.rot), np.array(self.t), self._side_a[:, 0].copy(), self._side_c[:, 0].copy(), self.near, self.far)
+        self._test_consts = (*self._consts, self._u[:, 0].copy(), self.uz, self.f, self.tau)  # the kernel's
 
     def camera_space(self, x, y, z):
         (a, b, c), (d, e, f), (g, h, i) = self.rot
@@ -114,7 +173,21 @@ class View:
         np.minimum(m, near, out=m)
         return m >= np.negative(r), m >= r
 
+    def planes_code(self, xyz: np.ndarray, r) -> np.ndarray:
+        """:meth:`code` of world spheres (centres (3, n), radii): 0 outside, 1 crossing, 2 inside."""
+        if self.kernel is not None:
+            code = np.empty(xyz.shape[1], np.int8)
+            self.kernel.planes(xyz[0], xyz[1], xyz[2], r, *self._consts, code)
+            return code
+        inside, full = self._planes(self.to_camera(xyz), r)
+        return inside.view(np.int8) + full.view(np.int8)
+
     def test(self, xyz, r, err):
+        if self.kernel is not None:
+            n = xyz.shape[1]
+            crit, pix, code = np.empty(n, bool), np.empty(n), np.empty(n, np.int8)
+            self.kernel.split_test(xyz[0], xyz[1], xyz[2], r, err, *self._test_consts, crit, pix, code)
+            return crit, pix, code
         p = self.to_camera(xyz)
         inside, full = self._planes(p, r)
         zlo = np.negative(p[2])

@@ -212,9 +212,9 @@ def _leaves(h, view: View, key):
     dz /= 2
     dz *= dz
     dz += half * half
-    inside, full = view._planes(view.to_camera(xyz), np.sqrt(dz, out=dz))
+    code = view.planes_code(xyz, np.sqrt(dz, out=dz))
     none = np.zeros(len(key), bool)
-    return _kept(2 * J, ids, key, inside.view(np.int8) + full.view(np.int8), key >> 61, none, none)[0]
+    return _kept(2 * J, ids, key, code, key >> 61, none, none)[0]
 
 
 @lru_cache(maxsize=8)
