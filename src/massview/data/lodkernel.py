@@ -96,3 +96,53 @@ def planes(x, y, z, r, rot, t, side_a, side_c, near, far, code):
         ri = r[i]
         m = _camera_planes(x[i], y[i], z[i], ri, rot, t, side_a, side_c, near, far)[3]
         code[i] = np.int8(m >= -ri) + np.int8(m >= ri)
+
+
+@_jit
+def head_records(rec_int, rec_flt, rec_bid, head_code, head, cols, zs, code, bid):
+    """The batched top's kept halves: column k of records ``head`` into ``cols[k, :m]``,
+    ``zs[k, :m]``, their block ids and codes (``head_code`` indexed modulo its length: half
+    record size + i is diamond i's half 1), m = len(head)."""
+    nc = len(head_code)
+    for i in range(len(head)):
+        h = head[i]
+        for k in range(rec_int.shape[0]):
+            cols[k, i] = rec_int[k, h]
+        zs[0, i] = rec_flt[0, h]
+        zs[1, i] = rec_flt[1, h]
+        bid[i] = rec_bid[h]
+        code[i] = head_code[h % nc]
+
+
+@_jit
+def patch_records(key, spans, verts, rec, m, cols, bid):
+    """The integer Front columns and flat block ids of the walked patches ``key`` (packed
+    (half 1 ≪ 62 | o ≪ 60 | v ≪ 30 | u), written from position ``m`` on) — kpatch_walk's
+    _patch_records and block ids, one depth span at a time. ``spans`` (k, 9) int64 rows: begin,
+    end, half-0 count, table row 16·t, side log2 a, block shift, the level shift L − block level,
+    the block level's flat offset, and t; ``verts``/``rec``: the per-(depth, parity, half) tables."""
+    M = (1 << 30) - 1
+    for s in range(spans.shape[0]):
+        b, e, n0, r0, sa, sh, ls, boff = spans[s, 0], spans[s, 1], spans[s, 2], spans[s, 3], spans[s, 4], spans[s, 5], spans[s, 6], spans[s, 7]
+        c6, c7, c10 = rec[0, r0], rec[1, r0], rec[4, r0]
+        for i in range(b, e):
+            k = key[i]
+            row = r0 + (4 if i - b >= n0 else 0)
+            row |= (k & 1) | ((k >> 29) & 2) | ((k >> 57) & 8)
+            x0 = (k & M) << sa
+            y0 = ((k >> 30) & M) << sa
+            j = m + i
+            cols[0, j] = verts[0, row] + x0
+            cols[1, j] = verts[1, row] + y0
+            cols[2, j] = verts[2, row] + x0
+            cols[3, j] = verts[3, row] + y0
+            cols[4, j] = verts[4, row] + x0
+            cols[5, j] = verts[5, row] + y0
+            cols[6, j] = c6
+            cols[7, j] = c7
+            bi = (rec[2, row] + y0) >> sh
+            bj = (rec[3, row] + x0) >> sh
+            cols[8, j] = bi
+            cols[9, j] = bj
+            cols[10, j] = c10
+            bid[j] = (bi << ls) + bj + boff

@@ -67,6 +67,11 @@ def _load() -> None:
         lodkernel.split_test(z, z, z, z, z, np.zeros((3, 3)), z.repeat(3), z.repeat(4), z.repeat(4), 0.0, 0.0,
                              z.repeat(2), 0.0, 0.0, 0.0, c, z.copy(), m)
         lodkernel.planes(z, z, z, z, np.zeros((3, 3)), z.repeat(3), z.repeat(4), z.repeat(4), 0.0, 0.0, m)
+        i, cols = np.zeros(1, np.int64), np.zeros((11, 1), np.int64)
+        for rec in (np.zeros((11, 1), np.int32), cols):  # the top's records: int32, or int64 past 2^31 samples
+            lodkernel.head_records(rec, np.zeros((2, 1)), i, m, i, cols, np.zeros((2, 1)), m, i.copy())
+        lodkernel.patch_records(i[:0], np.zeros((0, 9), np.int64), np.zeros((7, 1), np.int64), np.zeros((6, 1), np.int64), 0, cols,
+                                i.copy())
         _LOADER["mod"] = lodkernel
     except Exception as exc:  # noqa: BLE001 - numba missing or broken: the numpy path stays
         _LOADER["error"] = exc

@@ -243,22 +243,27 @@ def _vertex_tables(n: int, J: int, L: int, m: int):
     return verts, rec
 
 
-def emit(h, parts, head, head_code):
+def emit(h, view: View, parts, head, head_code):
     """The Front's columns: (int64 (11, n): ax … stride, float64 (2, n): zmin, zmax, int8 (n,):
     codes, int64 (n,): flat block ids) — the batched top's kept halves first (``head``: positions in its half records,
     ``head_code``: its diamonds' codes), then the kept halves of ``parts``
     (square depths, then edge depths; in each depth its half-0 patches before its half-1
-    patches), each column written once."""
+    patches), each column written once — by the compiled kernels when ``view`` has them (the
+    same integers and the same gathered floats)."""
     parts = [p for p in parts if p[0] % 2 == 0] + [p for p in parts if p[0] % 2 == 1]
     top, m = h.top, len(head)
     total = m + sum(len(p[2]) for p in parts)
     cols, zs, code = np.empty((11, total), np.int64), np.empty((2, total)), np.empty(total, np.int8)
     bid = np.empty(total, np.int64)  # flat block ids (Front.block_ids)
-    top.rec_bid.take(head, out=bid[:m])
-    cols[:, :m] = top.rec_int.take(head, axis=1)
-    top.rec_flt[0].take(head, out=zs[0, :m], mode="clip")
-    top.rec_flt[1].take(head, out=zs[1, :m], mode="clip")
-    head_code.take(head, out=code[:m], mode="wrap")  # half records: size + i is diamond i's half 1
+    kernel = view.kernel
+    if kernel is not None:
+        kernel.head_records(top.rec_int, top.rec_flt, top.rec_bid, head_code, head, cols, zs, code, bid)
+    else:
+        top.rec_bid.take(head, out=bid[:m])
+        cols[:, :m] = top.rec_int.take(head, axis=1)
+        top.rec_flt[0].take(head, out=zs[0, :m], mode="clip")
+        top.rec_flt[1].take(head, out=zs[1, :m], mode="clip")
+        head_code.take(head, out=code[:m], mode="wrap")  # half records: size + i is diamond i's half 1
     if total == m:
         return cols, zs, code, bid
     key = np.concatenate([p[3] for p in parts])
@@ -269,6 +274,10 @@ def emit(h, parts, head, head_code):
         tab = h.dg_tab[t // 2] if t % 2 else h.sq_tab[t // 2]
         _take_into(tab[3], ids, zs[0, b:e])
         _take_into(tab[4], ids, zs[1, b:e])
+    if kernel is not None:
+        kernel.patch_records(key, _spans(h.dims, parts, top.block_offsets), *_vertex_tables(h.dims.n, h.dims.J, h.dims.L, h.dims.m),
+                             m, cols, bid)
+        return cols, zs, code, bid
     row = np.repeat(np.array([[16 * p[0], 16 * p[0] + 4] for p in parts]).ravel(),
                     np.array([[p[1], len(p[2]) - p[1]] for p in parts]).ravel())
     row |= key & 1
@@ -287,6 +296,19 @@ def emit(h, parts, head, head_code):
         o += cols[9, m + b:m + e]
         o += int(top.block_offsets[blvl])
     return cols, zs, code, bid
+
+
+def _spans(lay, parts, block_offsets) -> np.ndarray:
+    """Per depth of ``parts`` the row :func:`massview.data.lodkernel.patch_records` reads: begin,
+    end, half-0 count, table row 16·t, side log2 a, block shift, L − block level, the block
+    level's flat offset, t."""
+    verts, rec = _vertex_tables(lay.n, lay.J, lay.L, lay.m)
+    out, e = np.empty((len(parts), 9), np.int64), 0
+    for k, (t, n0, ids, _, _) in enumerate(parts):
+        b, e = e, e + len(ids)
+        blvl = min(draw_level(lay.J, t), lay.L)
+        out[k] = (b, e, n0, 16 * t, verts[6, 16 * t], rec[5, 16 * t], lay.L - blvl, block_offsets[blvl], t)
+    return out
 
 
 def _take_into(src: np.ndarray, idx, dst: np.ndarray) -> None:

@@ -165,19 +165,19 @@ def run(args) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from ...lod.kpatch_cut import load_split_kernel, split_kernel
+    from ...lod.kpatch_cut import SPLIT_KERNEL_ENV, load_split_kernel, split_kernel
     from ...parallel.runtime import self_comm
     from ...systems.terrain import TerrainSystem
     from .lod_baseline import BaselineStage
 
-    split_kernel()  # starts loading the compiled split test (MASSVIEW_SPLIT_KERNEL=auto) ...
+    if split_kernel() is None and os.environ.get(SPLIT_KERNEL_ENV, "auto") == "auto":
+        load_split_kernel(wait=True)  # no timed frame tests with numpy while the compiled split test loads
 
     console = Console(width=None if Console().is_terminal else 160)
     other = _against(args.against) if args.against else None
     w, hh = parse_size(args.size)
     store = _store(args.store)
     t_start = time.perf_counter()
-    load_split_kernel(wait=True)  # ... and waits for it: no timed frame tests with numpy while it loads
     sysm = TerrainSystem(store, cache_bytes=1 << 30, gpu_bytes=1 << 30, loading="complete")
     old = BaselineStage(sysm)
     before = other[0].TerrainSystem(store, cache_bytes=1 << 30, gpu_bytes=1 << 30, loading="complete") if other else None
