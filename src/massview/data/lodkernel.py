@@ -146,3 +146,175 @@ def patch_records(key, spans, verts, rec, m, cols, bid):
             cols[9, j] = bj
             cols[10, j] = c10
             bid[j] = (bi << ls) + bj + boff
+
+
+@_jit
+def _height(z, base, vs, Z):
+    """columns.heights of one stored height: base + Z·(z·vs − base), in its operation order."""
+    return (np.float64(z) * vs - base) * Z + base
+
+
+@_jit
+def diamond_test(key, edge, j, sa, dx, mdy, zlo, zhi, r, err, base, vs, Z, rot, t, side_a, side_c, near, far, u, uz, f, tau,
+                 ids, crit, pix, code, split):
+    """One walked depth's split test from the packed keys (kpatch_walk._step): each diamond's
+    table index ``ids``, sphere centre (the lattice point times dx, −dy; the height the centre of
+    the stored z-range ``zlo``/``zhi`` as world heights, 0 for edges outside the lattice), radius
+    ``r``, world error (``err``·vs·Z), then :func:`split_test`'s ``crit``, ``pix``, ``code``, and
+    ``split``: critical and complete (every half that exists inside the domain is present)."""
+    M = (1 << 30) - 1
+    n = 1 << j
+    N = n + 1
+    a = 1 << sa
+    ux, uy = u[0], u[1]
+    every = True
+    for i in range(len(key)):
+        k = key[i]
+        uu = k & M
+        vv = (k >> 30) & M
+        hb = k >> 61
+        if edge:
+            o = (k >> 60) & 1
+            d = (o * N + vv) * N + uu
+            xi = (uu << sa) + ((1 - o) << (sa - 1))
+            yi = (vv << sa) + (o << (sa - 1))
+            w = vv if o == 0 else uu
+            complete = hb == (1 if w >= 1 else 0) + (2 if w < n else 0)
+            lo, hi = _height(zlo[d], base, vs, Z), _height(zhi[d], base, vs, Z)
+            z = (lo + hi) / 2 if np.isfinite(lo) else 0.0
+        else:
+            d = (vv << j) | uu
+            xi = (uu << sa) + (a >> 1)
+            yi = (vv << sa) + (a >> 1)
+            complete = hb == 3
+            z = (_height(zlo[d], base, vs, Z) + _height(zhi[d], base, vs, Z)) / 2
+        ids[i] = d
+        ri = r[d]
+        e = np.float64(err[d]) * vs * Z
+        p0, p1, pz, m = _camera_planes(np.float64(xi) * dx, np.float64(yi) * mdy, z, ri, rot, t, side_a, side_c, near, far)
+        inside = m >= -ri
+        code[i] = np.int8(inside) + np.int8(m >= ri)
+        zl = -pz - ri
+        if zl > 0:
+            ax = (abs(p0) + ri) / zl * uz + ux
+            bx = (abs(p1) + ri) / zl * uz + uy
+            p = np.sqrt(ax * ax + bx * bx) * f / zl * e
+        else:
+            every = False
+            p = e * np.inf
+        pix[i] = p
+        c = inside and p > tau
+        crit[i] = c
+        split[i] = c and complete
+    if not every:
+        for i in range(len(key)):
+            if pix[i] != pix[i]:
+                pix[i] = 0.0
+                crit[i] = False
+                split[i] = False
+
+
+@_jit
+def kept(ids, key, code, crit, split):
+    """kpatch_walk._kept: the present halves of the diamonds that do not split, half-0 patches
+    first — (half-0 count, ids, keys, codes) — and the deferred splits."""
+    n = len(key)
+    sel = np.empty(2 * n, np.int64)
+    c, deferred = 0, 0
+    for i in range(n):
+        if not split[i] and key[i] >> 61 & 1:
+            sel[c] = i
+            c += 1
+            deferred += crit[i]
+    n0 = c
+    for i in range(n):
+        if not split[i] and key[i] >> 62 & 1:
+            sel[c] = i
+            c += 1
+            deferred += crit[i]
+    kid, kkey, kcode = np.empty(c, np.int64), np.empty(c, np.int64), np.empty(c, np.int8)
+    for q in range(c):
+        i = sel[q]
+        kid[q], kkey[q], kcode[q] = ids[i], key[i], code[i]
+    return n0, kid, kkey, kcode, deferred
+
+
+@_jit
+def _merge(mark, k0, id0, k1, id1, h1):
+    """kpatch_cut.merge_halves and the keys it yields: ``k0`` (half-0 receivers) with half 1
+    marked where ``id1`` also holds them, then the ``k1`` not in ``id0`` with bit ``h1``; ``mark``
+    is left zeroed."""
+    for i in range(len(id1)):
+        mark[id1[i]] = 1
+    out = np.empty(len(k0) + len(k1), np.int64)
+    for i in range(len(id0)):
+        out[i] = k0[i] | (np.int64(mark[id0[i]]) << 62)
+    for i in range(len(id1)):
+        mark[id1[i]] = 0
+    for i in range(len(id0)):
+        mark[id0[i]] = 1
+    c = len(k0)
+    for i in range(len(id1)):
+        if mark[id1[i]] == 0:
+            out[c] = k1[i] | h1
+            c += 1
+    for i in range(len(id0)):
+        mark[id0[i]] = 0
+    return out[:c]
+
+
+@_jit
+def square_children(key, split, n, mark):
+    """kpatch_walk._square_children of the diamonds ``key`` that ``split``: their 4 sides' keys,
+    in its order."""
+    M, ROW, O, H0, H1 = (1 << 30) - 1, 1 << 30, 1 << 60, 1 << 61, 1 << 62
+    N = n + 1
+    s = np.flatnonzero(split)
+    q = len(s)
+    k0, id0, k1, id1 = np.empty(2 * q, np.int64), np.empty(2 * q, np.int64), np.empty(2 * q, np.int64), np.empty(2 * q, np.int64)
+    for c in range(q):
+        k = key[s[c]]
+        u, v = k & M, (k >> 30) & M
+        base = (v << 30) | u
+        w = v * N + u
+        id0[c], id0[q + c] = w + N, w + (N * N + 1)
+        id1[c], id1[q + c] = w, w + N * N
+        k0[c], k0[q + c] = base + (ROW | H0), base + (1 | O | H0)
+        k1[c], k1[q + c] = base | H1, base | (O | H1)
+    return _merge(mark, k0, id0, k1, id1, 0)
+
+
+@_jit
+def _edge_kids(ks, o, want, dk, di, m):
+    """kpatch_walk._edge_kids for the edges ``ks`` of orientation ``want``."""
+    M, VU = (1 << 30) - 1, (1 << 60) - 1
+    sel = np.flatnonzero(o == want)
+    q = len(sel)
+    keys, ids = np.empty(4 * q, np.int64), np.empty(4 * q, np.int64)
+    ok = np.empty(4 * q, np.bool_)
+    for c in range(q):
+        k = ks[sel[c]]
+        hb = k >> 61
+        cc = (k & VU) << 1
+        w = ((cc >> 30) * m) | (cc & M)
+        for p in range(4):
+            keys[p * q + c] = cc - dk[p]
+            ids[p * q + c] = w - di[p]
+            ok[p * q + c] = (hb & 1) != 0 if p < 2 else hb >= 2
+    if q and not ok.all():
+        keep = np.flatnonzero(ok)
+        return keys[keep], ids[keep]
+    return keys, ids
+
+
+@_jit
+def edge_children(ks, n, mark):
+    """kpatch_walk.edge_children of split edges ``ks`` (orientation and present halves in their
+    bits 60–62): the 4 squares around each midpoint, in its order."""
+    ROW, H0, H1 = 1 << 30, 1 << 61, 1 << 62
+    m = 2 * n
+    o = (ks >> 60) & 1
+    k0, id0 = _edge_kids(ks, o, 0, np.array([ROW, ROW - 1, 0, -1]), np.array([m, m - 1, 0, -1]), m)
+    k1, id1 = _edge_kids(ks, o, 1, np.array([1, -ROW + 1, 0, -ROW]), np.array([1, -m + 1, 0, -m]), m)
+    k0 |= H0
+    return _merge(mark, k0, id0, k1, id1, H1)

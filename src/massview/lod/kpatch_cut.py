@@ -70,6 +70,15 @@ def _load() -> None:
         i, cols = np.zeros(1, np.int64), np.zeros((11, 1), np.int64)
         for rec in (np.zeros((11, 1), np.int32), cols):  # the top's records: int32, or int64 past 2^31 samples
             lodkernel.head_records(rec, np.zeros((2, 1)), i, m, i, cols, np.zeros((2, 1)), m, i.copy())
+        vc = (np.zeros((3, 3)), z.repeat(3), z.repeat(4), z.repeat(4), 0.0, 0.0, z.repeat(2), 0.0, 0.0, 0.0)
+        out = (i.copy(), m.view(bool).copy(), z.copy(), m.copy(), m.view(bool).copy())
+        for dt in (np.float32, np.float64):  # stored heights and errors: float32, or float64 (hierarchies built in memory)
+            h = np.zeros(4, dt)
+            for edge in (False, True):
+                lodkernel.diamond_test(i[:0], edge, 0, 1, 1.0, -1.0, h, h, np.zeros(4), h, 0.0, 1.0, 1.0, *vc, *out)
+        lodkernel.kept(i, i, m, m.view(bool), m.view(bool))
+        lodkernel.square_children(i, m.view(bool), 1, np.zeros(4, np.uint8))
+        lodkernel.edge_children(i, 1, np.zeros(4, np.uint8))
         lodkernel.patch_records(i[:0], np.zeros((0, 9), np.int64), np.zeros((7, 1), np.int64), np.zeros((6, 1), np.int64), 0, cols,
                                 i.copy())
         _LOADER["mod"] = lodkernel

@@ -31,7 +31,7 @@ import numpy as np
 
 from .kpatch_cut import Residency, View, draw_level, merge_halves, patch_vertices
 
-__all__ = ["pack", "walk", "edge_children", "emit"]
+__all__ = ["pack", "walk", "edge_children", "seed_children", "emit"]
 
 _M = (1 << 30) - 1
 _O, _H0, _H1 = 1 << 60, 1 << 61, 1 << 62
@@ -62,6 +62,8 @@ def walk(h, view: View, res: Residency, request, t0: int, key: np.ndarray):
 
 
 def _step(h, view: View, res: Residency, request, t: int, key):
+    if view.kernel is not None:
+        return _step_compiled(h, view, res, request, t, key)
     lay, j = h.dims, t >> 1
     sa = lay.n - j
     a, n = 1 << sa, 1 << j
@@ -97,6 +99,36 @@ def _step(h, view: View, res: Residency, request, t: int, key):
     if t & 1:
         return edge_children(h, n, key.take(s), o.take(s), hb.take(s)), kept, deferred
     return _square_children(h, n, v.take(s), u.take(s)), kept, deferred
+
+
+def _step_compiled(h, view: View, res: Residency, request, t: int, key):
+    """:func:`_step` by the compiled kernels of ``view`` (:mod:`massview.data.lodkernel`): the
+    split test from the keys and the stored columns, the kept patches and the children, the
+    same values in the same order; only missing blocks (:func:`_resident`) go through numpy."""
+    kernel, lay, j = view.kernel, h.dims, t >> 1
+    edge = bool(t & 1)
+    tab = h.dg_tab[j] if edge else h.sq_tab[j]
+    n = len(key)
+    ids, crit, pix, code, split = np.empty(n, np.int64), np.empty(n, bool), np.empty(n), np.empty(n, np.int8), np.empty(n, bool)
+    kernel.diamond_test(key, edge, j, lay.n - j, h.dx, -h.dy, tab[3].src[0], tab[4].src[0], tab[1], tab[2].src[0], h.base, h.vs,
+                        h.exaggeration, *view._test_consts, ids, crit, pix, code, split)
+    if not res.all:
+        o = (key >> 60) & 1 if edge else None
+        split = _resident(lay, res, request, t, o, (key >> 30) & _M, key & _M, key >> 61, crit, pix, split)
+    n0, kid, kkey, kcode, deferred = kernel.kept(ids, key, code, crit, split)
+    if edge:
+        kids = kernel.edge_children(key.take(np.flatnonzero(split)), 1 << j, h._mark)
+    else:
+        kids = kernel.square_children(key, split, 1 << j, h._mark)
+    return kids, (t, n0, kid, kkey, kcode), deferred
+
+
+def seed_children(h, view: View, n: int, ks, o, hb) -> np.ndarray:
+    """:func:`edge_children` of the batched top's deepest split edges (compiled when ``view`` has
+    the kernels)."""
+    if view.kernel is not None:
+        return view.kernel.edge_children(ks, n, h._mark)
+    return edge_children(h, n, ks, o, hb)
 
 
 def _kept(t: int, ids, key, code, hb, crit, split):
