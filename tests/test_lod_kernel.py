@@ -1,12 +1,15 @@
-"""The compiled split test (massview.data.lodkernel) gives the numpy View's bits: flags, pixel
-errors and culling codes per sphere, and so the same LOD stage output (the recorded digests)."""
+"""The compiled kernels (massview.data.lodkernel) give the numpy walk's bits: the split test's
+flags, pixel errors and culling codes per sphere, the cut (every Front column, in order) with
+and without missing blocks, and so the same LOD stage output (the recorded digests)."""
 
 import numpy as np
 import pytest
 
 from massview.core.paths import load_path
-from massview.lod.kpatch_cut import View, load_split_kernel, split_kernel
 from massview.core.errors import ConfigError
+from massview.lod.kernels import load_split_kernel, split_kernel
+from massview.lod.kpatch import Front, select_front
+from massview.lod.kpatch_cut import View
 
 
 @pytest.fixture(scope="module")
@@ -37,8 +40,33 @@ def test_kernel_test_is_numpys(hier, path):
                 want, got = a.test(x, rr, e), b.test(x, rr, e)
                 for w, g in zip(want, got):
                     assert w.dtype == g.dtype and np.array_equal(_bits(w), _bits(g))
-                assert np.array_equal(a.planes_code(x, rr), b.planes_code(x, rr))
             assert np.isinf(b.test(xyz, r, err)[1]).any()  # the spheres behind the eye were tested
+
+
+@pytest.mark.parametrize("path", ["flyover", "zoom", "turn", "forward"])
+def test_kernel_cut_is_numpys(hier, monkeypatch, path):
+    """Every column, the codes and the deferred count, whole frame and a tile, all blocks
+    resident or some missing (requests: the same blocks, priorities and order)."""
+    lay = hier.lay
+    rng = np.random.default_rng(11)
+    grids = [rng.random((2 ** (lay.L - lv),) * 2) < 0.7 for lv in range(lay.levels)]
+    grids[lay.L][0, 0] = True
+    p = load_path(path, *hier.bounds())
+    for at in (0.05, 0.5, 0.95):
+        cam = p.camera(at, 640, 360)
+        tile = type(cam.viewport)(0, 0, 320, 360)
+        for tau, res, vp in ((0.4, None, None), (1.0, grids, None), (0.3, grids, tile)):
+            fronts, calls = [], []
+            for kernel in ("numpy", "numba"):
+                monkeypatch.setenv("MASSVIEW_SPLIT_KERNEL", kernel)
+                got = []
+                fronts.append(select_front(hier, cam, tau, res, lambda *a: got.append([np.asarray(x).tolist() for x in a]), vp))
+                calls.append(got)
+            a, b = fronts
+            for k in (*Front.FIELDS, "code", "bid"):
+                x, y = getattr(a, k), getattr(b, k)
+                assert x.dtype == y.dtype and np.array_equal(_bits(x), _bits(y)), k
+            assert a.deferred == b.deferred and calls[0] == calls[1]
 
 
 @pytest.mark.parametrize("kernel", ["numpy", "numba"])

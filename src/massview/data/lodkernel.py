@@ -21,7 +21,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["split_test", "planes"]
+__all__ = ["split_test", "top_rule", "head_records", "patch_records", "diamond_test", "leaves", "kept", "square_children",
+           "edge_children"]
 
 
 def _jit(fn):
@@ -90,24 +91,16 @@ def split_test(x, y, z, r, err, rot, t, side_a, side_c, near, far, u, uz, f, tau
 
 
 @_jit
-def planes(x, y, z, r, rot, t, side_a, side_c, near, far, code):
-    """``code`` (int8): View._planes' 0 outside a plane, 1 crossing, 2 inside all."""
-    for i in range(len(x)):
-        ri = r[i]
-        m = _camera_planes(x[i], y[i], z[i], ri, rot, t, side_a, side_c, near, far)[3]
-        code[i] = np.int8(m >= -ri) + np.int8(m >= ri)
-
-
-@_jit
-def head_records(rec_int, rec_flt, rec_bid, head_code, head, cols, zs, code, bid):
-    """The batched top's kept halves: column k of records ``head`` into ``cols[k, :m]``,
+def head_records(rec_rows, rec_flt, rec_bid, head_code, head, cols, zs, code, bid):
+    """The batched top's kept halves: column k of records ``head`` (``rec_rows``: (2·size, 11),
+    one record per row) into ``cols[k, :m]``,
     ``zs[k, :m]``, their block ids and codes (``head_code`` indexed modulo its length: half
     record size + i is diamond i's half 1), m = len(head)."""
     nc = len(head_code)
     for i in range(len(head)):
         h = head[i]
-        for k in range(rec_int.shape[0]):
-            cols[k, i] = rec_int[k, h]
+        for k in range(rec_rows.shape[1]):
+            cols[k, i] = rec_rows[h, k]
         zs[0, i] = rec_flt[0, h]
         zs[1, i] = rec_flt[1, h]
         bid[i] = rec_bid[h]
@@ -156,12 +149,13 @@ def _height(z, base, vs, Z):
 
 @_jit
 def diamond_test(key, edge, j, sa, dx, mdy, zlo, zhi, r, err, base, vs, Z, rot, t, side_a, side_c, near, far, u, uz, f, tau,
-                 ids, crit, pix, code, split):
+                 ids, crit, pix, code, split, zw):
     """One walked depth's split test from the packed keys (kpatch_walk._step): each diamond's
     table index ``ids``, sphere centre (the lattice point times dx, −dy; the height the centre of
     the stored z-range ``zlo``/``zhi`` as world heights, 0 for edges outside the lattice), radius
     ``r``, world error (``err``·vs·Z), then :func:`split_test`'s ``crit``, ``pix``, ``code``, and
-    ``split``: critical and complete (every half that exists inside the domain is present)."""
+    ``split``: critical and complete (every half that exists inside the domain is present), and
+    ``zw`` (2, n): the z-range as world heights (the Front's zmin, zmax of the diamond's halves)."""
     M = (1 << 30) - 1
     n = 1 << j
     N = n + 1
@@ -181,14 +175,16 @@ def diamond_test(key, edge, j, sa, dx, mdy, zlo, zhi, r, err, base, vs, Z, rot, 
             w = vv if o == 0 else uu
             complete = hb == (1 if w >= 1 else 0) + (2 if w < n else 0)
             lo, hi = _height(zlo[d], base, vs, Z), _height(zhi[d], base, vs, Z)
-            z = (lo + hi) / 2 if np.isfinite(lo) else 0.0
+            z = (lo + hi) / 2 if np.isfinite(lo) else 0.0  # columns.edge_centre
         else:
             d = (vv << j) | uu
             xi = (uu << sa) + (a >> 1)
             yi = (vv << sa) + (a >> 1)
             complete = hb == 3
-            z = (_height(zlo[d], base, vs, Z) + _height(zhi[d], base, vs, Z)) / 2
+            lo, hi = _height(zlo[d], base, vs, Z), _height(zhi[d], base, vs, Z)
+            z = (lo + hi) / 2
         ids[i] = d
+        zw[0, i], zw[1, i] = lo, hi
         ri = r[d]
         e = np.float64(err[d]) * vs * Z
         p0, p1, pz, m = _camera_planes(np.float64(xi) * dx, np.float64(yi) * mdy, z, ri, rot, t, side_a, side_c, near, far)
@@ -215,9 +211,53 @@ def diamond_test(key, edge, j, sa, dx, mdy, zlo, zhi, r, err, base, vs, Z, rot, 
 
 
 @_jit
-def kept(ids, key, code, crit, split):
+def leaves(key, J, sa, dx, mdy, zlo, zhi, base, vs, Z, hh, rot, t, side_a, side_c, near, far):
+    """kpatch_walk._leaves: at the deepest square level every present half is a patch, its
+    code from the sphere around its z-range (radius √(((zhi − zlo)/2)² + ``hh``)). Returns
+    what :func:`kept` returns."""
+    M = (1 << 30) - 1
+    n = len(key)
+    a = 1 << sa
+    ids, code, zw = np.empty(n, np.int64), np.empty(n, np.int8), np.empty((2, n))
+    none = np.zeros(n, np.bool_)
+    for i in range(n):
+        k = key[i]
+        u, v = k & M, (k >> 30) & M
+        d = (v << J) | u
+        lo, hi = _height(zlo[d], base, vs, Z), _height(zhi[d], base, vs, Z)
+        dz = (hi - lo) / 2
+        r = np.sqrt(dz * dz + hh)
+        m = _camera_planes(np.float64((u << sa) + (a >> 1)) * dx, np.float64((v << sa) + (a >> 1)) * mdy, (lo + hi) / 2, r, rot, t,
+                           side_a, side_c, near, far)[3]
+        ids[i], zw[0, i], zw[1, i] = d, lo, hi
+        code[i] = np.int8(m >= -r) + np.int8(m >= r)
+    return kept(ids, key, code, none, none, zw)
+
+
+@_jit
+def top_rule(ok, crit, p0, p1, ex0, ex1, S, H0, H1):
+    """kpatch_top.TopBatch.walk's rule over the batch (parents before children): ``S[i]`` (split)
+    ⇔ ``ok[i]`` and each half is present exactly where it exists (``S[p0[i]]`` = ``ex0[i]``, …;
+    ``S`` has size + 2 entries, the last two the False and True sentinels); ``H0``, ``H1``: the
+    halves present. Returns the deferred splits (present halves of critical diamonds that do
+    not split)."""
+    size = len(ok)
+    S[size] = False
+    S[size + 1] = True
+    for i in range(size):
+        S[i] = ok[i] and S[p0[i]] == ex0[i] and S[p1[i]] == ex1[i]
+    deferred = 0
+    for i in range(size):
+        H0[i], H1[i] = S[p0[i]], S[p1[i]]
+        if crit[i] and not S[i]:
+            deferred += np.int64(H0[i]) + np.int64(H1[i])
+    return deferred
+
+
+@_jit
+def kept(ids, key, code, crit, split, zw):
     """kpatch_walk._kept: the present halves of the diamonds that do not split, half-0 patches
-    first — (half-0 count, ids, keys, codes) — and the deferred splits."""
+    first — (half-0 count, ids, keys, codes, z-ranges (2, k)) — and the deferred splits."""
     n = len(key)
     sel = np.empty(2 * n, np.int64)
     c, deferred = 0, 0
@@ -232,11 +272,12 @@ def kept(ids, key, code, crit, split):
             sel[c] = i
             c += 1
             deferred += crit[i]
-    kid, kkey, kcode = np.empty(c, np.int64), np.empty(c, np.int64), np.empty(c, np.int8)
+    kid, kkey, kcode, kz = np.empty(c, np.int64), np.empty(c, np.int64), np.empty(c, np.int8), np.empty((2, c))
     for q in range(c):
         i = sel[q]
         kid[q], kkey[q], kcode[q] = ids[i], key[i], code[i]
-    return n0, kid, kkey, kcode, deferred
+        kz[0, q], kz[1, q] = zw[0, i], zw[1, i]
+    return n0, kid, kkey, kcode, kz, deferred
 
 
 @_jit

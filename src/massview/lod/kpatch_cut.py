@@ -23,83 +23,14 @@ and the whole frame's walk decide every diamond they both reach identically.
 
 from __future__ import annotations
 
-import atexit
 import math
-import os
-import threading
 
 import numpy as np
 
 from ..core.camera import Camera, Viewport
-from ..core.errors import ConfigError
+from .kernels import split_kernel
 
-__all__ = ["Dims", "View", "load_split_kernel", "SPLIT_KERNELS", "Residency", "square_halves", "edge_halves", "merge_halves", "draw_level", "edge_exists", "patch_vertices"]
-
-
-SPLIT_KERNELS = ("auto", "numpy", "numba")
-SPLIT_KERNEL_ENV = "MASSVIEW_SPLIT_KERNEL"
-_LOADER: dict = {"thread": None, "mod": None, "error": None}
-_LOADER_LOCK = threading.Lock()
-
-
-def load_split_kernel(wait: bool = False):
-    """The compiled split test (the module :mod:`massview.data.lodkernel`) once it is loaded,
-    else None. The first call starts loading it (importing numba, loading or compiling the
-    cached kernels) on a thread, so no frame waits for it: until it is ready :class:`View`
-    tests with numpy, which gives the same bits. ``wait`` blocks until the load ends. Where
-    numba cannot load, None for good (numpy tests)."""
-    with _LOADER_LOCK:
-        if _LOADER["thread"] is None:
-            thread = threading.Thread(target=_load, name="massview-split-kernel", daemon=True)
-            _LOADER["thread"] = thread
-            thread.start()
-            atexit.register(thread.join)  # numba must not be torn down mid-compile
-    if wait:
-        _LOADER["thread"].join()
-    return _LOADER["mod"]
-
-
-def _load() -> None:
-    try:
-        from ..data import lodkernel
-
-        z, c, m = np.zeros(1), np.zeros(1, bool), np.zeros(1, np.int8)
-        lodkernel.split_test(z, z, z, z, z, np.zeros((3, 3)), z.repeat(3), z.repeat(4), z.repeat(4), 0.0, 0.0,
-                             z.repeat(2), 0.0, 0.0, 0.0, c, z.copy(), m)
-        lodkernel.planes(z, z, z, z, np.zeros((3, 3)), z.repeat(3), z.repeat(4), z.repeat(4), 0.0, 0.0, m)
-        i, cols = np.zeros(1, np.int64), np.zeros((11, 1), np.int64)
-        for rec in (np.zeros((11, 1), np.int32), cols):  # the top's records: int32, or int64 past 2^31 samples
-            lodkernel.head_records(rec, np.zeros((2, 1)), i, m, i, cols, np.zeros((2, 1)), m, i.copy())
-        vc = (np.zeros((3, 3)), z.repeat(3), z.repeat(4), z.repeat(4), 0.0, 0.0, z.repeat(2), 0.0, 0.0, 0.0)
-        out = (i.copy(), m.view(bool).copy(), z.copy(), m.copy(), m.view(bool).copy())
-        for dt in (np.float32, np.float64):  # stored heights and errors: float32, or float64 (hierarchies built in memory)
-            h = np.zeros(4, dt)
-            for edge in (False, True):
-                lodkernel.diamond_test(i[:0], edge, 0, 1, 1.0, -1.0, h, h, np.zeros(4), h, 0.0, 1.0, 1.0, *vc, *out)
-        lodkernel.kept(i, i, m, m.view(bool), m.view(bool))
-        lodkernel.square_children(i, m.view(bool), 1, np.zeros(4, np.uint8))
-        lodkernel.edge_children(i, 1, np.zeros(4, np.uint8))
-        lodkernel.patch_records(i[:0], np.zeros((0, 9), np.int64), np.zeros((7, 1), np.int64), np.zeros((6, 1), np.int64), 0, cols,
-                                i.copy())
-        _LOADER["mod"] = lodkernel
-    except Exception as exc:  # noqa: BLE001 - numba missing or broken: the numpy path stays
-        _LOADER["error"] = exc
-
-
-def split_kernel(kernel: str | None = None):
-    """The kernel module :class:`View` uses: ``kernel`` (default ``MASSVIEW_SPLIT_KERNEL``, else
-    ``auto``) ``numpy`` → None, ``numba`` → the compiled one (loaded first if need be), ``auto``
-    → the compiled one once loaded, None until then."""
-    choice = kernel or os.environ.get(SPLIT_KERNEL_ENV) or "auto"
-    if choice not in SPLIT_KERNELS:
-        where = "kernel" if kernel else SPLIT_KERNEL_ENV
-        raise ConfigError(f"{where}={choice!r} is not a split kernel; use one of {', '.join(SPLIT_KERNELS)}")
-    if choice == "numpy":
-        return None
-    mod = load_split_kernel(wait=choice == "numba")
-    if choice == "numba" and mod is None:
-        raise ConfigError(f"split kernel 'numba' could not be loaded ({_LOADER['error']}); use {SPLIT_KERNEL_ENV}=numpy")
-    return mod
+__all__ = ["Dims", "View", "Residency", "square_halves", "edge_halves", "merge_halves", "draw_level", "edge_exists", "patch_vertices"]
 
 
 class Dims:
@@ -150,7 +81,7 @@ class View:
         self._side_c = np.array([c for _, c in sides])[:, None]  # on z
         self._u = np.array([self.ux, self.uy])[:, None]
         self._consts = (np.array(self.rot), np.array(self.t), self._side_a[:, 0].copy(), self._side_c[:, 0].copy(), self.near, self.far)
-        self._test_consts = (*self._consts, self._u[:, 0].copy(), self.uz, self.f, self.tau)  # the kernel's
+        self.kernel_consts = (*self._consts, self._u[:, 0].copy(), self.uz, self.f, self.tau)  # the kernels' arguments
 
     def camera_space(self, x, y, z):
         (a, b, c), (d, e, f), (g, h, i) = self.rot
@@ -187,20 +118,11 @@ class View:
         np.minimum(m, near, out=m)
         return m >= np.negative(r), m >= r
 
-    def planes_code(self, xyz: np.ndarray, r) -> np.ndarray:
-        """:meth:`code` of world spheres (centres (3, n), radii): 0 outside, 1 crossing, 2 inside."""
-        if self.kernel is not None:
-            code = np.empty(xyz.shape[1], np.int8)
-            self.kernel.planes(xyz[0], xyz[1], xyz[2], r, *self._consts, code)
-            return code
-        inside, full = self._planes(self.to_camera(xyz), r)
-        return inside.view(np.int8) + full.view(np.int8)
-
     def test(self, xyz, r, err):
         if self.kernel is not None:
             n = xyz.shape[1]
             crit, pix, code = np.empty(n, bool), np.empty(n), np.empty(n, np.int8)
-            self.kernel.split_test(xyz[0], xyz[1], xyz[2], r, err, *self._test_consts, crit, pix, code)
+            self.kernel.split_test(xyz[0], xyz[1], xyz[2], r, err, *self.kernel_consts, crit, pix, code)
             return crit, pix, code
         p = self.to_camera(xyz)
         inside, full = self._planes(p, r)

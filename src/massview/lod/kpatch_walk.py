@@ -31,7 +31,7 @@ import numpy as np
 
 from .kpatch_cut import Residency, View, draw_level, merge_halves, patch_vertices
 
-__all__ = ["pack", "walk", "edge_children", "seed_children", "emit"]
+__all__ = ["pack", "walk", "edge_children", "emit"]
 
 _M = (1 << 30) - 1
 _O, _H0, _H1 = 1 << 60, 1 << 61, 1 << 62
@@ -62,8 +62,6 @@ def walk(h, view: View, res: Residency, request, t0: int, key: np.ndarray):
 
 
 def _step(h, view: View, res: Residency, request, t: int, key):
-    if view.kernel is not None:
-        return _step_compiled(h, view, res, request, t, key)
     lay, j = h.dims, t >> 1
     sa = lay.n - j
     a, n = 1 << sa, 1 << j
@@ -99,36 +97,6 @@ def _step(h, view: View, res: Residency, request, t: int, key):
     if t & 1:
         return edge_children(h, n, key.take(s), o.take(s), hb.take(s)), kept, deferred
     return _square_children(h, n, v.take(s), u.take(s)), kept, deferred
-
-
-def _step_compiled(h, view: View, res: Residency, request, t: int, key):
-    """:func:`_step` by the compiled kernels of ``view`` (:mod:`massview.data.lodkernel`): the
-    split test from the keys and the stored columns, the kept patches and the children, the
-    same values in the same order; only missing blocks (:func:`_resident`) go through numpy."""
-    kernel, lay, j = view.kernel, h.dims, t >> 1
-    edge = bool(t & 1)
-    tab = h.dg_tab[j] if edge else h.sq_tab[j]
-    n = len(key)
-    ids, crit, pix, code, split = np.empty(n, np.int64), np.empty(n, bool), np.empty(n), np.empty(n, np.int8), np.empty(n, bool)
-    kernel.diamond_test(key, edge, j, lay.n - j, h.dx, -h.dy, tab[3].src[0], tab[4].src[0], tab[1], tab[2].src[0], h.base, h.vs,
-                        h.exaggeration, *view._test_consts, ids, crit, pix, code, split)
-    if not res.all:
-        o = (key >> 60) & 1 if edge else None
-        split = _resident(lay, res, request, t, o, (key >> 30) & _M, key & _M, key >> 61, crit, pix, split)
-    n0, kid, kkey, kcode, deferred = kernel.kept(ids, key, code, crit, split)
-    if edge:
-        kids = kernel.edge_children(key.take(np.flatnonzero(split)), 1 << j, h._mark)
-    else:
-        kids = kernel.square_children(key, split, 1 << j, h._mark)
-    return kids, (t, n0, kid, kkey, kcode), deferred
-
-
-def seed_children(h, view: View, n: int, ks, o, hb) -> np.ndarray:
-    """:func:`edge_children` of the batched top's deepest split edges (compiled when ``view`` has
-    the kernels)."""
-    if view.kernel is not None:
-        return view.kernel.edge_children(ks, n, h._mark)
-    return edge_children(h, n, ks, o, hb)
 
 
 def _kept(t: int, ids, key, code, hb, crit, split):
@@ -244,9 +212,9 @@ def _leaves(h, view: View, key):
     dz /= 2
     dz *= dz
     dz += half * half
-    code = view.planes_code(xyz, np.sqrt(dz, out=dz))
+    inside, full = view._planes(view.to_camera(xyz), np.sqrt(dz, out=dz))
     none = np.zeros(len(key), bool)
-    return _kept(2 * J, ids, key, code, key >> 61, none, none)[0]
+    return _kept(2 * J, ids, key, inside.view(np.int8) + full.view(np.int8), key >> 61, none, none)[0]
 
 
 @lru_cache(maxsize=8)
@@ -275,27 +243,22 @@ def _vertex_tables(n: int, J: int, L: int, m: int):
     return verts, rec
 
 
-def emit(h, view: View, parts, head, head_code):
+def emit(h, parts, head, head_code):
     """The Front's columns: (int64 (11, n): ax … stride, float64 (2, n): zmin, zmax, int8 (n,):
     codes, int64 (n,): flat block ids) — the batched top's kept halves first (``head``: positions in its half records,
     ``head_code``: its diamonds' codes), then the kept halves of ``parts``
     (square depths, then edge depths; in each depth its half-0 patches before its half-1
-    patches), each column written once — by the compiled kernels when ``view`` has them (the
-    same integers and the same gathered floats)."""
+    patches), each column written once."""
     parts = [p for p in parts if p[0] % 2 == 0] + [p for p in parts if p[0] % 2 == 1]
     top, m = h.top, len(head)
     total = m + sum(len(p[2]) for p in parts)
     cols, zs, code = np.empty((11, total), np.int64), np.empty((2, total)), np.empty(total, np.int8)
     bid = np.empty(total, np.int64)  # flat block ids (Front.block_ids)
-    kernel = view.kernel
-    if kernel is not None:
-        kernel.head_records(top.rec_int, top.rec_flt, top.rec_bid, head_code, head, cols, zs, code, bid)
-    else:
-        top.rec_bid.take(head, out=bid[:m])
-        cols[:, :m] = top.rec_int.take(head, axis=1)
-        top.rec_flt[0].take(head, out=zs[0, :m], mode="clip")
-        top.rec_flt[1].take(head, out=zs[1, :m], mode="clip")
-        head_code.take(head, out=code[:m], mode="wrap")  # half records: size + i is diamond i's half 1
+    top.rec_bid.take(head, out=bid[:m])
+    cols[:, :m] = top.rec_int.take(head, axis=1)
+    top.rec_flt[0].take(head, out=zs[0, :m], mode="clip")
+    top.rec_flt[1].take(head, out=zs[1, :m], mode="clip")
+    head_code.take(head, out=code[:m], mode="wrap")  # half records: size + i is diamond i's half 1
     if total == m:
         return cols, zs, code, bid
     key = np.concatenate([p[3] for p in parts])
@@ -306,10 +269,6 @@ def emit(h, view: View, parts, head, head_code):
         tab = h.dg_tab[t // 2] if t % 2 else h.sq_tab[t // 2]
         _take_into(tab[3], ids, zs[0, b:e])
         _take_into(tab[4], ids, zs[1, b:e])
-    if kernel is not None:
-        kernel.patch_records(key, _spans(h.dims, parts, top.block_offsets), *_vertex_tables(h.dims.n, h.dims.J, h.dims.L, h.dims.m),
-                             m, cols, bid)
-        return cols, zs, code, bid
     row = np.repeat(np.array([[16 * p[0], 16 * p[0] + 4] for p in parts]).ravel(),
                     np.array([[p[1], len(p[2]) - p[1]] for p in parts]).ravel())
     row |= key & 1
@@ -328,19 +287,6 @@ def emit(h, view: View, parts, head, head_code):
         o += cols[9, m + b:m + e]
         o += int(top.block_offsets[blvl])
     return cols, zs, code, bid
-
-
-def _spans(lay, parts, block_offsets) -> np.ndarray:
-    """Per depth of ``parts`` the row :func:`massview.data.lodkernel.patch_records` reads: begin,
-    end, half-0 count, table row 16·t, side log2 a, block shift, L − block level, the block
-    level's flat offset, t."""
-    verts, rec = _vertex_tables(lay.n, lay.J, lay.L, lay.m)
-    out, e = np.empty((len(parts), 9), np.int64), 0
-    for k, (t, n0, ids, _, _) in enumerate(parts):
-        b, e = e, e + len(ids)
-        blvl = min(draw_level(lay.J, t), lay.L)
-        out[k] = (b, e, n0, 16 * t, verts[6, 16 * t], rec[5, 16 * t], lay.L - blvl, block_offsets[blvl], t)
-    return out
 
 
 def _take_into(src: np.ndarray, idx, dst: np.ndarray) -> None:

@@ -165,7 +165,7 @@ def run(args) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from ...lod.kpatch_cut import SPLIT_KERNEL_ENV, load_split_kernel, split_kernel
+    from ...lod.kernels import SPLIT_KERNEL_ENV, load_split_kernel, split_kernel
     from ...parallel.runtime import self_comm
     from ...systems.terrain import TerrainSystem
     from .lod_baseline import BaselineStage
