@@ -34,12 +34,9 @@ def _jit(fn):
 
 @_jit
 def _min(a, b):
-    """np.minimum of two floats (NaN propagates)."""
-    if a != a:
-        return a
-    if b != b:
-        return b
-    return a if a <= b else b
+    """np.minimum of two floats (NaN propagates), as selects: the loops stay vectorisable."""
+    m = a if a <= b else b
+    return m if a == a else a
 
 
 @_jit
@@ -59,35 +56,41 @@ def _camera_planes(x, y, z, r, rot, t, side_a, side_c, near, far):
 
 
 @_jit
+def _pixels(p0, p1, pz, ri, e, ux, uy, uz, f):
+    """(pixel error, in front of the eye) of a sphere at camera-space (p0, p1, pz), radius ``ri``,
+    world error ``e``: View.test's bound f·e·√((|u_x| + a|u_z|)² + (|u_y| + b|u_z|)²)/(z_c − r),
+    or e·∞ for a sphere reaching behind the eye. Selects, not branches (vectorisable)."""
+    zl = -pz - ri
+    pos = zl > 0
+    zz = zl if pos else 1.0
+    a = (abs(p0) + ri) / zz * uz + ux
+    b = (abs(p1) + ri) / zz * uz + uy
+    g = np.sqrt(a * a + b * b) * f / zz
+    return (g * e if pos else e * np.inf), pos
+
+
+@_jit
 def split_test(x, y, z, r, err, rot, t, side_a, side_c, near, far, u, uz, f, tau, crit, pix, code):
     """Fill ``crit`` (bool), ``pix`` (float64) and ``code`` (int8) for spheres at world
     (``x``, ``y``, ``z``) with radii ``r`` and world errors ``err`` (float64 (n,) each), as
     View.test returns them; the view's constants as View keeps them (``rot`` (3, 3), ``t`` (3,),
     ``side_a``/``side_c`` (4,) on x, x, y, y; ``u`` (2,): |u_x|, |u_y|)."""
-    n = len(x)
     ux, uy = u[0], u[1]
-    every = True
-    for i in range(n):
+    behind = 0
+    for i in range(len(x)):
         ri = r[i]
         p0, p1, pz, m = _camera_planes(x[i], y[i], z[i], ri, rot, t, side_a, side_c, near, far)
         inside = m >= -ri
         code[i] = np.int8(inside) + np.int8(m >= ri)
-        zlo = -pz - ri
-        if zlo > 0:
-            a = (abs(p0) + ri) / zlo * uz + ux
-            b = (abs(p1) + ri) / zlo * uz + uy
-            g = np.sqrt(a * a + b * b) * f / zlo
-            p = g * err[i]
-        else:
-            every = False
-            p = err[i] * np.inf
+        p, pos = _pixels(p0, p1, pz, ri, err[i], ux, uy, uz, f)
+        behind += not pos
         pix[i] = p
-        crit[i] = inside and p > tau
-    if not every:  # View.test's branch for spheres reaching behind the eye: 0 · inf is 0
-        for i in range(n):
+        crit[i] = inside & (p > tau)
+    if behind:  # View.test's branch for a batch with spheres reaching behind the eye: 0 · ∞ is 0
+        for i in range(len(x)):
             if pix[i] != pix[i]:
                 pix[i] = 0.0
-                crit[i] = False
+                crit[i] = (code[i] >= 1) & (0.0 > tau)
 
 
 @_jit
@@ -155,59 +158,56 @@ def diamond_test(key, edge, j, sa, dx, mdy, zlo, zhi, r, err, base, vs, Z, rot, 
     the stored z-range ``zlo``/``zhi`` as world heights, 0 for edges outside the lattice), radius
     ``r``, world error (``err``·vs·Z), then :func:`split_test`'s ``crit``, ``pix``, ``code``, and
     ``split``: critical and complete (every half that exists inside the domain is present), and
-    ``zw`` (2, n): the z-range as world heights (the Front's zmin, zmax of the diamond's halves)."""
+    ``zw`` (2, n): the z-range as world heights (the Front's zmin, zmax of the diamond's halves).
+    ``edge`` is the same for the whole batch; both kinds are written with selects."""
     M = (1 << 30) - 1
     n = 1 << j
     N = n + 1
-    a = 1 << sa
+    half = (1 << sa) >> 1
     ux, uy = u[0], u[1]
-    every = True
+    behind = 0
     for i in range(len(key)):
         k = key[i]
         uu = k & M
         vv = (k >> 30) & M
         hb = k >> 61
-        if edge:
-            o = (k >> 60) & 1
-            d = (o * N + vv) * N + uu
-            xi = (uu << sa) + ((1 - o) << (sa - 1))
-            yi = (vv << sa) + (o << (sa - 1))
-            w = vv if o == 0 else uu
-            complete = hb == (1 if w >= 1 else 0) + (2 if w < n else 0)
-            lo, hi = _height(zlo[d], base, vs, Z), _height(zhi[d], base, vs, Z)
-            z = (lo + hi) / 2 if np.isfinite(lo) else 0.0  # columns.edge_centre
-        else:
-            d = (vv << j) | uu
-            xi = (uu << sa) + (a >> 1)
-            yi = (vv << sa) + (a >> 1)
-            complete = hb == 3
-            lo, hi = _height(zlo[d], base, vs, Z), _height(zhi[d], base, vs, Z)
-            z = (lo + hi) / 2
+        o = (k >> 60) & 1 if edge else 0
+        d = (o * N + vv) * N + uu if edge else (vv << j) | uu
+        xi = (uu << sa) + (((1 - o) << (sa - 1)) if edge else half)  # edges: (u + ½(1 − o))·a, squares (u + ½)·a
+        yi = (vv << sa) + ((o << (sa - 1)) if edge else half)
+        complete = _complete(uu, vv, o, hb, edge, n)
+        lo, hi = _height(zlo[d], base, vs, Z), _height(zhi[d], base, vs, Z)
+        c = (lo + hi) / 2
+        z = c if (not edge) | np.isfinite(lo) else 0.0  # columns.square_centre, edge_centre
         ids[i] = d
-        zw[0, i], zw[1, i] = lo, hi
+        zw[0, i] = lo
+        zw[1, i] = hi
         ri = r[d]
-        e = np.float64(err[d]) * vs * Z
         p0, p1, pz, m = _camera_planes(np.float64(xi) * dx, np.float64(yi) * mdy, z, ri, rot, t, side_a, side_c, near, far)
         inside = m >= -ri
         code[i] = np.int8(inside) + np.int8(m >= ri)
-        zl = -pz - ri
-        if zl > 0:
-            ax = (abs(p0) + ri) / zl * uz + ux
-            bx = (abs(p1) + ri) / zl * uz + uy
-            p = np.sqrt(ax * ax + bx * bx) * f / zl * e
-        else:
-            every = False
-            p = e * np.inf
+        p, pos = _pixels(p0, p1, pz, ri, np.float64(err[d]) * vs * Z, ux, uy, uz, f)
+        behind += not pos
         pix[i] = p
-        c = inside and p > tau
-        crit[i] = c
-        split[i] = c and complete
-    if not every:
+        cr = inside & (p > tau)
+        crit[i] = cr
+        split[i] = cr & complete
+    if behind:  # as split_test
         for i in range(len(key)):
             if pix[i] != pix[i]:
+                k = key[i]
                 pix[i] = 0.0
-                crit[i] = False
-                split[i] = False
+                cr = (code[i] >= 1) & (0.0 > tau)
+                crit[i] = cr
+                split[i] = cr & _complete(k & M, (k >> 30) & M, (k >> 60) & 1 if edge else 0, k >> 61, edge, n)
+
+
+@_jit
+def _complete(uu, vv, o, hb, edge, n):
+    """Every half of the diamond that exists inside the domain is present (present halves
+    ``hb``: 1, 2 or 3): both for squares, an edge's on the domain border only one."""
+    w = vv if o == 0 else uu
+    return hb == ((np.int64(w >= 1) + 2 * np.int64(w < n)) if edge else 3)
 
 
 @_jit
