@@ -87,7 +87,7 @@ def split_test(x, y, z, r, err, rot, t, side_a, side_c, near, far, u, uz, f, tau
         pix[i] = p
         crit[i] = inside & (p > tau)
     if behind:  # View.test's branch for a batch with spheres reaching behind the eye: 0 · ∞ is 0
-        for i in range(len(x)):
+        for i in range(len(x)):  # (pixel errors become 0, flags follow)
             if pix[i] != pix[i]:
                 pix[i] = 0.0
                 crit[i] = (code[i] >= 1) & (0.0 > tau)
@@ -159,47 +159,42 @@ def diamond_test(key, edge, j, sa, dx, mdy, zlo, zhi, r, err, base, vs, Z, rot, 
     ``r``, world error (``err``·vs·Z), then :func:`split_test`'s ``crit``, ``pix``, ``code``, and
     ``split``: critical and complete (every half that exists inside the domain is present), and
     ``zw`` (2, n): the z-range as world heights (the Front's zmin, zmax of the diamond's halves).
-    ``edge`` is the same for the whole batch; both kinds are written with selects."""
+    Three loops (spheres, test, split), each of which vectorises (one was 2× slower)."""
+    n = len(key)
+    xyz, rr, ee = np.empty((3, n)), np.empty(n), np.empty(n)
+    _spheres(key, edge, j, sa, dx, mdy, zlo, zhi, r, err, base, vs, Z, ids, xyz, rr, ee, zw, split)
+    split_test(xyz[0], xyz[1], xyz[2], rr, ee, rot, t, side_a, side_c, near, far, u, uz, f, tau, crit, pix, code)
+    for i in range(n):
+        split[i] &= crit[i]
+
+
+@_jit
+def _spheres(key, edge, j, sa, dx, mdy, zlo, zhi, r, err, base, vs, Z, ids, xyz, rr, ee, zw, complete):
+    """:func:`diamond_test`'s spheres, errors, z-ranges and completeness (``edge``: the same for
+    the whole batch; both kinds written with selects)."""
     M = (1 << 30) - 1
     n = 1 << j
     N = n + 1
     half = (1 << sa) >> 1
-    ux, uy = u[0], u[1]
-    behind = 0
     for i in range(len(key)):
         k = key[i]
         uu = k & M
         vv = (k >> 30) & M
-        hb = k >> 61
         o = (k >> 60) & 1 if edge else 0
         d = (o * N + vv) * N + uu if edge else (vv << j) | uu
         xi = (uu << sa) + (((1 - o) << (sa - 1)) if edge else half)  # edges: (u + ½(1 − o))·a, squares (u + ½)·a
         yi = (vv << sa) + ((o << (sa - 1)) if edge else half)
-        complete = _complete(uu, vv, o, hb, edge, n)
+        complete[i] = _complete(uu, vv, o, k >> 61, edge, n)
         lo, hi = _height(zlo[d], base, vs, Z), _height(zhi[d], base, vs, Z)
         c = (lo + hi) / 2
-        z = c if (not edge) | np.isfinite(lo) else 0.0  # columns.square_centre, edge_centre
+        xyz[0, i] = np.float64(xi) * dx
+        xyz[1, i] = np.float64(yi) * mdy
+        xyz[2, i] = c if (not edge) | np.isfinite(lo) else 0.0  # columns.square_centre, edge_centre
         ids[i] = d
         zw[0, i] = lo
         zw[1, i] = hi
-        ri = r[d]
-        p0, p1, pz, m = _camera_planes(np.float64(xi) * dx, np.float64(yi) * mdy, z, ri, rot, t, side_a, side_c, near, far)
-        inside = m >= -ri
-        code[i] = np.int8(inside) + np.int8(m >= ri)
-        p, pos = _pixels(p0, p1, pz, ri, np.float64(err[d]) * vs * Z, ux, uy, uz, f)
-        behind += not pos
-        pix[i] = p
-        cr = inside & (p > tau)
-        crit[i] = cr
-        split[i] = cr & complete
-    if behind:  # as split_test
-        for i in range(len(key)):
-            if pix[i] != pix[i]:
-                k = key[i]
-                pix[i] = 0.0
-                cr = (code[i] >= 1) & (0.0 > tau)
-                crit[i] = cr
-                split[i] = cr & _complete(k & M, (k >> 30) & M, (k >> 60) & 1 if edge else 0, k >> 61, edge, n)
+        rr[i] = r[d]
+        ee[i] = np.float64(err[d]) * vs * Z
 
 
 @_jit
