@@ -2,6 +2,8 @@
 flags, pixel errors and culling codes per sphere, the cut (every Front column, in order) with
 and without missing blocks, and so the same LOD stage output (the recorded digests)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -52,8 +54,9 @@ def test_kernel_cut_is_numpys(hier, monkeypatch, path):
     grids = [rng.random((2 ** (lay.L - lv),) * 2) < 0.7 for lv in range(lay.levels)]
     grids[lay.L][0, 0] = True
     p = load_path(path, *hier.bounds())
-    for at in (0.05, 0.5, 0.95):
-        cam = p.camera(at, 640, 360)
+    lo, hi = hier.bounds()
+    low = dataclasses.replace(p.camera(0.5, 640, 360), position=(*p.camera(0.5, 640, 360).position[:2], (lo[2] + hi[2]) / 2))
+    for cam in (*(p.camera(at, 640, 360) for at in (0.05, 0.5, 0.95)), low):  # low: inside walked diamonds' spheres
         tile = type(cam.viewport)(0, 0, 320, 360)
         for tau, res, vp in ((0.4, None, None), (1.0, grids, None), (0.3, grids, tile)):
             fronts, calls = [], []
