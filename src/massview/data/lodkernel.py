@@ -354,3 +354,28 @@ def edge_children(ks, n, mark):
     k1, id1 = _edge_kids(ks, o, 1, np.array([1, -ROW + 1, 0, -ROW]), np.array([1, -m + 1, 0, -m]), m)
     k0 |= H0
     return _merge(mark, k0, id0, k1, id1, H1)
+
+
+@_jit
+def resident(key, edge, d, nb, flat, off, crit, split, miss):
+    """kpatch_walk._resident over a flat residency array: ``split`` (in place) further needs
+    the blocks each present half's children draw from — ``flat[off + bi·nb + bj]`` (the index
+    clipped to the array, as ``take(mode="clip")``), with (bi, bj) = (v ≫ d, u ≫ d), or for half 0
+    of an edge the block above (o = 0) or left (o = 1) — and ``miss`` (2, n) flags, per half, the
+    critical diamonds whose blocks are missing (to request)."""
+    M = (1 << 30) - 1
+    last = len(flat) - 1
+    for i in range(len(key)):
+        k = key[i]
+        u, v, hb = k & M, (k >> 30) & M, k >> 61
+        o = (k >> 60) & 1 if edge else 0
+        r1 = flat[min(max(off + (v >> d) * nb + (u >> d), 0), last)]
+        if edge:
+            r0 = flat[min(max(off + ((v - 1 + o) >> d) * nb + ((u - o) >> d), 0), last)]
+            h0, h1 = (hb & 1) != 0, (hb & 2) != 0
+            miss[0, i] = crit[i] & h0 & (not r0)
+            miss[1, i] = crit[i] & h1 & (not r1)
+            split[i] = split[i] & (r0 | (not h0)) & (r1 | (not h1))
+        else:  # every present square has a half: one block
+            miss[0, i] = crit[i] & (not r1)
+            split[i] = split[i] & r1

@@ -69,6 +69,8 @@ def _warm(k) -> None:
                            c.copy(), b.copy(), zs.copy())
         k.leaves(i[:0], 0, 1, 1.0, -1.0, h, h, 0.0, 1.0, 1.0, 1.0, *vc)
     k.kept(i, i, c, b, b, zs)
+    for edge in (False, True):
+        k.resident(i, edge, 0, 1, b, 0, b, b.copy(), np.zeros((2, 1), bool))
     k.square_children(i, b, 1, mark)
     k.edge_children(i, 1, mark)
     k.patch_records(i[:0], np.zeros((0, 9), np.int64), np.zeros((7, 1), np.int64), np.zeros((6, 1), np.int64), 0, cols, i.copy())

@@ -48,14 +48,41 @@ def _step(h, view: View, res: Residency, request, t: int, key):
     kernel.diamond_test(key, edge, j, lay.n - j, h.dx, -h.dy, tab[3].src[0], tab[4].src[0], tab[1], tab[2].src[0], h.base, h.vs,
                         h.exaggeration, *view.kernel_consts, ids, crit, pix, code, split, zw)
     if not res.all:
-        o = (key >> 60) & 1 if edge else None
-        split = _resident(lay, res, request, t, o, (key >> 30) & _M, key & _M, key >> 61, crit, pix, split)
+        split = _step_resident(h, kernel, res, request, t, key, crit, pix, split)
     n0, kid, kkey, kcode, kz, deferred = kernel.kept(ids, key, code, crit, split, zw)
     if edge:
         kids = kernel.edge_children(key.take(np.flatnonzero(split)), 1 << j, h._mark)
     else:
         kids = kernel.square_children(key, split, 1 << j, h._mark)
     return kids, (t, n0, kid, kkey, kcode, kz), deferred
+
+
+def _step_resident(h, kernel, res: Residency, request, t: int, key, crit, pix, split):
+    """:func:`.kpatch_walk._resident` (the same flags, the same requests in the same order), by
+    :func:`massview.data.lodkernel.resident` where the residency is a flat array."""
+    lay = h.dims
+    edge = bool(t & 1)
+    if res.flat is None:  # a callable: numpy
+        o = (key >> 60) & 1 if edge else None
+        return _resident(lay, res, request, t, o, (key >> 30) & _M, key & _M, key >> 61, crit, pix, split)
+    blvl = min(draw_level(lay.J, t + 1), lay.L)
+    if res.level_resident(blvl):
+        return split
+    d = lay.m + blvl - (lay.n - (t >> 1))
+    nb = 1 << (lay.L - blvl)
+    miss = np.empty((2, len(key)), bool)
+    kernel.resident(key, edge, d, nb, res.flat, int(res.offset[blvl]), crit, split, miss)
+    if request is not None:
+        for k in range(2 if edge else 1):  # half 0's blocks, then half 1's
+            sel = np.flatnonzero(miss[k])
+            if len(sel):
+                ks = key.take(sel)
+                v, u = (ks >> 30) & _M, ks & _M
+                if k == 0 and edge:
+                    o = (ks >> 60) & 1
+                    v, u = v - 1 + o, u - o
+                request(np.full(len(sel), blvl), v >> d, u >> d, np.minimum(pix.take(sel), 1e30))
+    return split
 
 
 def _leaves(h, view: View, key):
