@@ -9,7 +9,7 @@ import pytest
 
 from massview.core.paths import load_path
 from massview.core.errors import ConfigError
-from massview.lod.kernels import load_split_kernel, split_kernel
+from massview.lod.kernels import load_lod_kernels, lod_kernels
 from massview.lod.kpatch import Front, select_front
 from massview.lod.kpatch_cut import View
 
@@ -18,7 +18,7 @@ from massview.lod.kpatch_cut import View
 def hier(terrain_store):
     from test_lod_stage import _hierarchies
 
-    assert load_split_kernel(wait=True) is not None
+    assert load_lod_kernels(wait=True) is not None
     return _hierarchies(terrain_store)[2]
 
 
@@ -61,7 +61,7 @@ def test_kernel_cut_is_numpys(hier, monkeypatch, path):
         for tau, res, vp in ((0.4, None, None), (1.0, grids, None), (0.3, grids, tile)):
             fronts, calls = [], []
             for kernel in ("numpy", "numba"):
-                monkeypatch.setenv("MASSVIEW_SPLIT_KERNEL", kernel)
+                monkeypatch.setenv("MASSVIEW_LOD_KERNEL", kernel)
                 got = []
                 fronts.append(select_front(hier, cam, tau, res, lambda *a: got.append([np.asarray(x).tolist() for x in a]), vp))
                 calls.append(got)
@@ -73,15 +73,44 @@ def test_kernel_cut_is_numpys(hier, monkeypatch, path):
 
 
 @pytest.mark.parametrize("kernel", ["numpy", "numba"])
+def test_shading_blocks_with_each_kernel(terrain_store, monkeypatch, kernel):
+    """ShadingPyramid.blocks (numpy, or the compiled descent) is shading_blocks' (numpy, einsum
+    plane distances), on the paths and on low and random cameras."""
+    from test_lod_stage import _hierarchies, test_shading_pyramid_is_shading_blocks
+    from massview.lod.texlod import ShadingPyramid, shading_blocks
+
+    monkeypatch.setenv("MASSVIEW_LOD_KERNEL", kernel)
+    st, _, hn = hier = _hierarchies(terrain_store)
+    test_shading_pyramid_is_shading_blocks(hier)
+    mm = [st.block_minmax(lv) for lv in range(st.layout.levels)]
+    zmap = lambda z: hn.base + (z * hn.vs - hn.base)  # noqa: E731
+    pyr = ShadingPyramid(mm, st.layout.M, st.spacing, zmap)
+    lo, hi = hn.bounds()
+    rng = np.random.default_rng(5)
+    base = load_path("flyover", lo, hi).camera(0.5, 640, 360)
+    seen = 0
+    for _ in range(60):
+        pos = (*rng.uniform(lo[:2] - 2000, hi[:2] + 2000), rng.uniform(lo[2] - 100, hi[2] + 3000))
+        q = rng.normal(size=4)
+        cam = dataclasses.replace(base, position=pos, orientation=tuple(q / np.linalg.norm(q)))
+        for limit in (4096, 20):
+            a, b = shading_blocks(mm, st.layout.M, st.spacing, zmap, cam, limit), pyr.blocks(cam, limit)
+            for x, y in zip(a, b):
+                assert x.dtype == y.dtype and np.array_equal(_bits(x), _bits(y))
+            seen += len(a[0]) > 1
+    assert seen > 20
+
+
+@pytest.mark.parametrize("kernel", ["numpy", "numba"])
 def test_stage_output_with_each_kernel(terrain_store, monkeypatch, kernel):
     from test_lod_stage import STAGE_DIGESTS, _stage_digests
 
-    monkeypatch.setenv("MASSVIEW_SPLIT_KERNEL", kernel)
+    monkeypatch.setenv("MASSVIEW_LOD_KERNEL", kernel)
     got = _stage_digests(terrain_store)
     assert [k for k in got if got[k] != STAGE_DIGESTS[k]] == []
 
 
 def test_unknown_kernel_says_what_to_use(monkeypatch):
-    monkeypatch.setenv("MASSVIEW_SPLIT_KERNEL", "fortran")
+    monkeypatch.setenv("MASSVIEW_LOD_KERNEL", "fortran")
     with pytest.raises(ConfigError, match="numpy"):
-        split_kernel()
+        lod_kernels()

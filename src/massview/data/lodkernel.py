@@ -1,19 +1,23 @@
-"""The K-patch split test's compiled kernel (numba, cached on disk, GIL released).
+"""The LOD stage's compiled kernels (numba, cached on disk, GIL released).
 
-:func:`split_test` does in one pass over the spheres what
-:meth:`massview.lod.kpatch_cut.View.test` does with a few dozen numpy calls: the sphere centres
-to camera space, the six frustum planes against the radius, the projected error bound and the
-split flag. It performs exactly the float64 operations of the numpy path, per element, in the
-same order (no fused multiply-add, no fast-math; sqrt and division are exact), so its flags,
-pixel errors and codes are the same bits — tests/test_lod_kernel.py checks both paths against
-each other and tests/test_lod_stage.py the stage's digest. The numpy path costs several ns per
-element and call (~1.2 ms a frame at 20 k front patches on a 2.1 GHz Xeon, mostly memory
-passes); this one makes one.
+The K-patch cut (:mod:`massview.lod.kpatch_compiled`, the batched top in
+:mod:`massview.lod.kpatch_top`) and the shading blocks a view samples
+(:mod:`massview.lod.texlod`) as loops instead of a few hundred whole-array numpy calls a frame:
+:func:`split_test` (sphere centres to camera space, the frustum planes, the projected error
+bound; :meth:`massview.lod.kpatch_cut.View.test`), :func:`top_rule`, :func:`diamond_test`,
+:func:`resident`, :func:`kept`, :func:`leaves`, :func:`square_children`,
+:func:`edge_children`, :func:`head_records`, :func:`patch_records` and :func:`shading_blocks`.
 
-It lives in ``data/`` because numba is that layer's dependency (DESIGN.md: each heavy dependency
-lives in one layer), as :mod:`massview.data.skykernel` does. Loaded on a thread by
-:func:`massview.lod.kpatch_cut.load_split_kernel`, so that no frame waits for numba: until it
-is ready the numpy path gives the same cut.
+Each performs exactly the float64 operations of the numpy path, per element, in the same order
+(no fused multiply-add, no fast-math; sqrt and division are exact) and writes its lists in the
+numpy path's order, so the front, the requests and the shading wants are the same bits —
+tests/test_lod_kernel.py checks both paths against each other and the stage's recorded digests.
+The float loops are written with selects rather than branches so that they vectorise.
+
+They live in ``data/`` because numba is that layer's dependency (DESIGN.md: each heavy
+dependency lives in one layer), as :mod:`massview.data.skykernel` does; :mod:`massview.lod.kernels`
+loads them on a thread, so that no frame waits for numba (until they are ready the numpy path
+gives the same cut).
 """
 
 from __future__ import annotations
@@ -379,3 +383,58 @@ def resident(key, edge, d, nb, flat, off, crit, split, miss):
         else:  # every present square has a half: one block
             miss[0, i] = crit[i] & (not r1)
             split[i] = split[i] & r1
+
+
+@_jit
+def _max(a, b):
+    """np.maximum of two floats (NaN propagates)."""
+    m = a if a >= b else b
+    return m if a == a else a
+
+
+@_jit
+def shading_blocks(lo, hi, offsets, nbs, planes, eye, f, step, limit):
+    """texlod.ShadingPyramid.blocks: the quadtree descent from the top block over the boxes
+    ``lo``/``hi`` ((N, 3) float64, every level's nb² boxes stacked from ``offsets[level]``, row
+    bi·nb + bj). A candidate is kept when its box is not outside any of the six ``planes`` (the
+    p-vertex distance summed as cull.boxes_in_frustum's einsum does: ((0 + x·n₀) + y·n₁) + z·n₂,
+    then + w), and refined while 2^level > d / f / ``step`` (d: the distance from ``eye`` to the
+    box, √((d₀² + d₁²) + d₂²)); the descent stops at level 0, when nothing refines, or past
+    ``limit`` blocks. Returns (level, bi, bj, priority 1 / (1 + d)) in the same order."""
+    top = len(nbs) - 1
+    cap = min(len(lo), 5 * limit + 1)
+    olv, obi, obj, opr = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap)
+    lv, cand, count = top, np.zeros(1, np.int64), 0
+    while True:
+        nb, base = nbs[lv], offsets[lv]
+        finer = np.empty(len(cand), np.int64)
+        nf = 0
+        for q in range(len(cand)):
+            c = cand[q]
+            row = base + c
+            inside = True
+            for p in range(6):
+                acc = 0.0
+                for k in range(3):
+                    acc += (hi[row, k] if planes[p, k] >= 0 else lo[row, k]) * planes[p, k]
+                inside &= (acc + 0.0) + planes[p, 3] >= 0
+            if not inside:
+                continue
+            g0 = _max(_max(lo[row, 0] - eye[0], 0.0), eye[0] - hi[row, 0])
+            g1 = _max(_max(lo[row, 1] - eye[1], 0.0), eye[1] - hi[row, 1])
+            g2 = _max(_max(lo[row, 2] - eye[2], 0.0), eye[2] - hi[row, 2])
+            d = np.sqrt((g0 * g0 + g1 * g1) + g2 * g2)
+            olv[count], obi[count], obj[count], opr[count] = lv, c // nb, c % nb, 1.0 / (d + 1.0)
+            count += 1
+            if 2.0 ** lv > d / f / step:
+                finer[nf] = c
+                nf += 1
+        if lv == 0 or nf == 0 or count > limit:
+            break
+        kids = np.empty(4 * nf, np.int64)  # texlod._children's order: every (2i, 2j), then (2i, 2j + 1), ...
+        for q in range(nf):
+            b = (finer[q] // nb) * (4 * nb) + 2 * (finer[q] % nb)
+            kids[q], kids[nf + q], kids[2 * nf + q], kids[3 * nf + q] = b, b + 1, b + 2 * nb, b + 2 * nb + 1
+        cand = kids
+        lv -= 1
+    return olv[:count], obi[:count], obj[:count], opr[:count]

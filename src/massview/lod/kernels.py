@@ -4,7 +4,7 @@ the same bits (tests/test_lod_kernel.py).
 
 The kernels are loaded on a thread at first use (importing numba and loading the kernels
 cached on disk: ~1.5 s; compiling them where no cache exists yet: ~15 s), so no frame waits:
-until they are ready the numpy walk cuts the same front. ``MASSVIEW_SPLIT_KERNEL`` chooses:
+until they are ready the numpy walk cuts the same front. ``MASSVIEW_LOD_KERNEL`` chooses:
 ``auto`` (default: compiled once loaded), ``numpy`` or ``numba`` (wait for the kernels).
 """
 
@@ -18,21 +18,21 @@ import numpy as np
 
 from ..core.errors import ConfigError
 
-__all__ = ["SPLIT_KERNELS", "SPLIT_KERNEL_ENV", "load_split_kernel", "split_kernel"]
+__all__ = ["LOD_KERNELS", "LOD_KERNEL_ENV", "load_lod_kernels", "lod_kernels"]
 
-SPLIT_KERNELS = ("auto", "numpy", "numba")
-SPLIT_KERNEL_ENV = "MASSVIEW_SPLIT_KERNEL"
+LOD_KERNELS = ("auto", "numpy", "numba")
+LOD_KERNEL_ENV = "MASSVIEW_LOD_KERNEL"
 _LOADER: dict = {"thread": None, "mod": None, "error": None}
 _LOADER_LOCK = threading.Lock()
 
 
-def load_split_kernel(wait: bool = False):
+def load_lod_kernels(wait: bool = False):
     """The compiled kernels (the module :mod:`massview.data.lodkernel`) once they are loaded,
     else None. The first call starts loading them on a thread; ``wait`` blocks until the load
     ends. Where numba cannot load, None for good (numpy walks)."""
     with _LOADER_LOCK:
         if _LOADER["thread"] is None:
-            thread = threading.Thread(target=_load, name="massview-split-kernel", daemon=True)
+            thread = threading.Thread(target=_load, name="massview-lod-kernels", daemon=True)
             _LOADER["thread"] = thread
             thread.start()
             atexit.register(thread.join)  # numba must not be torn down mid-compile
@@ -69,6 +69,11 @@ def _warm(k) -> None:
                            c.copy(), b.copy(), zs.copy())
         k.leaves(i[:0], 0, 1, 1.0, -1.0, h, h, 0.0, 1.0, 1.0, 1.0, *vc)
     k.kept(i, i, c, b, b, zs)
+    box = np.zeros((1, 3))
+    k.shading_blocks(box, box, i, i + 1, np.zeros((6, 4)), z.repeat(3), 1.0, 1.0, 1)
+    planes = np.zeros((6, 4))
+    planes.flags.writeable = False  # cull.frustum_planes' are read-only
+    k.shading_blocks(box, box, i, i + 1, planes, z.repeat(3), 1.0, 1.0, 1)
     for edge in (False, True):
         k.resident(i, edge, 0, 1, b, 0, b, b.copy(), np.zeros((2, 1), bool))
     k.square_children(i, b, 1, mark)
@@ -76,17 +81,17 @@ def _warm(k) -> None:
     k.patch_records(i[:0], np.zeros((0, 9), np.int64), np.zeros((7, 1), np.int64), np.zeros((6, 1), np.int64), 0, cols, i.copy())
 
 
-def split_kernel(kernel: str | None = None):
+def lod_kernels(kernel: str | None = None):
     """The kernel module a :class:`~massview.lod.kpatch_cut.View` uses: ``kernel`` (default
-    ``MASSVIEW_SPLIT_KERNEL``, else ``auto``) ``numpy`` → None, ``numba`` → the compiled one
+    ``MASSVIEW_LOD_KERNEL``, else ``auto``) ``numpy`` → None, ``numba`` → the compiled one
     (loaded first if need be), ``auto`` → the compiled one once loaded, None until then."""
-    choice = kernel or os.environ.get(SPLIT_KERNEL_ENV) or "auto"
-    if choice not in SPLIT_KERNELS:
-        where = "kernel" if kernel else SPLIT_KERNEL_ENV
-        raise ConfigError(f"{where}={choice!r} is not a split kernel; use one of {', '.join(SPLIT_KERNELS)}")
+    choice = kernel or os.environ.get(LOD_KERNEL_ENV) or "auto"
+    if choice not in LOD_KERNELS:
+        where = "kernel" if kernel else LOD_KERNEL_ENV
+        raise ConfigError(f"{where}={choice!r} is not a LOD kernel choice; use one of {', '.join(LOD_KERNELS)}")
     if choice == "numpy":
         return None
-    mod = load_split_kernel(wait=choice == "numba")
+    mod = load_lod_kernels(wait=choice == "numba")
     if choice == "numba" and mod is None:
-        raise ConfigError(f"split kernel 'numba' could not be loaded ({_LOADER['error']}); use {SPLIT_KERNEL_ENV}=numpy")
+        raise ConfigError(f"LOD kernels 'numba' could not be loaded ({_LOADER['error']}); use {LOD_KERNEL_ENV}=numpy")
     return mod

@@ -28,7 +28,7 @@ import math
 import numpy as np
 
 from ..core.camera import Camera, Viewport
-from .kernels import split_kernel
+from .kernels import lod_kernels
 
 __all__ = ["Dims", "View", "Residency", "square_halves", "edge_halves", "merge_halves", "draw_level", "edge_exists", "patch_vertices"]
 
@@ -60,7 +60,7 @@ class View:
 
     def __init__(self, camera: Camera, tau: float, viewport: Viewport | None = None, kernel: str | None = None):
         self.tau = float(tau)
-        self.kernel = split_kernel(kernel)
+        self.kernel = lod_kernels(kernel)
         self.f = camera.height / 2 / math.tan(math.radians(camera.fovy) / 2)
         v = camera.view_matrix()
         self.rot = [[float(x) for x in row] for row in v[:3, :3]]
