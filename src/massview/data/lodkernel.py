@@ -438,3 +438,30 @@ def shading_blocks(lo, hi, offsets, nbs, planes, eye, f, step, limit):
         cand = kids
         lv -= 1
     return olv[:count], obi[:count], obj[:count], opr[:count]
+
+
+@_jit
+def top_kept_seeds(split, H0, H1, first, keys):
+    """kpatch_top.TopBatch.kept and seeds: positions in the (2·size) half records of the kept
+    halves (half 0's, then size + half 1's), and the keys (with their present halves in bits
+    61–62) of the deepest batched depth's diamonds that split (``first``: its first position,
+    ``keys``: its packed keys)."""
+    size = len(split)
+    head = np.empty(2 * size, np.int64)
+    c = 0
+    for i in range(size):
+        if H0[i] and not split[i]:
+            head[c] = i
+            c += 1
+    for i in range(size):
+        if H1[i] and not split[i]:
+            head[c] = size + i
+            c += 1
+    seeds = np.empty(len(keys), np.int64)
+    s = 0
+    for q in range(len(keys)):
+        i = first + q
+        if split[i]:
+            seeds[s] = keys[q] | ((np.int64(H0[i]) + 2 * np.int64(H1[i])) << 61)
+            s += 1
+    return head[:c], seeds[:s]

@@ -59,6 +59,7 @@ def _warm(k) -> None:
     k.split_test(z, z, z, z, z, *tc, b.copy(), z.copy(), c.copy())
     S, mark = np.zeros(3, bool), np.zeros(4, np.uint8)
     k.top_rule(b, b, i, i, b, b, S, b.copy(), b.copy())
+    k.top_kept_seeds(b, b, b, 0, i)
     cols, zs = np.zeros((11, 1), np.int64), np.zeros((2, 1))
     for rec in (np.zeros((1, 11), np.int32), np.zeros((1, 11), np.int64)):  # the top's records: int32, or int64 past 2^31 samples
         k.head_records(rec, zs, i, c, i, cols, zs.copy(), c.copy(), i.copy())

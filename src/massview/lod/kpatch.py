@@ -270,13 +270,14 @@ def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident=N
     res = Residency(resident, lay.levels, lay.L)
     top = h.top
     split, H0, H1, code, deferred = top.walk(view, res, request)
-    head = top.kept(split, H0, H1)
     if view.kernel is None:  # numpy
+        head = top.kept(split, H0, H1)
         seed = kpatch_walk.edge_children(h, 2 ** (top.depths // 2 - 1), *top.seeds(split, H0, H1))
         parts, d = kpatch_walk.walk(h, view, res, request, top.depths, seed)
         cols, zs, codes, bid = kpatch_walk.emit(h, parts, head, code)
     else:  # the compiled kernels: the same front
-        seed = kpatch_compiled.seed_children(h, view, 2 ** (top.depths // 2 - 1), *top.seeds(split, H0, H1))
+        head, seed_keys = top.kept_and_seeds(view.kernel, split, H0, H1)
+        seed = kpatch_compiled.seed_children(h, view, 2 ** (top.depths // 2 - 1), seed_keys)
         parts, d = kpatch_compiled.walk(h, view, res, request, top.depths, seed)
         cols, zs, codes, bid = kpatch_compiled.emit(h, view, parts, head, code)
     return Front(*cols, *zs, deferred=deferred + d, code=codes, code_vp=view_vp(camera, viewport), bid=bid, bid_offsets=top.block_offsets)

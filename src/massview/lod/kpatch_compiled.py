@@ -96,7 +96,7 @@ def _leaves(h, view: View, key):
     return 2 * J, n0, ids, keys, codes, zs
 
 
-def seed_children(h, view: View, n: int, ks, o, hb) -> np.ndarray:
+def seed_children(h, view: View, n: int, ks) -> np.ndarray:
     """:func:`.kpatch_walk.edge_children` of the batched top's deepest split edges ``ks``
     (their orientation and halves are in the keys' bits)."""
     return view.kernel.edge_children(ks, n, h._mark)

@@ -186,6 +186,11 @@ class TopBatch:
         patches the batch keeps, half-0 patches first."""
         return np.concatenate([np.flatnonzero(H0 > split), self.size + np.flatnonzero(H1 > split)])
 
+    def kept_and_seeds(self, kernel, split, H0, H1):
+        """(:meth:`kept`, the keys of :meth:`seeds`) by the compiled ``kernel``."""
+        last, key, _ = self._last
+        return kernel.top_kept_seeds(split, H0, H1, last.start, key)
+
     def seeds(self, split, H0, H1):
         """(keys, o, present halves) of the diamonds of the deepest batched depth that split."""
         s, key, o = self._last
