@@ -247,9 +247,9 @@ def top_rule(ok, crit, p0, p1, ex0, ex1, S, H0, H1):
         S[i] = ok[i] and S[p0[i]] == ex0[i] and S[p1[i]] == ex1[i]
     deferred = 0
     for i in range(size):
-        H0[i], H1[i] = S[p0[i]], S[p1[i]]
-        if crit[i] and not S[i]:
-            deferred += np.int64(H0[i]) + np.int64(H1[i])
+        a, b = S[p0[i]], S[p1[i]]
+        H0[i], H1[i] = a, b
+        deferred += np.int64(crit[i] & (not S[i])) * (np.int64(a) + np.int64(b))
     return deferred
 
 
@@ -260,17 +260,17 @@ def kept(ids, key, code, crit, split, zw):
     n = len(key)
     sel = np.empty(2 * n, np.int64)
     c, deferred = 0, 0
-    for i in range(n):
-        if not split[i] and key[i] >> 61 & 1:
-            sel[c] = i
-            c += 1
-            deferred += crit[i]
+    for i in range(n):  # written always, kept by advancing
+        stay = (not split[i]) & ((key[i] >> 61 & 1) != 0)
+        sel[c] = i
+        c += stay
+        deferred += stay & crit[i]
     n0 = c
     for i in range(n):
-        if not split[i] and key[i] >> 62 & 1:
-            sel[c] = i
-            c += 1
-            deferred += crit[i]
+        stay = (not split[i]) & ((key[i] >> 62 & 1) != 0)
+        sel[c] = i
+        c += stay
+        deferred += stay & crit[i]
     kid, kkey, kcode, kz = np.empty(c, np.int64), np.empty(c, np.int64), np.empty(c, np.int8), np.empty((2, c))
     for q in range(c):
         i = sel[q]
@@ -294,10 +294,9 @@ def _merge(mark, k0, id0, k1, id1, h1):
     for i in range(len(id0)):
         mark[id0[i]] = 1
     c = len(k0)
-    for i in range(len(id1)):
-        if mark[id1[i]] == 0:
-            out[c] = k1[i] | h1
-            c += 1
+    for i in range(len(id1)):  # written always, kept by advancing
+        out[c] = k1[i] | h1
+        c += mark[id1[i]] == 0
     for i in range(len(id0)):
         mark[id0[i]] = 0
     return out[:c]
@@ -449,19 +448,16 @@ def top_kept_seeds(split, H0, H1, first, keys):
     size = len(split)
     head = np.empty(2 * size, np.int64)
     c = 0
+    for i in range(size):  # written always, kept by advancing (no branch to mispredict)
+        head[c] = i
+        c += H0[i] & (not split[i])
     for i in range(size):
-        if H0[i] and not split[i]:
-            head[c] = i
-            c += 1
-    for i in range(size):
-        if H1[i] and not split[i]:
-            head[c] = size + i
-            c += 1
+        head[c] = size + i
+        c += H1[i] & (not split[i])
     seeds = np.empty(len(keys), np.int64)
     s = 0
     for q in range(len(keys)):
         i = first + q
-        if split[i]:
-            seeds[s] = keys[q] | ((np.int64(H0[i]) + 2 * np.int64(H1[i])) << 61)
-            s += 1
+        seeds[s] = keys[q] | ((np.int64(H0[i]) + 2 * np.int64(H1[i])) << 61)
+        s += split[i]
     return head[:c], seeds[:s]
