@@ -6,7 +6,8 @@ The K-patch cut (:mod:`massview.lod.kpatch_compiled`, the batched top in
 :func:`split_test` (sphere centres to camera space, the frustum planes, the projected error
 bound; :meth:`massview.lod.kpatch_cut.View.test`), :func:`top_rule`, :func:`diamond_test`,
 :func:`resident`, :func:`kept`, :func:`leaves`, :func:`square_children`,
-:func:`edge_children`, :func:`head_records`, :func:`patch_records` and :func:`shading_blocks`.
+:func:`edge_children`, and from :mod:`.frontkernel` and :mod:`.texkernel` (re-exported here)
+:func:`top_kept_seeds`, :func:`head_records`, :func:`patch_records` and :func:`shading_blocks`.
 
 Each performs exactly the float64 operations of the numpy path, per element, in the same order
 (no fused multiply-add, no fast-math; sqrt and division are exact) and writes its lists in the
@@ -23,17 +24,13 @@ gives the same cut).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-__all__ = ["split_test", "top_rule", "head_records", "patch_records", "diamond_test", "leaves", "kept", "square_children",
-           "edge_children"]
+from .frontkernel import head_records, patch_records, top_kept_seeds  # one module for the LOD stage's kernels
+from .jit import cached_jit as _jit
+from .texkernel import shading_blocks
 
-
-def _jit(fn):
-    try:
-        return njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")(fn)
-    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
-        return njit(nogil=True, boundscheck=False, error_model="numpy")(fn)
+__all__ = ["split_test", "top_rule", "top_kept_seeds", "diamond_test", "resident", "kept", "leaves", "square_children",
+           "edge_children", "head_records", "patch_records", "shading_blocks"]
 
 
 @_jit
@@ -95,57 +92,6 @@ def split_test(x, y, z, r, err, rot, t, side_a, side_c, near, far, u, uz, f, tau
             if pix[i] != pix[i]:
                 pix[i] = 0.0
                 crit[i] = (code[i] >= 1) & (0.0 > tau)
-
-
-@_jit
-def head_records(rec_rows, rec_flt, rec_bid, head_code, head, cols, zs, code, bid):
-    """The batched top's kept halves: column k of records ``head`` (``rec_rows``: (2·size, 11),
-    one record per row) into ``cols[k, :m]``,
-    ``zs[k, :m]``, their block ids and codes (``head_code`` indexed modulo its length: half
-    record size + i is diamond i's half 1), m = len(head)."""
-    nc = len(head_code)
-    for i in range(len(head)):
-        h = head[i]
-        for k in range(rec_rows.shape[1]):
-            cols[k, i] = rec_rows[h, k]
-        zs[0, i] = rec_flt[0, h]
-        zs[1, i] = rec_flt[1, h]
-        bid[i] = rec_bid[h]
-        code[i] = head_code[h % nc]
-
-
-@_jit
-def patch_records(key, spans, verts, rec, m, cols, bid):
-    """The integer Front columns and flat block ids of the walked patches ``key`` (packed
-    (half 1 ≪ 62 | o ≪ 60 | v ≪ 30 | u), written from position ``m`` on) — kpatch_walk's
-    _patch_records and block ids, one depth span at a time. ``spans`` (k, 9) int64 rows: begin,
-    end, half-0 count, table row 16·t, side log2 a, block shift, the level shift L − block level,
-    the block level's flat offset, and t; ``verts``/``rec``: the per-(depth, parity, half) tables."""
-    M = (1 << 30) - 1
-    for s in range(spans.shape[0]):
-        b, e, n0, r0, sa, sh, ls, boff = spans[s, 0], spans[s, 1], spans[s, 2], spans[s, 3], spans[s, 4], spans[s, 5], spans[s, 6], spans[s, 7]
-        c6, c7, c10 = rec[0, r0], rec[1, r0], rec[4, r0]
-        for i in range(b, e):
-            k = key[i]
-            row = r0 + (4 if i - b >= n0 else 0)
-            row |= (k & 1) | ((k >> 29) & 2) | ((k >> 57) & 8)
-            x0 = (k & M) << sa
-            y0 = ((k >> 30) & M) << sa
-            j = m + i
-            cols[0, j] = verts[0, row] + x0
-            cols[1, j] = verts[1, row] + y0
-            cols[2, j] = verts[2, row] + x0
-            cols[3, j] = verts[3, row] + y0
-            cols[4, j] = verts[4, row] + x0
-            cols[5, j] = verts[5, row] + y0
-            cols[6, j] = c6
-            cols[7, j] = c7
-            bi = (rec[2, row] + y0) >> sh
-            bj = (rec[3, row] + x0) >> sh
-            cols[8, j] = bi
-            cols[9, j] = bj
-            cols[10, j] = c10
-            bid[j] = (bi << ls) + bj + boff
 
 
 @_jit
@@ -383,81 +329,3 @@ def resident(key, edge, d, nb, flat, off, crit, split, miss):
             miss[0, i] = crit[i] & (not r1)
             split[i] = split[i] & r1
 
-
-@_jit
-def _max(a, b):
-    """np.maximum of two floats (NaN propagates)."""
-    m = a if a >= b else b
-    return m if a == a else a
-
-
-@_jit
-def shading_blocks(lo, hi, offsets, nbs, planes, eye, f, step, limit):
-    """texlod.ShadingPyramid.blocks: the quadtree descent from the top block over the boxes
-    ``lo``/``hi`` ((N, 3) float64, every level's nb² boxes stacked from ``offsets[level]``, row
-    bi·nb + bj). A candidate is kept when its box is not outside any of the six ``planes`` (the
-    p-vertex distance summed as cull.boxes_in_frustum's einsum does: ((0 + x·n₀) + y·n₁) + z·n₂,
-    then + w), and refined while 2^level > d / f / ``step`` (d: the distance from ``eye`` to the
-    box, √((d₀² + d₁²) + d₂²)); the descent stops at level 0, when nothing refines, or past
-    ``limit`` blocks. Returns (level, bi, bj, priority 1 / (1 + d)) in the same order."""
-    top = len(nbs) - 1
-    cap = min(len(lo), 5 * limit + 1)
-    olv, obi, obj, opr = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap)
-    lv, cand, count = top, np.zeros(1, np.int64), 0
-    while True:
-        nb, base = nbs[lv], offsets[lv]
-        finer = np.empty(len(cand), np.int64)
-        nf = 0
-        for q in range(len(cand)):
-            c = cand[q]
-            row = base + c
-            inside = True
-            for p in range(6):
-                acc = 0.0
-                for k in range(3):
-                    acc += (hi[row, k] if planes[p, k] >= 0 else lo[row, k]) * planes[p, k]
-                inside &= (acc + 0.0) + planes[p, 3] >= 0
-            if not inside:
-                continue
-            g0 = _max(_max(lo[row, 0] - eye[0], 0.0), eye[0] - hi[row, 0])
-            g1 = _max(_max(lo[row, 1] - eye[1], 0.0), eye[1] - hi[row, 1])
-            g2 = _max(_max(lo[row, 2] - eye[2], 0.0), eye[2] - hi[row, 2])
-            d = np.sqrt((g0 * g0 + g1 * g1) + g2 * g2)
-            olv[count], obi[count], obj[count], opr[count] = lv, c // nb, c % nb, 1.0 / (d + 1.0)
-            count += 1
-            if 2.0 ** lv > d / f / step:
-                finer[nf] = c
-                nf += 1
-        if lv == 0 or nf == 0 or count > limit:
-            break
-        kids = np.empty(4 * nf, np.int64)  # texlod._children's order: every (2i, 2j), then (2i, 2j + 1), ...
-        for q in range(nf):
-            b = (finer[q] // nb) * (4 * nb) + 2 * (finer[q] % nb)
-            kids[q], kids[nf + q], kids[2 * nf + q], kids[3 * nf + q] = b, b + 1, b + 2 * nb, b + 2 * nb + 1
-        cand = kids
-        lv -= 1
-    return olv[:count], obi[:count], obj[:count], opr[:count]
-
-
-@_jit
-def top_kept_seeds(split, H0, H1, first, keys):
-    """kpatch_top.TopBatch.kept and seeds: positions in the (2·size) half records of the kept
-    halves (half 0's, then size + half 1's), and the keys (with their present halves in bits
-    61–62) of the deepest batched depth's diamonds that split (``first``: its first position,
-    ``keys``: its packed keys)."""
-    size = len(split)
-    head = np.empty(2 * size, np.int64)
-    c = 0
-    for i in range(size):  # written always, kept by advancing (no branch to mispredict)
-        head[c] = i
-        c += H0[i] & (not split[i])
-    for i in range(size):
-        head[c] = size + i
-        c += H1[i] & (not split[i])
-    seeds = np.empty(len(keys), np.int64)
-    s = 0
-    for q in range(len(keys)):
-        i = first + q
-        seeds[s] = keys[q] | ((np.int64(H0[i]) + 2 * np.int64(H1[i])) << 61)
-        s += split[i]
-    return head[:c], seeds[:s]
