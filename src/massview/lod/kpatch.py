@@ -45,7 +45,7 @@ import numpy as np
 
 from ..core.camera import Camera, Viewport
 from ..data.terrain.layout import TerrainLayout
-from . import kpatch_walk
+from . import kpatch_compiled, kpatch_walk
 from .kpatch_top import TopBatch
 from .cull import frustum_planes
 from .columns import Lazy, edge_centre, errors, heights, square_centre
@@ -270,10 +270,16 @@ def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident=N
     res = Residency(resident, lay.levels, lay.L)
     top = h.top
     split, H0, H1, code, deferred = top.walk(view, res, request)
-    head = top.kept(split, H0, H1)
-    seed = kpatch_walk.edge_children(h, 2 ** (top.depths // 2 - 1), *top.seeds(split, H0, H1))
-    parts, d = kpatch_walk.walk(h, view, res, request, top.depths, seed)
-    cols, zs, codes, bid = kpatch_walk.emit(h, parts, head, code)
+    if view.kernel is None:  # numpy
+        head = top.kept(split, H0, H1)
+        seed = kpatch_walk.edge_children(h, 2 ** (top.depths // 2 - 1), *top.seeds(split, H0, H1))
+        parts, d = kpatch_walk.walk(h, view, res, request, top.depths, seed)
+        cols, zs, codes, bid = kpatch_walk.emit(h, parts, head, code)
+    else:  # the compiled kernels: the same front
+        head, seed_keys = top.kept_and_seeds(view.kernel, split, H0, H1)
+        seed = kpatch_compiled.seed_children(h, view, 2 ** (top.depths // 2 - 1), seed_keys)
+        parts, d = kpatch_compiled.walk(h, view, res, request, top.depths, seed)
+        cols, zs, codes, bid = kpatch_compiled.emit(h, view, parts, head, code)
     return Front(*cols, *zs, deferred=deferred + d, code=codes, code_vp=view_vp(camera, viewport), bid=bid, bid_offsets=top.block_offsets)
 
 

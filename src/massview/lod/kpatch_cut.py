@@ -28,6 +28,7 @@ import math
 import numpy as np
 
 from ..core.camera import Camera, Viewport
+from .kernels import lod_kernels
 
 __all__ = ["Dims", "View", "Residency", "square_halves", "edge_halves", "merge_halves", "draw_level", "edge_exists", "patch_vertices"]
 
@@ -57,8 +58,9 @@ class View:
     rotation rows add in order, ((r₀x + r₁y) + r₂z) + t), so a sphere's result never depends
     on its batch; the work is a few dozen whole-array calls per batch."""
 
-    def __init__(self, camera: Camera, tau: float, viewport: Viewport | None = None):
+    def __init__(self, camera: Camera, tau: float, viewport: Viewport | None = None, kernel: str | None = None):
         self.tau = float(tau)
+        self.kernel = lod_kernels(kernel)
         self.f = camera.height / 2 / math.tan(math.radians(camera.fovy) / 2)
         v = camera.view_matrix()
         self.rot = [[float(x) for x in row] for row in v[:3, :3]]
@@ -78,6 +80,8 @@ class View:
         self._side_a = np.array([a for a, _ in sides])[:, None]  # on x, x, y, y
         self._side_c = np.array([c for _, c in sides])[:, None]  # on z
         self._u = np.array([self.ux, self.uy])[:, None]
+        self._consts = (np.array(self.rot), np.array(self.t), self._side_a[:, 0].copy(), self._side_c[:, 0].copy(), self.near, self.far)
+        self.kernel_consts = (*self._consts, self._u[:, 0].copy(), self.uz, self.f, self.tau)  # the kernels' arguments
 
     def camera_space(self, x, y, z):
         (a, b, c), (d, e, f), (g, h, i) = self.rot
@@ -115,6 +119,11 @@ class View:
         return m >= np.negative(r), m >= r
 
     def test(self, xyz, r, err):
+        if self.kernel is not None:
+            n = xyz.shape[1]
+            crit, pix, code = np.empty(n, bool), np.empty(n), np.empty(n, np.int8)
+            self.kernel.split_test(xyz[0], xyz[1], xyz[2], r, err, *self.kernel_consts, crit, pix, code)
+            return crit, pix, code
         p = self.to_camera(xyz)
         inside, full = self._planes(p, r)
         zlo = np.negative(p[2])

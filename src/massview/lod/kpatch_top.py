@@ -71,7 +71,7 @@ class TopBatch:
                         for a, b in zip(self.offsets[:-1], self.offsets[1:])]
         last = slice(self.offsets[-2], self.offsets[-1])  # the deepest batched depth (edges): the walk's seeds
         self._last = (last, (self.v[last] << 30) | self.u[last] | (self.o[last] << 60), self.o[last])
-        del self.x, self.y, self.cz, self.par0, self.par1, self.t, self.o, self.v, self.u, self.ex0, self.ex1  # build-time only
+        del self.x, self.y, self.cz, self.par0, self.par1, self.t, self.o, self.v, self.u  # build-time only
 
     def _parents(self, t, o, v, u, n, ex0, ex1):
         """Batch positions of each diamond's half-0 and half-1 parents; ``size`` (a False
@@ -135,6 +135,7 @@ class TopBatch:
             self.rec.append([np.concatenate(c) for c in cols])
         rec = np.stack([np.concatenate([self.rec[0][i], self.rec[1][i]]) for i in range(11)])
         self.rec_int = rec.astype(np.int32 if rec.max() < 2**31 else np.int64)  # vertices ≤ 2^n: int32 halves the table
+        self.rec_rows = np.ascontiguousarray(self.rec_int.T)  # one record per row, for the compiled gather
         self.rec_flt = np.stack([np.concatenate([self.rec[0][i], self.rec[1][i]]) for i in (11, 12)])
         # flat block id of each half record (Front.block_ids: offset[level] + bi·2^(L − level) + bj)
         lay = h.lay
@@ -153,6 +154,12 @@ class TopBatch:
             r0, r1 = self._resident(res)  # a half that does not exist reads True
             ok = crit & r0
             ok &= r1
+        if view.kernel is not None:  # the same rule in one compiled pass
+            S, H0, H1 = np.empty(self.size + 2, bool), np.empty(self.size, bool), np.empty(self.size, bool)
+            deferred = view.kernel.top_rule(ok, crit, self.p0, self.p1, self.ex0, self.ex1, S, H0, H1)
+            split = S[:self.size]
+            self._request(request, r0, r1, ok, crit, pix, H0, H1)
+            return split, H0, H1, code, deferred
         S = np.zeros(self.size + 2, bool)
         S[self.size + 1] = True  # the root's halves are always present
         for s, q, e in self._levels:
@@ -161,19 +168,28 @@ class TopBatch:
             np.greater(ok[s], bad[0] | bad[1], out=S[s])  # ok and no half is wrong
         H0, H1 = S.take(self.p01)
         split = S[:self.size]
+        self._request(request, r0, r1, ok, crit, pix, H0, H1)
+        wait = crit & ~split
+        deferred = int(np.count_nonzero(wait & H0)) + int(np.count_nonzero(wait & H1))
+        return split, H0, H1, code, deferred
+
+    def _request(self, request, r0, r1, ok, crit, pix, H0, H1) -> None:
+        """Request the blocks of present halves of critical diamonds that are missing."""
         if r0 is not None and request is not None and not np.array_equal(ok, crit):  # some critical half's blocks missing
             for rk, Hk, key in ((r0, H0, self.bkey[0]), (r1, H1, self.bkey[1])):
                 miss = crit & Hk & ~rk
                 if miss.any():
                     request(key[0][miss], key[1][miss], key[2][miss], np.minimum(pix[miss], 1e30))
-        wait = crit & ~split
-        deferred = int(np.count_nonzero(wait & H0)) + int(np.count_nonzero(wait & H1))
-        return split, H0, H1, code, deferred
 
     def kept(self, split, H0, H1):
         """Positions in the (2·size) half records (:attr:`rec_int`, :attr:`rec_flt`) of the
         patches the batch keeps, half-0 patches first."""
         return np.concatenate([np.flatnonzero(H0 > split), self.size + np.flatnonzero(H1 > split)])
+
+    def kept_and_seeds(self, kernel, split, H0, H1):
+        """(:meth:`kept`, the keys of :meth:`seeds`) by the compiled ``kernel``."""
+        last, key, _ = self._last
+        return kernel.top_kept_seeds(split, H0, H1, last.start, key)
 
     def seeds(self, split, H0, H1):
         """(keys, o, present halves) of the diamonds of the deepest batched depth that split."""

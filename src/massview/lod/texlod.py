@@ -15,6 +15,7 @@ import numpy as np
 
 from ..core.camera import Camera
 from .cull import boxes_in_frustum, frustum_planes
+from .kernels import lod_kernels
 
 __all__ = ["shading_blocks", "ShadingPyramid"]
 
@@ -67,12 +68,19 @@ class ShadingPyramid:
             lo = np.stack([bj * span * self.dx, -(bi + 1) * span * self.dy, zmap(mm[bi, bj, 0])], 1)
             hi = np.stack([(bj + 1) * span * self.dx, -bi * span * self.dy, zmap(mm[bi, bj, 1])], 1)
             self.boxes.append((lo, hi))
+        # ... and every level's stacked, for the compiled descent (massview.data.lodkernel.shading_blocks)
+        self._stacked = (np.concatenate([b[0] for b in self.boxes]), np.concatenate([b[1] for b in self.boxes]),
+                         np.cumsum([0] + [n * n for n in self.nb])[:-1].astype(np.int64), np.asarray(self.nb, np.int64))
 
     def blocks(self, camera: Camera, limit: int = 4096):
-        """(level, i, j, priority) arrays: exactly :func:`shading_blocks`'s."""
+        """(level, i, j, priority) arrays: exactly :func:`shading_blocks`'s (by the compiled
+        descent once :mod:`.kernels` has it: the same arrays)."""
         f = camera.height / 2 / math.tan(math.radians(camera.fovy) / 2)
         planes = frustum_planes(camera)
         eye = np.asarray(camera.position, np.float64)
+        kernel = lod_kernels()
+        if kernel is not None:
+            return kernel.shading_blocks(*self._stacked, planes, eye, f, min(self.dx, self.dy), limit)
         lv = len(self.boxes) - 1
         cand = np.zeros(1, np.int64)  # flat index bi·nb + bj within the level
         out, count = [], 0

@@ -165,9 +165,13 @@ def run(args) -> int:
     from rich.console import Console
     from rich.table import Table
 
+    from ...lod.kernels import LOD_KERNEL_ENV, load_lod_kernels, lod_kernels
     from ...parallel.runtime import self_comm
     from ...systems.terrain import TerrainSystem
     from .lod_baseline import BaselineStage
+
+    if lod_kernels() is None and os.environ.get(LOD_KERNEL_ENV, "auto") == "auto":
+        load_lod_kernels(wait=True)  # no timed frame walks with numpy while the compiled kernels load
 
     console = Console(width=None if Console().is_terminal else 160)
     other = _against(args.against) if args.against else None
