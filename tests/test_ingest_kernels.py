@@ -144,3 +144,23 @@ def test_grid_errors_match_the_per_square_reference(m, f, bi, bj):
         kernels._grid_squares(*want)
         kernels.grid_errors(*got)
         assert np.array_equal(got[-2], want[-2]) and np.array_equal(got[-1], want[-1]), f"stride {2**l}"
+
+
+@pytest.mark.parametrize("m,f", [(8, 16), (5, 4)])
+@pytest.mark.parametrize("cm", [True, False])
+def test_both_row_layouts_match_the_per_square_reference(m, f, cm):
+    """kernels._lattice_maxima in either layout (c-major, square-major) at every stride, not
+    only the one grid_errors picks, folds to _grid_squares' maxima bit for bit."""
+    from massview.data.terrain import kernels
+
+    rng = np.random.default_rng(m * 10 + f + cm)
+    M = 2**m + 1
+    b = _terrain(rng, (M, M), scale=3000.0)
+    b[rng.random((M, M)) < 0.05] = np.float32(-2e4)  # spikes below
+    for l in range(1, m + 1):
+        want, got = _grid_inputs(b, 2**l, f, 1, 2, m), _grid_inputs(b, 2**l, f, 1, 2, m)
+        kernels._grid_squares(*want)
+        s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f_, v0, u0, V0, U0 = got[1:-2]
+        m5 = kernels._lattice_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity, cm)
+        kernels._fold_rows(m5, tab, f_, v0, u0, V0, U0, got[-2], got[-1])
+        assert np.array_equal(got[-2], want[-2]) and np.array_equal(got[-1], want[-1]), f"stride {2**l}"
