@@ -153,12 +153,83 @@ def _masked_maxima(b, valid, r0, c0, fy, fx, even, k):
 
 
 @_jit
+def _wsq(M, X, Z, V, y, a00, dx, dy, dd, even):
+    """:func:`_masked_maxima`'s square mesh over one row, per column into M (0 where not valid)."""
+    for k in range(M.shape[0]):
+        x = X[k]
+        wgt = min(x, y) if even else max(x + y - _F1, _F0)
+        v = abs(a00 + x * dx + y * dy + wgt * dd - Z[k])
+        v = v if V[k] else _F0
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _wtop(M, X, Z, V, y, a00, dx, et):
+    for k in range(M.shape[0]):
+        x = X[k]
+        v = abs(a00 + x * dx + y * et - Z[k])
+        v = v if V[k] and y <= x and y <= _F1 - x else _F0
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _wbottom(M, X, Z, V, y, a01, dx2, eb):
+    for k in range(M.shape[0]):
+        x = X[k]
+        v = abs(a01 + x * dx2 + (_F1 - y) * eb - Z[k])
+        v = v if V[k] and y >= x and y >= _F1 - x else _F0
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _wleft(M, X, Z, V, y, a00, dy, el):
+    for k in range(M.shape[0]):
+        x = X[k]
+        v = abs(a00 + y * dy + x * el - Z[k])
+        v = v if V[k] and x <= y and x <= _F1 - y else _F0
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _wright(M, X, Z, V, y, a10, dy3, er):
+    for k in range(M.shape[0]):
+        x = X[k]
+        v = abs(a10 + y * dy3 + (_F1 - x) * er - Z[k])
+        v = v if V[k] and x >= y and x >= _F1 - y else _F0
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _window_maxima(b, valid, fy, fx, even, k):
+    """:func:`_masked_maxima` over a whole block (r0 = c0 = 0), a row at a time: one loop per
+    mesh over the row's columns (:func:`_wsq` …: the same expressions and masks, invalid or
+    masked-out samples giving 0, never NaN; vectorized), per-column maxima reduced at the end."""
+    a00, a10, a01, a11, dx, dy, dd, et, eb, el, er, dx2, dy3 = k
+    w = fx.shape[0]
+    Msq, Mt, Mb = np.zeros(w, np.float32), np.zeros(w, np.float32), np.zeros(w, np.float32)
+    Ml, Mr = np.zeros(w, np.float32), np.zeros(w, np.float32)
+    for r in range(fy.shape[0]):
+        y, Z, V = fy[r], b[r, :w], valid[r, :w]
+        _wsq(Msq, fx, Z, V, y, a00, dx, dy, dd, even)
+        _wtop(Mt, fx, Z, V, y, a00, dx, et)
+        _wbottom(Mb, fx, Z, V, y, a01, dx2, eb)
+        _wleft(Ml, fx, Z, V, y, a00, dy, el)
+        _wright(Mr, fx, Z, V, y, a10, dy3, er)
+    return Msq.max(), Mt.max(), Mb.max(), Ml.max(), Mr.max()
+
+
+@_jit
 def window_errors(b, valid, fx, fy, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, sq_out, per_out):  # noqa: PLR0913
     """Exact deviations of one lattice square that contains the whole block (any fractional
     coordinates fx (w,), fy (h,), float32; only ``valid`` samples count), by the masks of
     the numpy formulation. Max-folds into sq_out (1, 1) and per_out (4, 1, 1)."""
     k = _corners(c00, c10, c01, c11, cc, 0, 0)
-    msq, mt, mb, ml, mr = _masked_maxima(b, valid, 0, 0, fy, fx, parity % 2 == 0, k)
+    msq, mt, mb, ml, mr = _window_maxima(b, valid, fy, fx, parity % 2 == 0, k)
     _fold(sq_out, per_out, tab, f, v0, u0, v0 // f, u0 // f, 0, 0, msq, mt, mb, ml, mr)
 
 
@@ -395,3 +466,43 @@ def _lattice_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity, cm):  # noqa: 
         _reduce(out[4, iv], Mr, s, nq, cm)
     return out
 
+
+
+@_jit
+def _fold_eps(acc, V0, U0, e, eps):
+    """acc[V0 + i, U0 + j] = max(acc[…], e[i, j] + eps): what ``np.maximum(sl, e + eps, out=sl)``
+    did (float32 sum, then the maximum; never NaN)."""
+    for i in range(e.shape[0]):
+        for j in range(e.shape[1]):
+            v, o = e[i, j] + eps, acc[V0 + i, U0 + j]
+            acc[V0 + i, U0 + j] = v if v > o else o
+
+
+@_jit
+def grid_level(b, valid, masked, s, m, f, bi, bj, tab, eps, SQ, DG):  # noqa: PLR0913
+    """One grid level of :meth:`deviation.DeviationAccumulator._add_level` in one call: the
+    lattice corners of stride ``s`` of block (bi, bj) (what ``grid_error_args`` cuts out),
+    :func:`grid_errors` (or :func:`masked_grid_errors` where ``masked``) into zeroed maxima,
+    then those plus ``eps`` max-folded into the level's square errors SQ and diagonal errors DG
+    (the Python code's ``np.maximum`` folds: same float32 sums, exact maxima)."""
+    nq = (1 << m) // s
+    h = s // 2
+    c00 = np.ascontiguousarray(b[0: nq * s: s, 0: nq * s: s])
+    c10 = np.ascontiguousarray(b[0: nq * s: s, s: nq * s + 1: s])
+    c01 = np.ascontiguousarray(b[s: nq * s + 1: s, 0: nq * s: s])
+    c11 = np.ascontiguousarray(b[s: nq * s + 1: s, s: nq * s + 1: s])
+    cc = np.ascontiguousarray(b[h: nq * s: s, h: nq * s: s])
+    fx = np.arange(s + 1).astype(np.float32) / np.float32(s)  # exact: s is a power of two
+    v0, u0 = bi * nq, bj * nq
+    V0, U0 = v0 // f, u0 // f
+    n = max(nq // f, 1)
+    sq, per = np.zeros((n, n), np.float32), np.zeros((4, n, n), np.float32)
+    if masked:
+        masked_grid_errors(b, valid, s, nq, fx, c00, c10, c01, c11, cc, (v0 + u0) % 2, tab, f, v0, u0, V0, U0, sq, per)
+    else:
+        grid_errors(b, s, nq, fx, c00, c10, c01, c11, cc, (v0 + u0) % 2, tab, f, v0, u0, V0, U0, sq, per)
+    _fold_eps(SQ, V0, U0, sq, eps)
+    _fold_eps(DG[0], V0, U0, per[0], eps)
+    _fold_eps(DG[0], V0 + 1, U0, per[1], eps)
+    _fold_eps(DG[1], V0, U0, per[2], eps)
+    _fold_eps(DG[1], V0, U0 + 1, per[3], eps)
