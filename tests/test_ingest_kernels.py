@@ -150,7 +150,8 @@ def test_grid_errors_match_the_per_square_reference(m, f, bi, bj):
 @pytest.mark.parametrize("cm", [True, False])
 def test_both_row_layouts_match_the_per_square_reference(m, f, cm):
     """kernels._lattice_maxima in either layout (c-major, square-major) at every stride, not
-    only the one grid_errors picks, folds to _grid_squares' maxima bit for bit."""
+    only the one grid_errors picks, folds to _grid_squares' maxima bit for bit; and
+    kernels._direct_maxima gives the same maxima at every stride."""
     from massview.data.terrain import kernels
 
     rng = np.random.default_rng(m * 10 + f + cm)
@@ -164,6 +165,8 @@ def test_both_row_layouts_match_the_per_square_reference(m, f, cm):
         m5 = kernels._lattice_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity, cm)
         kernels._fold_rows(m5, tab, f_, v0, u0, V0, U0, got[-2], got[-1])
         assert np.array_equal(got[-2], want[-2]) and np.array_equal(got[-1], want[-1]), f"stride {2**l}"
+        direct = kernels._direct_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity)
+        assert np.array_equal(direct, m5), f"_direct_maxima, stride {2**l}"
 
 
 @pytest.mark.parametrize("m,f,masked", [(8, 16, False), (8, 16, True), (5, 32, False), (5, 32, True)])

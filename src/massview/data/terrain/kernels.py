@@ -67,9 +67,12 @@ def grid_errors(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0
     """Exact deviations of the ``nq × nq`` closed lattice squares of spacing ``s`` over a block
     whose samples are all valid; ``fx = arange(s+1)/s`` (float32). Max-folds into sq_out
     (nV, nU) and per_out (4, nV, nU), see :func:`_fold`. Every stride takes whole rows of
-    squares per loop (:func:`_lattice_maxima`: c-major up to stride 32, square-major above); the
-    results are those of :func:`_grid_squares` bit for bit (tests/test_ingest_kernels.py)."""
-    m5 = _lattice_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity, s <= 32)
+    squares per loop (stride 2: :func:`_direct_maxima`; then :func:`_lattice_maxima`, c-major up
+    to stride 32, square-major above: the fastest of the three per stride); the results are those of :func:`_grid_squares` bit for bit (tests/test_ingest_kernels.py)."""
+    if s == 2:
+        m5 = _direct_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity)
+    else:
+        m5 = _lattice_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity, s <= 32)
     _fold_rows(m5, tab, f, v0, u0, V0, U0, sq_out, per_out)
 
 
@@ -82,6 +85,20 @@ def _fold_rows(m5, tab, f, v0, u0, V0, U0, sq_out, per_out):
     while (1 << sh) < f:
         sh += 1
     nq = m5.shape[1]
+    if nq % f == 0 and v0 % f == 0 and u0 % f == 0:  # whole patch squares (the fine strides): no index
+        nb = nq // f                                   # arithmetic or table look-up per lattice square
+        for iv in range(nq):
+            a, vm = iv >> sh, iv & mask  # (v0 + iv) // f - V0 and (v0 + iv) % f, as v0 = V0·f
+            for um in range(f):
+                r0, r1, r2, r3 = tab[0, vm, um], tab[1, vm, um], tab[2, vm, um], tab[3, vm, um]
+                for bb in range(nb):
+                    iu = bb * f + um
+                    sq_out[a, bb] = max(sq_out[a, bb], m5[0, iv, iu])
+                    per_out[r0, a, bb] = max(per_out[r0, a, bb], m5[1, iv, iu])
+                    per_out[r1, a, bb] = max(per_out[r1, a, bb], m5[2, iv, iu])
+                    per_out[r2, a, bb] = max(per_out[r2, a, bb], m5[3, iv, iu])
+                    per_out[r3, a, bb] = max(per_out[r3, a, bb], m5[4, iv, iu])
+        return
     for iv in range(nq):
         v = v0 + iv
         a, vm = (v >> sh) - V0, v & mask
@@ -506,3 +523,78 @@ def grid_level(b, valid, masked, s, m, f, bi, bj, tab, eps, SQ, DG):  # noqa: PL
     _fold_eps(DG[0], V0 + 1, U0, per[1], eps)
     _fold_eps(DG[1], V0, U0, per[2], eps)
     _fold_eps(DG[1], V0, U0 + 1, per[3], eps)
+
+
+@_jit
+def _dsq(M, A, B, C, D, Z, zo, EVN, x, y, we, wo):
+    """M[k] = max(M[k], |A + x·B + y·C + w·D − Z[zo + k]|), w = we or wo by EVN[k]."""
+    for k in range(M.shape[0]):
+        wgt = we if EVN[k] != _F0 else wo
+        v = abs(A[k] + x * B[k] + y * C[k] + wgt * D[k] - Z[np.uint64(k) + zo])
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _dlin(M, A, B, C, Z, zo, p, q):
+    """M[k] = max(M[k], |A + p·B + q·C − Z[zo + k]|)."""
+    for k in range(M.shape[0]):
+        v = abs(A[k] + p * B[k] + q * C[k] - Z[np.uint64(k) + zo])
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _deinterleave_block(b, s, nq):
+    """D[p, R, j] = b[R, j·s + p] for the block rows R = 0..nq·s (j ≤ nq where it exists)."""
+    n = nq * s + 1
+    D = np.zeros((s, n, nq + 1), np.float32)
+    for p in range(s):
+        cnt = (n - 1 - p) // s + 1
+        for R in range(n):
+            d, row = D[p, R], b[R]
+            if s == 2:  # constant strides: LLVM vectorizes the strided loads
+                for j in range(cnt):
+                    d[j] = row[2 * j + p]
+            elif s == 4:
+                for j in range(cnt):
+                    d[j] = row[4 * j + p]
+            else:
+                for j in range(cnt):
+                    d[j] = row[s * j + p]
+    return D
+
+
+@_jit
+def _direct_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity):  # noqa: PLR0913
+    """The five maxima of every lattice square, (5, nq, nq), for the finest strides: for each
+    sample position (r, c) of a square, one loop over the row of squares (:func:`_dsq`,
+    :func:`_dlin`: per-square terms as they are, the samples from the block de-interleaved
+    once by stride, unsigned offsets: vectorized). The same float32 expressions, operands and
+    order as :func:`_grid_squares`; maxima are exact in any order."""
+    dx, dy, dd, et, eb, el, er, dx2, dy3 = _terms(c00, c10, c01, c11, cc)
+    D = _deinterleave_block(b, s, nq)
+    out = np.zeros((5, nq, nq), np.float32)
+    ev = np.empty(nq, np.float32)
+    for iv in range(nq):
+        for iu in range(nq):
+            ev[iu] = _F1 if (parity + iv + iu) % 2 == 0 else _F0
+        o0, o1, o2, o3, o4 = out[0, iv], out[1, iv], out[2, iv], out[3, iv], out[4, iv]
+        a00, a10, a01 = c00[iv], c10[iv], c01[iv]
+        gx, gy, gd, gt, gb, gl, gr, gx2, gy3 = dx[iv], dy[iv], dd[iv], et[iv], eb[iv], el[iv], er[iv], dx2[iv], dy3[iv]
+        for r in range(s + 1):
+            y = fx[r]
+            for c in range(s + 1):
+                x = fx[c]
+                Z, zo = D[c % s, iv * s + r], np.uint64(c // s)
+                _dsq(o0, a00, gx, gy, gd, Z, zo, ev, x, y, min(x, y), max(x + y - _F1, _F0))
+                if r <= c <= s - r:  # top
+                    _dlin(o1, a00, gx, gt, Z, zo, x, y)
+                if s - r <= c <= r:  # bottom
+                    _dlin(o2, a01, gx2, gb, Z, zo, x, _F1 - y)
+                if c <= min(r, s - r):  # left
+                    _dlin(o3, a00, gy, gl, Z, zo, y, x)
+                if c >= max(r, s - r):  # right
+                    _dlin(o4, a10, gy3, gr, Z, zo, y, _F1 - x)
+    return out
+
