@@ -17,7 +17,8 @@ def _terrain(rng, shape, scale=1000.0):
     return a + rng.normal(size=shape).astype(np.float32) * np.float32(3)
 
 
-def test_float16_bits_match_numpy_everywhere_that_matters():
+@pytest.mark.parametrize("soft", [False, True])  # F16C (where the CPU has it) and the software rounding
+def test_float16_bits_match_numpy_everywhere_that_matters(soft):
     rng = np.random.default_rng(1)
     bits = np.concatenate([rng.integers(0, 2**32, 2_000_000, dtype=np.uint64).astype(np.uint32),
                            np.arange(0x33000000 - 4096, 0x38800000 + 4096, 97, dtype=np.uint32),  # subnormal halves
@@ -27,7 +28,7 @@ def test_float16_bits_match_numpy_everywhere_that_matters():
     f = bits.view(np.float32)
     f = f[~np.isnan(f)]  # NaN payloads: hardware and software paths of numpy differ; ingest never has NaN
     got = np.empty(f.shape, np.uint16)
-    rk.to_half(f.view(np.uint32), got)
+    rk.to_half(f, got, soft)
     with np.errstate(over="ignore"):
         want = f.astype(np.float16).view(np.uint16)
     assert np.array_equal(got, want)
