@@ -176,16 +176,29 @@ def _horn_px(up, mid, dn, c, W, dx8, dy8, zlo, rng, o):
 
 
 @_jit
-def _horn_inner(up, mid, dn, dx8, dy8, zlo, rng, o):
-    """:func:`_horn_px` for columns 1 .. W-2 (no clamping; three input rows and one output
-    array: LLVM vectorizes it). ``o`` starts at column 1."""
-    for k in range(o.shape[0]):
-        a, b_, c_ = up[k], up[k + 1], up[k + 2]
-        d, f = mid[k], mid[k + 2]
-        g, h, i = dn[k], dn[k + 1], dn[k + 2]
-        o[k, 0] = f2h(((c_ + _TWO * f + i) - (a + _TWO * d + g)) / dx8)
-        o[k, 1] = f2h(((a + _TWO * b_ + c_) - (g + _TWO * h + i)) / dy8)
-        o[k, 2] = f2h((mid[k + 1] - zlo) / rng)
+def _horn_plane(up, mid, dn, dx8, dy8, zlo, rng, ch, q):
+    """Channel ``ch`` of :func:`_horn_px` for columns 1 .. W-2 into the plane ``q`` (W-2,):
+    no clamping, three input rows, one contiguous output (LLVM vectorizes it)."""
+    if ch == 0:
+        for k in range(q.shape[0]):
+            q[k] = f2h(((up[k + 2] + _TWO * mid[k + 2] + dn[k + 2]) - (up[k] + _TWO * mid[k] + dn[k])) / dx8)
+    elif ch == 1:
+        for k in range(q.shape[0]):
+            q[k] = f2h(((up[k] + _TWO * up[k + 1] + up[k + 2]) - (dn[k] + _TWO * dn[k + 1] + dn[k + 2])) / dy8)
+    else:
+        for k in range(q.shape[0]):
+            q[k] = f2h((mid[k + 1] - zlo) / rng)
+
+
+@_jit
+def _horn_inner(up, mid, dn, dx8, dy8, zlo, rng, o, planes):
+    """:func:`_horn_px` for columns 1 .. W-2 (``o`` starts at column 1): each channel as a
+    plane (:func:`_horn_plane`), then interleaved into ``o``."""
+    n = o.shape[0]
+    for ch in range(3):
+        _horn_plane(up, mid, dn, dx8, dy8, zlo, rng, ch, planes[ch, :n])
+    for k in range(n):
+        o[k, 0], o[k, 1], o[k, 2] = planes[0, k], planes[1, k], planes[2, k]
 
 
 @_jit
@@ -194,6 +207,7 @@ def horn_row(above, cur, below, dx8, dy8, zlo, rng, out):
     and below (W,): ``out`` (M, W, 3) uint16 = float16 bits of Horn's ∂h/∂x (east), ∂h/∂y
     (north) and (h − zlo)/rng; ``dx8`` = float32(8·dx) etc. (colors.horn_slopes)."""
     M, W = cur.shape
+    planes = np.empty((3, max(W - 2, 1)), np.uint16)
     for r in range(M):
         up = above if r == 0 else cur[r - 1]
         dn = below if r == M - 1 else cur[r + 1]
@@ -201,7 +215,7 @@ def horn_row(above, cur, below, dx8, dy8, zlo, rng, out):
         o = out[r]
         _horn_px(up, mid, dn, 0, W, dx8, dy8, zlo, rng, o)
         if W > 2:
-            _horn_inner(up, mid, dn, dx8, dy8, zlo, rng, o[1: W - 1])
+            _horn_inner(up, mid, dn, dx8, dy8, zlo, rng, o[1: W - 1], planes)
         if W > 1:
             _horn_px(up, mid, dn, W - 1, W, dx8, dy8, zlo, rng, o)
 
