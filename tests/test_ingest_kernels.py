@@ -17,7 +17,8 @@ def _terrain(rng, shape, scale=1000.0):
     return a + rng.normal(size=shape).astype(np.float32) * np.float32(3)
 
 
-def test_float16_bits_match_numpy_everywhere_that_matters():
+@pytest.mark.parametrize("soft", [False, True])  # F16C (where the CPU has it) and the software rounding
+def test_float16_bits_match_numpy_everywhere_that_matters(soft):
     rng = np.random.default_rng(1)
     bits = np.concatenate([rng.integers(0, 2**32, 2_000_000, dtype=np.uint64).astype(np.uint32),
                            np.arange(0x33000000 - 4096, 0x38800000 + 4096, 97, dtype=np.uint32),  # subnormal halves
@@ -27,7 +28,7 @@ def test_float16_bits_match_numpy_everywhere_that_matters():
     f = bits.view(np.float32)
     f = f[~np.isnan(f)]  # NaN payloads: hardware and software paths of numpy differ; ingest never has NaN
     got = np.empty(f.shape, np.uint16)
-    rk.to_half(f.view(np.uint32), got)
+    rk.to_half(f, got, soft)
     with np.errstate(over="ignore"):
         want = f.astype(np.float16).view(np.uint16)
     assert np.array_equal(got, want)
@@ -144,3 +145,90 @@ def test_grid_errors_match_the_per_square_reference(m, f, bi, bj):
         kernels._grid_squares(*want)
         kernels.grid_errors(*got)
         assert np.array_equal(got[-2], want[-2]) and np.array_equal(got[-1], want[-1]), f"stride {2**l}"
+
+
+@pytest.mark.parametrize("m,f", [(8, 16), (5, 4)])
+@pytest.mark.parametrize("cm", [True, False])
+def test_both_row_layouts_match_the_per_square_reference(m, f, cm):
+    """kernels._lattice_maxima in either layout (c-major, square-major) at every stride, not
+    only the one grid_errors picks, folds to _grid_squares' maxima bit for bit; and
+    kernels._direct_maxima gives the same maxima at every stride."""
+    from massview.data.terrain import kernels
+
+    rng = np.random.default_rng(m * 10 + f + cm)
+    M = 2**m + 1
+    b = _terrain(rng, (M, M), scale=3000.0)
+    b[rng.random((M, M)) < 0.05] = np.float32(-2e4)  # spikes below
+    for l in range(1, m + 1):
+        want, got = _grid_inputs(b, 2**l, f, 1, 2, m), _grid_inputs(b, 2**l, f, 1, 2, m)
+        kernels._grid_squares(*want)
+        s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f_, v0, u0, V0, U0 = got[1:-2]
+        m5 = kernels._lattice_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity, cm)
+        kernels._fold_rows(m5, tab, f_, v0, u0, V0, U0, got[-2], got[-1])
+        assert np.array_equal(got[-2], want[-2]) and np.array_equal(got[-1], want[-1]), f"stride {2**l}"
+        direct = kernels._direct_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity)
+        assert np.array_equal(direct, m5), f"_direct_maxima, stride {2**l}"
+
+
+@pytest.mark.parametrize("m,f,masked", [(8, 16, False), (8, 16, True), (5, 32, False), (5, 32, True)])
+def test_grid_level_is_the_python_fold_of_grid_errors(m, f, masked):
+    """kernels.grid_level (corners, kernel and eps folds in one call) leaves the accumulators
+    as grid_error_args + grid_errors / masked_grid_errors + np.maximum(sl, e + eps) did."""
+    from massview.data.terrain import kernels
+    from massview.data.terrain.deviation import _region_table, grid_error_args
+
+    rng = np.random.default_rng(m + f + masked)
+    M, tab, bi, bj, size = 2**m + 1, _region_table(f), 3, 2, 64
+    b = _terrain(rng, (M, M), scale=3000.0)
+    valid = np.ones((M, M), np.bool_)
+    if masked:
+        valid[:, M - 37:] = False
+        valid[M - 5:, :] = False
+    eps = np.float32(8 * np.finfo(np.float32).eps * float(np.abs(b).max()))
+    for l in range(1, m + 1):
+        s = 2**l
+        want_sq, want_dg = rng.random((size, size), np.float32), rng.random((2, size + 1, size + 1), np.float32)
+        got_sq, got_dg = want_sq.copy(), want_dg.copy()
+        args, n = grid_error_args(b, s, m, f, bi, bj, tab)
+        sq, per = np.zeros((n, n), np.float32), np.zeros((4, n, n), np.float32)
+        if masked:
+            kernels.masked_grid_errors(b, valid, *args, sq, per)
+        else:
+            kernels.grid_errors(b, *args, sq, per)
+        V0, U0 = args[-2], args[-1]
+        sl = want_sq[V0: V0 + n, U0: U0 + n]
+        np.maximum(sl, sq + eps, out=sl)
+        for (o, dv, du), e in zip(((0, 0, 0), (0, 1, 0), (1, 0, 0), (1, 0, 1)), per):
+            sl = want_dg[o, V0 + dv: V0 + dv + n, U0 + du: U0 + du + n]
+            np.maximum(sl, e + eps, out=sl)
+        kernels.grid_level(b, valid, masked, s, m, f, bi, bj, tab, eps, got_sq, got_dg)
+        assert np.array_equal(got_sq, want_sq) and np.array_equal(got_dg, want_dg), f"stride {s}"
+
+
+@pytest.mark.parametrize("s,off,masked,parity", [(512, 0, False, 0), (512, 256, True, 1), (1024, 768, False, 1), (2048, 512, True, 0)])
+def test_window_errors_match_the_per_sample_masked_loop(s, off, masked, parity):
+    """kernels.window_errors (a row at a time, vectorized) gives _masked_maxima's maxima (the
+    per-sample loop with masks it replaced), folded the same way, bit for bit."""
+    from massview.data.terrain import kernels
+    from massview.data.terrain.deviation import _region_table
+
+    rng = np.random.default_rng(s + off + masked)
+    M = 257
+    b = _terrain(rng, (M, M), scale=3000.0)
+    b[rng.random((M, M)) < 0.05] = np.float32(1e4)
+    valid = np.ones((M, M), np.bool_)
+    if masked:
+        valid[:, M - 40:] = False
+        valid[M - 100:, :] = False
+    t = np.arange(M, dtype=np.float32)
+    fx, fy = (off + t) / s, (s - M + 1 + t) / s  # the window's fractional coordinates, up to 1
+    corners = [np.full((1, 1), v, np.float32) for v in rng.normal(size=5).astype(np.float32) * 3000]
+    tab, f, v0, u0 = _region_table(16), 16, 5, 9
+    want = np.zeros((1, 1), np.float32), np.zeros((4, 1, 1), np.float32)
+    got = np.zeros((1, 1), np.float32), np.zeros((4, 1, 1), np.float32)
+    k = kernels._corners(*corners, 0, 0)
+    m5 = kernels._masked_maxima(b, valid, 0, 0, fy, fx, parity % 2 == 0, k)
+    kernels._fold(*want, tab, f, v0, u0, v0 // f, u0 // f, 0, 0, *m5)
+    kernels.window_errors(b, valid, fx, fy, *corners, parity, tab, f, v0, u0, *got)
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert want[1].max() > 0

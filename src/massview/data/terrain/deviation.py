@@ -30,6 +30,7 @@ from .layout import TerrainLayout
 
 __all__ = ["DeviationAccumulator", "coarse_lattice"]
 
+_NO_MASK = np.ones((1, 1), np.bool_)  # grid_level's ``valid`` where the block has no padding
 _CENTROIDS = ((0.5, 1 / 6), (0.5, 5 / 6), (1 / 6, 0.5), (5 / 6, 0.5))  # top, bottom, left, right (x, y)
 
 
@@ -115,30 +116,25 @@ class DeviationAccumulator:
         y·(c01 − c00) + w·D with w = min(x, y) or max(0, x + y − 1) by the parity rule; the
         centred mesh's four quarter triangles), max-reduced per patch square and per region of
         :func:`_region_table`, then folded in with the float32 rounding margin."""
-        from .kernels import grid_errors, masked_grid_errors, window_errors  # numba: loaded on first use
+        from .kernels import grid_level, window_errors  # numba: loaded on first use
 
         m, s, f = self.lay.m, 2**l, 2**self.lay.k
         tab = self._tables.get(f)
         if tab is None:
             tab = self._tables[f] = _region_table(f)
-        if l <= m:
-            args, n = grid_error_args(b, s, m, f, bi, bj, tab)
-            v0, u0 = bi * (2**m // s), bj * (2**m // s)  # the lattice origin the kernel folds from
-            sq, per = np.zeros((n, n), np.float32), np.zeros((4, n, n), np.float32)
-            if valid is None:
-                grid_errors(b, *args, sq, per)
-            else:
-                masked_grid_errors(b, valid, *args, sq, per)
-        else:
-            y0, x0 = bi * 2**m, bj * 2**m
-            v0, u0 = y0 // s, x0 // s
-            G, H = self._lattice(l), self._lattice(l - 1)
-            corners = [np.full((1, 1), v, np.float32) for v in (G[v0, u0], G[v0, u0 + 1], G[v0 + 1, u0], G[v0 + 1, u0 + 1], H[2 * v0 + 1, 2 * u0 + 1])]
-            t = np.arange(b.shape[0], dtype=np.float32)
-            fx, fy = (x0 - u0 * s + t) / s, (y0 - v0 * s + t) / s
-            sq, per = np.zeros((1, 1), np.float32), np.zeros((4, 1, 1), np.float32)
-            ok = np.ones(b.shape, np.bool_) if valid is None else valid
-            window_errors(b, ok, fx, fy, *corners, (v0 + u0) % 2, tab, f, v0, u0, sq, per)
+        if l <= m:  # corners, kernel and folds in one compiled call
+            grid_level(b, _NO_MASK if valid is None else valid, valid is not None, s, m, f, bi, bj, tab, self._eps,
+                       self.sq[j], self.dg[j])
+            return
+        y0, x0 = bi * 2**m, bj * 2**m
+        v0, u0 = y0 // s, x0 // s
+        G, H = self._lattice(l), self._lattice(l - 1)
+        corners = [np.full((1, 1), v, np.float32) for v in (G[v0, u0], G[v0, u0 + 1], G[v0 + 1, u0], G[v0 + 1, u0 + 1], H[2 * v0 + 1, 2 * u0 + 1])]
+        t = np.arange(b.shape[0], dtype=np.float32)
+        fx, fy = (x0 - u0 * s + t) / s, (y0 - v0 * s + t) / s
+        sq, per = np.zeros((1, 1), np.float32), np.zeros((4, 1, 1), np.float32)
+        ok = np.ones(b.shape, np.bool_) if valid is None else valid
+        window_errors(b, ok, fx, fy, *corners, (v0 + u0) % 2, tab, f, v0, u0, sq, per)
         V0, U0 = v0 // f, u0 // f
         n = sq.shape[0]
         sl = self.sq[j][V0: V0 + n, U0: U0 + n]

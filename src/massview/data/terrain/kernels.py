@@ -63,80 +63,17 @@ def _corners(c00, c10, c01, c11, cc, iv, iu):
 
 
 @_jit
-def _deinterleave(row, s, out):
-    """``out[p, j] = row[j·s + p]`` (s, nq+1) float32, where that sample exists."""
-    n = row.shape[0]
-    for j in range(out.shape[1]):
-        for p in range(s):
-            if j * s + p < n:
-                out[p, j] = row[j * s + p]
-
-
-@_jit
-def _max_into(m, i, v):
-    """m[i] = max(m[i], v) as a select (v >= 0, never NaN: the same value as ``max``)."""
-    o = m[i]
-    m[i] = v if v > o else o
-
-
-@_jit
-def _fine_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity):  # noqa: PLR0913, PLR0915
-    """The five maxima of every lattice square at once, (5, nq, nq) float32, for the fine
-    strides (few samples per square): for each sample position (r, c) of a square, one loop
-    over a whole row of squares, on the row's samples de-interleaved by stride (contiguous
-    loads), with the corner terms of :func:`_corners` as arrays. The same float32 expressions
-    over the same samples as :func:`_grid_squares`; a maximum does not depend on the order it
-    is taken in (no NaN: the ingest fills them; every value is an ``abs``, so no −0), so the
-    results are bit-identical."""
-    dx, dy, dd = c10 - c00, c01 - c00, c00 - c10 - c01 + c11
-    et, eb = _F2 * cc - c00 - c10, _F2 * cc - c01 - c11
-    el, er = _F2 * cc - c00 - c01, _F2 * cc - c10 - c11
-    dx2, dy3 = c11 - c01, c11 - c10
-    out = np.zeros((5, nq, nq), np.float32)
-    D = np.empty((s, nq + 1), np.float32)
-    even = np.empty(nq, np.bool_)
-    for iv in range(nq):
-        msq, mt, mb, ml, mr = out[0, iv], out[1, iv], out[2, iv], out[3, iv], out[4, iv]
-        a00, a10, a01 = c00[iv], c10[iv], c01[iv]
-        gx, gy, gd, gt, gb, gl, gr, gx2, gy3 = dx[iv], dy[iv], dd[iv], et[iv], eb[iv], el[iv], er[iv], dx2[iv], dy3[iv]
-        for iu in range(nq):
-            even[iu] = (parity + iv + iu) % 2 == 0
-        for r in range(s + 1):
-            y = fx[r]
-            _deinterleave(b[iv * s + r], s, D)
-            for c in range(s + 1):
-                x = fx[c]
-                z = D[c % s, c // s: c // s + nq]  # z[iu] = b[iv·s + r, iu·s + c]
-                we, wo = min(x, y), max(x + y - _F1, _F0)
-                for iu in range(nq):
-                    wgt = we if even[iu] else wo
-                    _max_into(msq, iu, abs(a00[iu] + x * gx[iu] + y * gy[iu] + wgt * gd[iu] - z[iu]))
-                if r <= c <= s - r:  # top
-                    for iu in range(nq):
-                        _max_into(mt, iu, abs(a00[iu] + x * gx[iu] + y * gt[iu] - z[iu]))
-                if s - r <= c <= r:  # bottom
-                    for iu in range(nq):
-                        _max_into(mb, iu, abs(a01[iu] + x * gx2[iu] + (_F1 - y) * gb[iu] - z[iu]))
-                if c <= min(r, s - r):  # left
-                    for iu in range(nq):
-                        _max_into(ml, iu, abs(a00[iu] + y * gy[iu] + x * gl[iu] - z[iu]))
-                if c >= max(r, s - r):  # right
-                    for iu in range(nq):
-                        _max_into(mr, iu, abs(a10[iu] + y * gy3[iu] + (_F1 - x) * gr[iu] - z[iu]))
-    return out
-
-
-@_jit
 def grid_errors(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0, U0, sq_out, per_out):  # noqa: PLR0913
     """Exact deviations of the ``nq × nq`` closed lattice squares of spacing ``s`` over a block
     whose samples are all valid; ``fx = arange(s+1)/s`` (float32). Max-folds into sq_out
-    (nV, nU) and per_out (4, nV, nU), see :func:`_fold`. The strides up to 64 (most squares,
-    fewest samples each) take a whole row of squares per loop (:func:`_fine_maxima`); the
-    results are those of :func:`_grid_squares` bit for bit (tests/test_ingest_kernels.py)."""
-    if s > 64:
-        _grid_squares(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0, U0, sq_out, per_out)
-        return
-    _fold_rows(_fine_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity), tab, f, v0, u0, V0, U0, sq_out, per_out)
+    (nV, nU) and per_out (4, nV, nU), see :func:`_fold`. Every stride takes whole rows of
+    squares per loop (stride 2: :func:`_direct_maxima`; then :func:`_lattice_maxima`, c-major up
+    to stride 32, square-major above: the fastest of the three per stride); the results are those of :func:`_grid_squares` bit for bit (tests/test_ingest_kernels.py)."""
+    if s == 2:
+        m5 = _direct_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity)
+    else:
+        m5 = _lattice_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity, s <= 32)
+    _fold_rows(m5, tab, f, v0, u0, V0, U0, sq_out, per_out)
 
 
 @_jit
@@ -148,6 +85,20 @@ def _fold_rows(m5, tab, f, v0, u0, V0, U0, sq_out, per_out):
     while (1 << sh) < f:
         sh += 1
     nq = m5.shape[1]
+    if nq % f == 0 and v0 % f == 0 and u0 % f == 0:  # whole patch squares (the fine strides): no index
+        nb = nq // f                                   # arithmetic or table look-up per lattice square
+        for iv in range(nq):
+            a, vm = iv >> sh, iv & mask  # (v0 + iv) // f - V0 and (v0 + iv) % f, as v0 = V0·f
+            for um in range(f):
+                r0, r1, r2, r3 = tab[0, vm, um], tab[1, vm, um], tab[2, vm, um], tab[3, vm, um]
+                for bb in range(nb):
+                    iu = bb * f + um
+                    sq_out[a, bb] = max(sq_out[a, bb], m5[0, iv, iu])
+                    per_out[r0, a, bb] = max(per_out[r0, a, bb], m5[1, iv, iu])
+                    per_out[r1, a, bb] = max(per_out[r1, a, bb], m5[2, iv, iu])
+                    per_out[r2, a, bb] = max(per_out[r2, a, bb], m5[3, iv, iu])
+                    per_out[r3, a, bb] = max(per_out[r3, a, bb], m5[4, iv, iu])
+        return
     for iv in range(nq):
         v = v0 + iv
         a, vm = (v >> sh) - V0, v & mask
@@ -162,9 +113,8 @@ def _fold_rows(m5, tab, f, v0, u0, V0, U0, sq_out, per_out):
 
 @_jit
 def _grid_squares(b, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0, U0, sq_out, per_out):  # noqa: PLR0913
-    """One lattice square at a time: :func:`grid_errors` for the coarse strides (> 64: many
-    samples per square), and for every stride the reference the tests compare its fine path
-    with (the kernel before issue 20's third round). Exact deviations of the ``nq × nq`` closed lattice squares of spacing ``s`` over a block
+    """One lattice square at a time: the reference the tests compare :func:`grid_errors` with
+    (the kernel before issue 20's third round). Exact deviations of the ``nq × nq`` closed lattice squares of spacing ``s`` over a block
     whose samples are all valid; ``fx = arange(s+1)/s`` (float32). The quarter triangles are
     visited over their exact column ranges (``y <= x`` ⇔ ``r <= c`` for these dyadic
     fractions), the same samples the masks of the numpy formulation select. Max-folds into
@@ -220,12 +170,83 @@ def _masked_maxima(b, valid, r0, c0, fy, fx, even, k):
 
 
 @_jit
+def _wsq(M, X, Z, V, y, a00, dx, dy, dd, even):
+    """:func:`_masked_maxima`'s square mesh over one row, per column into M (0 where not valid)."""
+    for k in range(M.shape[0]):
+        x = X[k]
+        wgt = min(x, y) if even else max(x + y - _F1, _F0)
+        v = abs(a00 + x * dx + y * dy + wgt * dd - Z[k])
+        v = v if V[k] else _F0
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _wtop(M, X, Z, V, y, a00, dx, et):
+    for k in range(M.shape[0]):
+        x = X[k]
+        v = abs(a00 + x * dx + y * et - Z[k])
+        v = v if V[k] and y <= x and y <= _F1 - x else _F0
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _wbottom(M, X, Z, V, y, a01, dx2, eb):
+    for k in range(M.shape[0]):
+        x = X[k]
+        v = abs(a01 + x * dx2 + (_F1 - y) * eb - Z[k])
+        v = v if V[k] and y >= x and y >= _F1 - x else _F0
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _wleft(M, X, Z, V, y, a00, dy, el):
+    for k in range(M.shape[0]):
+        x = X[k]
+        v = abs(a00 + y * dy + x * el - Z[k])
+        v = v if V[k] and x <= y and x <= _F1 - y else _F0
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _wright(M, X, Z, V, y, a10, dy3, er):
+    for k in range(M.shape[0]):
+        x = X[k]
+        v = abs(a10 + y * dy3 + (_F1 - x) * er - Z[k])
+        v = v if V[k] and x >= y and x >= _F1 - y else _F0
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _window_maxima(b, valid, fy, fx, even, k):
+    """:func:`_masked_maxima` over a whole block (r0 = c0 = 0), a row at a time: one loop per
+    mesh over the row's columns (:func:`_wsq` …: the same expressions and masks, invalid or
+    masked-out samples giving 0, never NaN; vectorized), per-column maxima reduced at the end."""
+    a00, a10, a01, a11, dx, dy, dd, et, eb, el, er, dx2, dy3 = k
+    w = fx.shape[0]
+    Msq, Mt, Mb = np.zeros(w, np.float32), np.zeros(w, np.float32), np.zeros(w, np.float32)
+    Ml, Mr = np.zeros(w, np.float32), np.zeros(w, np.float32)
+    for r in range(fy.shape[0]):
+        y, Z, V = fy[r], b[r, :w], valid[r, :w]
+        _wsq(Msq, fx, Z, V, y, a00, dx, dy, dd, even)
+        _wtop(Mt, fx, Z, V, y, a00, dx, et)
+        _wbottom(Mb, fx, Z, V, y, a01, dx2, eb)
+        _wleft(Ml, fx, Z, V, y, a00, dy, el)
+        _wright(Mr, fx, Z, V, y, a10, dy3, er)
+    return Msq.max(), Mt.max(), Mb.max(), Ml.max(), Mr.max()
+
+
+@_jit
 def window_errors(b, valid, fx, fy, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, sq_out, per_out):  # noqa: PLR0913
     """Exact deviations of one lattice square that contains the whole block (any fractional
     coordinates fx (w,), fy (h,), float32; only ``valid`` samples count), by the masks of
     the numpy formulation. Max-folds into sq_out (1, 1) and per_out (4, 1, 1)."""
     k = _corners(c00, c10, c01, c11, cc, 0, 0)
-    msq, mt, mb, ml, mr = _masked_maxima(b, valid, 0, 0, fy, fx, parity % 2 == 0, k)
+    msq, mt, mb, ml, mr = _window_maxima(b, valid, fy, fx, parity % 2 == 0, k)
     _fold(sq_out, per_out, tab, f, v0, u0, v0 // f, u0 // f, 0, 0, msq, mt, mb, ml, mr)
 
 
@@ -239,3 +260,341 @@ def masked_grid_errors(b, valid, s, nq, fx, c00, c10, c01, c11, cc, parity, tab,
             k = _corners(c00, c10, c01, c11, cc, iv, iu)
             msq, mt, mb, ml, mr = _masked_maxima(b, valid, iv * s, iu * s, fx, fx, (parity + iv + iu) % 2 == 0, k)
             _fold(sq_out, per_out, tab, f, v0, u0, V0, U0, iv, iu, msq, mt, mb, ml, mr)
+
+
+
+
+
+# -- issue 20, fourth round: the lattice-square maxima as vectorizable loops ----------------------
+# A row of nq squares of stride s is laid out as W = (s+1)·nq columns, the shared column of two
+# squares twice: "c-major" (k = c·nq + iu: the samples c of every square together, for the fine
+# strides) or "square-major" (k = iu·(s+1) + c). Per-square terms are spread over the columns
+# (:func:`_spread`), each block row's samples too (:func:`_spread_row`); then one loop per mesh
+# and block row folds |mesh − z| into that mesh's per-column maxima over the columns whose
+# samples the mesh covers (whole ranges: no masks), and the columns are reduced per square at the
+# end (:func:`_reduce`). Each loop is its own function with its arrays as arguments and one
+# store array, so LLVM vectorizes it (in one big function it did not). The float32
+# expressions, operands and order are those of :func:`_grid_squares`; maxima are exact in any order.
+
+
+@_jit
+def _sub2(out, a, b):
+    n = out.shape[1]
+    for i in range(out.shape[0]):
+        for j in range(n):
+            out[i, j] = a[i, j] - b[i, j]
+
+
+@_jit
+def _cross(out, a, b, c, d):
+    n = out.shape[1]
+    for i in range(out.shape[0]):
+        for j in range(n):
+            out[i, j] = a[i, j] - b[i, j] - c[i, j] + d[i, j]
+
+
+@_jit
+def _edge(out, cc, a, b):
+    n = out.shape[1]
+    for i in range(out.shape[0]):
+        for j in range(n):
+            out[i, j] = _F2 * cc[i, j] - a[i, j] - b[i, j]
+
+
+@_jit
+def _terms(c00, c10, c01, c11, cc):
+    """The per-square terms of :func:`_corners` as (nq, nq) arrays, the same float32 operations
+    in the same order (explicit loops: numba's array expressions took 1 ns an element)."""
+    shape = c00.shape
+    dx, dy, dd = np.empty(shape, np.float32), np.empty(shape, np.float32), np.empty(shape, np.float32)
+    et, eb, el = np.empty(shape, np.float32), np.empty(shape, np.float32), np.empty(shape, np.float32)
+    er, dx2, dy3 = np.empty(shape, np.float32), np.empty(shape, np.float32), np.empty(shape, np.float32)
+    _sub2(dx, c10, c00)
+    _sub2(dy, c01, c00)
+    _cross(dd, c00, c10, c01, c11)
+    _edge(et, cc, c00, c10)
+    _edge(eb, cc, c01, c11)
+    _edge(el, cc, c00, c01)
+    _edge(er, cc, c10, c11)
+    _sub2(dx2, c11, c01)
+    _sub2(dy3, c11, c10)
+    return dx, dy, dd, et, eb, el, er, dx2, dy3
+
+
+@_jit
+def _spread(DST, src, A, fx, s, nq, cm, lin):
+    """DST[k(c, iu)] = src[iu], or A[iu] + fx[c]·src[iu] when ``lin``. (Indices here are
+    unsigned: an index from a signed offset keeps numba's negative-index wraparound, which
+    stops LLVM vectorizing the loop.)"""
+    n, w = np.uint64(nq), np.uint64(s + 1)
+    if cm:
+        for c in range(s + 1):
+            o, x = np.uint64(c) * n, fx[c]
+            if lin:
+                for k in range(o, o + n):
+                    DST[k] = A[k - o] + x * src[k - o]
+            else:
+                for k in range(o, o + n):
+                    DST[k] = src[k - o]
+    else:
+        for iu in range(nq):
+            o, a, g = np.uint64(iu) * w, A[iu], src[iu]
+            if lin:
+                for k in range(o, o + w):
+                    DST[k] = a + fx[k - o] * g
+            else:
+                for k in range(o, o + w):
+                    DST[k] = g
+
+
+@_jit
+def _spread_row(Z, row, s, nq, cm):
+    """Z[k(c, iu)] = row[iu·s + c]: one block row's samples laid out."""
+    n, w, us = np.uint64(nq), np.uint64(s + 1), np.uint64(s)
+    if cm:
+        for c in range(s + 1):
+            o, uc = np.uint64(c) * n, np.uint64(c)
+            if s == 2:  # a constant stride: LLVM vectorizes the strided loads
+                for k in range(n):
+                    Z[o + k] = row[k * np.uint64(2) + uc]
+            elif s == 4:
+                for k in range(n):
+                    Z[o + k] = row[k * np.uint64(4) + uc]
+            elif s == 8:
+                for k in range(n):
+                    Z[o + k] = row[k * np.uint64(8) + uc]
+            else:
+                for k in range(n):
+                    Z[o + k] = row[k * us + uc]
+    else:
+        for iu in range(nq):
+            o, o2 = np.uint64(iu) * w, np.uint64(iu) * us
+            for k in range(o, o + w):
+                Z[k] = row[k - o + o2]
+
+
+@_jit
+def _reduce(out, M, s, nq, cm):
+    """out[iu] = the maximum of M over square iu's columns."""
+    n, w = np.uint64(nq), np.uint64(s + 1)
+    if cm:
+        for iu in range(nq):
+            out[iu] = M[iu]
+        for c in range(1, s + 1):
+            o = np.uint64(c) * n
+            for k in range(o, o + n):
+                v, u = M[k], out[k - o]
+                out[k - o] = v if v > u else u
+    else:
+        for iu in range(nq):
+            o = np.uint64(iu) * w
+            a = M[o]
+            for k in range(o + np.uint64(1), o + w):
+                v = M[k]
+                a = v if v > a else a
+            out[iu] = a
+
+
+@_jit
+def _fold_sq(M, X, EVN, P, GY, GD, Z, y):
+    """M[k] = max(M[k], |(a00 + x·dx) + y·dy + w·dd − z|), w by the parity rule; every column."""
+    for k in range(M.shape[0]):
+        x = X[k]
+        wgt = min(x, y) if EVN[k] != _F0 else max(x + y - _F1, _F0)
+        v = abs(P[k] + y * GY[k] + wgt * GD[k] - Z[k])
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _fold_q2(M, A, B, Z, t, c0, c1, s, nq, cm):
+    """M[k] = max(M[k], |A + t·B − z|) over the columns of samples c0 <= c <= c1 (top, bottom)."""
+    n, w = np.uint64(nq), np.uint64(s + 1)
+    segs, step = (1, n) if cm else (nq, w)
+    a, b = (np.uint64(c0) * n, np.uint64(c1 + 1) * n) if cm else (np.uint64(c0), np.uint64(c1 + 1))
+    for g in range(segs):
+        o = np.uint64(g) * step
+        for k in range(o + a, o + b):
+            v = abs(A[k] + t * B[k] - Z[k])
+            u = M[k]
+            M[k] = v if v > u else u
+
+
+@_jit
+def _fold_q3(M, A, B, C, D, Z, t, c0, c1, s, nq, cm):
+    """M[k] = max(M[k], |A + t·B + C·D − z|) over the columns of samples c0 <= c <= c1 (left, right)."""
+    n, w = np.uint64(nq), np.uint64(s + 1)
+    segs, step = (1, n) if cm else (nq, w)
+    a, b = (np.uint64(c0) * n, np.uint64(c1 + 1) * n) if cm else (np.uint64(c0), np.uint64(c1 + 1))
+    for g in range(segs):
+        o = np.uint64(g) * step
+        for k in range(o + a, o + b):
+            v = abs(A[k] + t * B[k] + C[k] * D[k] - Z[k])
+            u = M[k]
+            M[k] = v if v > u else u
+
+
+@_jit
+def _lattice_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity, cm):  # noqa: PLR0913
+    """The five maxima (square, top, bottom, left, right) of every lattice square, (5, nq, nq)
+    float32, by the laid-out rows above (``cm``: c-major, else square-major); bit-identical to
+    :func:`_grid_squares`'s (tests/test_ingest_kernels.py)."""
+    dx, dy, dd, et, eb, el, er, dx2, dy3 = _terms(c00, c10, c01, c11, cc)
+    W = nq * (s + 1)
+    X, OMX, EVN, P, PB = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32)
+    GY, GD, ET, EB, A00 = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32)
+    EL, A10, DY3, ER, Z = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32)
+    Msq, Mt, Mb, Ml, Mr = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32)
+    one, zero, ev = np.ones(nq, np.float32), np.zeros(nq, np.float32), np.empty(nq, np.float32)
+    omx = _F1 - fx
+    _spread(X, one, zero, fx, s, nq, cm, True)  # 0 + x·1 = x exactly
+    _spread(OMX, one, zero, omx, s, nq, cm, True)
+    out = np.empty((5, nq, nq), np.float32)
+    for iv in range(nq):
+        for iu in range(nq):
+            ev[iu] = _F1 if (parity + iv + iu) % 2 == 0 else _F0
+        _spread(EVN, ev, zero, fx, s, nq, cm, False)
+        _spread(P, dx[iv], c00[iv], fx, s, nq, cm, True)
+        _spread(PB, dx2[iv], c01[iv], fx, s, nq, cm, True)
+        _spread(GY, dy[iv], zero, fx, s, nq, cm, False)
+        _spread(GD, dd[iv], zero, fx, s, nq, cm, False)
+        _spread(ET, et[iv], zero, fx, s, nq, cm, False)
+        _spread(EB, eb[iv], zero, fx, s, nq, cm, False)
+        _spread(A00, c00[iv], zero, fx, s, nq, cm, False)
+        _spread(EL, el[iv], zero, fx, s, nq, cm, False)
+        _spread(A10, c10[iv], zero, fx, s, nq, cm, False)
+        _spread(DY3, dy3[iv], zero, fx, s, nq, cm, False)
+        _spread(ER, er[iv], zero, fx, s, nq, cm, False)
+        Msq[:], Mt[:], Mb[:], Ml[:], Mr[:] = _F0, _F0, _F0, _F0, _F0
+        for r in range(s + 1):
+            y = fx[r]
+            _spread_row(Z, b[iv * s + r], s, nq, cm)
+            _fold_sq(Msq, X, EVN, P, GY, GD, Z, y)
+            if 2 * r <= s:  # top: r <= c <= s - r
+                _fold_q2(Mt, P, ET, Z, y, r, s - r, s, nq, cm)
+            if 2 * r >= s:  # bottom: s - r <= c <= r
+                _fold_q2(Mb, PB, EB, Z, _F1 - y, s - r, r, s, nq, cm)
+            _fold_q3(Ml, A00, GY, X, EL, Z, y, 0, min(r, s - r), s, nq, cm)  # left: c <= min(r, s - r)
+            _fold_q3(Mr, A10, DY3, OMX, ER, Z, y, max(r, s - r), s, s, nq, cm)  # right: c >= max(r, s - r)
+        _reduce(out[0, iv], Msq, s, nq, cm)
+        _reduce(out[1, iv], Mt, s, nq, cm)
+        _reduce(out[2, iv], Mb, s, nq, cm)
+        _reduce(out[3, iv], Ml, s, nq, cm)
+        _reduce(out[4, iv], Mr, s, nq, cm)
+    return out
+
+
+
+@_jit
+def _fold_eps(acc, V0, U0, e, eps):
+    """acc[V0 + i, U0 + j] = max(acc[…], e[i, j] + eps): what ``np.maximum(sl, e + eps, out=sl)``
+    did (float32 sum, then the maximum; never NaN)."""
+    for i in range(e.shape[0]):
+        for j in range(e.shape[1]):
+            v, o = e[i, j] + eps, acc[V0 + i, U0 + j]
+            acc[V0 + i, U0 + j] = v if v > o else o
+
+
+@_jit
+def grid_level(b, valid, masked, s, m, f, bi, bj, tab, eps, SQ, DG):  # noqa: PLR0913
+    """One grid level of :meth:`deviation.DeviationAccumulator._add_level` in one call: the
+    lattice corners of stride ``s`` of block (bi, bj) (what ``grid_error_args`` cuts out),
+    :func:`grid_errors` (or :func:`masked_grid_errors` where ``masked``) into zeroed maxima,
+    then those plus ``eps`` max-folded into the level's square errors SQ and diagonal errors DG
+    (the Python code's ``np.maximum`` folds: same float32 sums, exact maxima)."""
+    nq = (1 << m) // s
+    h = s // 2
+    c00 = np.ascontiguousarray(b[0: nq * s: s, 0: nq * s: s])
+    c10 = np.ascontiguousarray(b[0: nq * s: s, s: nq * s + 1: s])
+    c01 = np.ascontiguousarray(b[s: nq * s + 1: s, 0: nq * s: s])
+    c11 = np.ascontiguousarray(b[s: nq * s + 1: s, s: nq * s + 1: s])
+    cc = np.ascontiguousarray(b[h: nq * s: s, h: nq * s: s])
+    fx = np.arange(s + 1).astype(np.float32) / np.float32(s)  # exact: s is a power of two
+    v0, u0 = bi * nq, bj * nq
+    V0, U0 = v0 // f, u0 // f
+    n = max(nq // f, 1)
+    sq, per = np.zeros((n, n), np.float32), np.zeros((4, n, n), np.float32)
+    if masked:
+        masked_grid_errors(b, valid, s, nq, fx, c00, c10, c01, c11, cc, (v0 + u0) % 2, tab, f, v0, u0, V0, U0, sq, per)
+    else:
+        grid_errors(b, s, nq, fx, c00, c10, c01, c11, cc, (v0 + u0) % 2, tab, f, v0, u0, V0, U0, sq, per)
+    _fold_eps(SQ, V0, U0, sq, eps)
+    _fold_eps(DG[0], V0, U0, per[0], eps)
+    _fold_eps(DG[0], V0 + 1, U0, per[1], eps)
+    _fold_eps(DG[1], V0, U0, per[2], eps)
+    _fold_eps(DG[1], V0, U0 + 1, per[3], eps)
+
+
+@_jit
+def _dsq(M, A, B, C, D, Z, zo, EVN, x, y, we, wo):
+    """M[k] = max(M[k], |A + x·B + y·C + w·D − Z[zo + k]|), w = we or wo by EVN[k]."""
+    for k in range(M.shape[0]):
+        wgt = we if EVN[k] != _F0 else wo
+        v = abs(A[k] + x * B[k] + y * C[k] + wgt * D[k] - Z[np.uint64(k) + zo])
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _dlin(M, A, B, C, Z, zo, p, q):
+    """M[k] = max(M[k], |A + p·B + q·C − Z[zo + k]|)."""
+    for k in range(M.shape[0]):
+        v = abs(A[k] + p * B[k] + q * C[k] - Z[np.uint64(k) + zo])
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _deinterleave_block(b, s, nq):
+    """D[p, R, j] = b[R, j·s + p] for the block rows R = 0..nq·s (j ≤ nq where it exists)."""
+    n = nq * s + 1
+    D = np.zeros((s, n, nq + 1), np.float32)
+    for p in range(s):
+        cnt = (n - 1 - p) // s + 1
+        for R in range(n):
+            d, row = D[p, R], b[R]
+            if s == 2:  # constant strides: LLVM vectorizes the strided loads
+                for j in range(cnt):
+                    d[j] = row[2 * j + p]
+            elif s == 4:
+                for j in range(cnt):
+                    d[j] = row[4 * j + p]
+            else:
+                for j in range(cnt):
+                    d[j] = row[s * j + p]
+    return D
+
+
+@_jit
+def _direct_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity):  # noqa: PLR0913
+    """The five maxima of every lattice square, (5, nq, nq), for the finest strides: for each
+    sample position (r, c) of a square, one loop over the row of squares (:func:`_dsq`,
+    :func:`_dlin`: per-square terms as they are, the samples from the block de-interleaved
+    once by stride, unsigned offsets: vectorized). The same float32 expressions, operands and
+    order as :func:`_grid_squares`; maxima are exact in any order."""
+    dx, dy, dd, et, eb, el, er, dx2, dy3 = _terms(c00, c10, c01, c11, cc)
+    D = _deinterleave_block(b, s, nq)
+    out = np.zeros((5, nq, nq), np.float32)
+    ev = np.empty(nq, np.float32)
+    for iv in range(nq):
+        for iu in range(nq):
+            ev[iu] = _F1 if (parity + iv + iu) % 2 == 0 else _F0
+        o0, o1, o2, o3, o4 = out[0, iv], out[1, iv], out[2, iv], out[3, iv], out[4, iv]
+        a00, a10, a01 = c00[iv], c10[iv], c01[iv]
+        gx, gy, gd, gt, gb, gl, gr, gx2, gy3 = dx[iv], dy[iv], dd[iv], et[iv], eb[iv], el[iv], er[iv], dx2[iv], dy3[iv]
+        for r in range(s + 1):
+            y = fx[r]
+            for c in range(s + 1):
+                x = fx[c]
+                Z, zo = D[c % s, iv * s + r], np.uint64(c // s)
+                _dsq(o0, a00, gx, gy, gd, Z, zo, ev, x, y, min(x, y), max(x + y - _F1, _F0))
+                if r <= c <= s - r:  # top
+                    _dlin(o1, a00, gx, gt, Z, zo, x, y)
+                if s - r <= c <= r:  # bottom
+                    _dlin(o2, a01, gx2, gb, Z, zo, x, _F1 - y)
+                if c <= min(r, s - r):  # left
+                    _dlin(o3, a00, gy, gl, Z, zo, y, x)
+                if c >= max(r, s - r):  # right
+                    _dlin(o4, a10, gy3, gr, Z, zo, y, _F1 - x)
+    return out
+

@@ -11,7 +11,8 @@ kernel with the numpy expression it replaces):
   (:func:`meta.vertex_deltas`) and the z-ranges of its patch squares (``DiamondAccumulator``);
 * :func:`horn_row` / :func:`tent_row`: level-0 shading (Horn's slopes and the height fraction)
   and the [1 2 1]/4 mip step of :mod:`colors`, writing float16 with numpy's own rounding
-  (:func:`_half_bits`: numba has no float16 type on the CPU);
+  (:func:`f2h`: F16C's conversion where the CPU has it, else :func:`_half_bits`; numba has no
+  float16 type on the CPU);
 * :func:`local_d2`: Röttger's local roughness (:func:`roettger.local_d2`);
 * :func:`propagate_max`: Röttger's propagation of a depth into the next coarser one
   (:func:`roettger.propagate_into`, without its eight band-sized temporaries).
@@ -22,6 +23,9 @@ Inputs beyond the domain border are clamped (edge replication), as the numpy ver
 from __future__ import annotations
 
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 
 from .kernels import _jit
 
@@ -64,12 +68,58 @@ def _half_bits(f):
     return np.uint16(h_sgn + ((h_exp + (sig >> 13)) & 0xFFFF))
 
 
+def _host_has_f16c() -> bool:
+    try:
+        import llvmlite.binding as llb
+
+        return bool(llb.get_host_cpu_features().get("f16c", False))
+    except Exception:  # noqa: BLE001 - no feature list: the software conversion
+        return False
+
+
+_F16C = _host_has_f16c()  # (numba's cache is keyed by the CPU's features, so a cached kernel matches it)
+
+
+@intrinsic
+def _f16_bits(typingctx, x):
+    """float32 → float16 bits by LLVM's ``fptrunc`` (IEEE round to nearest even: F16C's
+    ``vcvtps2ph`` where the CPU has it, vectorized): numpy's rounding for every non-NaN value
+    (tests/test_ingest_kernels.py)."""
+    if x != types.float32:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(builder.fptrunc(args[0], ir.HalfType()), ir.IntType(16))
+    return types.uint16(types.float32), codegen
+
+
+@intrinsic
+def _f32_bits(typingctx, x):
+    """The bits of a float32 as uint32 (a bit cast)."""
+    if x != types.float32:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(32))
+    return types.uint32(types.float32), codegen
+
+
 @_jit
-def to_half(src, dst):
-    """float32 array (viewed as uint32) → float16 bits (uint16), element by element."""
+def f2h(v):
+    """float32 → float16 bits (uint16) with numpy's rounding: by the hardware where the CPU
+    has F16C, else by :func:`_half_bits`."""
+    if _F16C:
+        return _f16_bits(v)
+    return _half_bits(_f32_bits(v))
+
+
+@_jit
+def to_half(src, dst, soft=False):
+    """float32 array → float16 bits (uint16), element by element, by :func:`f2h` (or by the
+    software :func:`_half_bits` when ``soft``)."""
     s, d = src.ravel(), dst.ravel()
     for k in range(s.shape[0]):
-        d[k] = _half_bits(s[k])
+        d[k] = _half_bits(_f32_bits(s[k])) if soft else f2h(s[k])
 
 
 @_jit
@@ -114,27 +164,60 @@ def block_stats(b, f, lo, hi):
 
 
 @_jit
+def _horn_px(up, mid, dn, c, W, dx8, dy8, zlo, rng, o):
+    """One sample of :func:`horn_row` (column ``c``, neighbours clamped to the row)."""
+    cl, cr = max(c - 1, 0), min(c + 1, W - 1)
+    a, b_, c_ = up[cl], up[c], up[cr]
+    d, f = mid[cl], mid[cr]
+    g, h, i = dn[cl], dn[c], dn[cr]
+    o[c, 0] = f2h(((c_ + _TWO * f + i) - (a + _TWO * d + g)) / dx8)
+    o[c, 1] = f2h(((a + _TWO * b_ + c_) - (g + _TWO * h + i)) / dy8)
+    o[c, 2] = f2h((mid[c] - zlo) / rng)
+
+
+@_jit
+def _horn_plane(up, mid, dn, dx8, dy8, zlo, rng, ch, q):
+    """Channel ``ch`` of :func:`_horn_px` for columns 1 .. W-2 into the plane ``q`` (W-2,):
+    no clamping, three input rows, one contiguous output (LLVM vectorizes it)."""
+    if ch == 0:
+        for k in range(q.shape[0]):
+            q[k] = f2h(((up[k + 2] + _TWO * mid[k + 2] + dn[k + 2]) - (up[k] + _TWO * mid[k] + dn[k])) / dx8)
+    elif ch == 1:
+        for k in range(q.shape[0]):
+            q[k] = f2h(((up[k] + _TWO * up[k + 1] + up[k + 2]) - (dn[k] + _TWO * dn[k + 1] + dn[k + 2])) / dy8)
+    else:
+        for k in range(q.shape[0]):
+            q[k] = f2h((mid[k + 1] - zlo) / rng)
+
+
+@_jit
+def _horn_inner(up, mid, dn, dx8, dy8, zlo, rng, o, planes):
+    """:func:`_horn_px` for columns 1 .. W-2 (``o`` starts at column 1): each channel as a
+    plane (:func:`_horn_plane`), then interleaved into ``o``."""
+    n = o.shape[0]
+    for ch in range(3):
+        _horn_plane(up, mid, dn, dx8, dy8, zlo, rng, ch, planes[ch, :n])
+    for k in range(n):
+        o[k, 0], o[k, 1], o[k, 2] = planes[0, k], planes[1, k], planes[2, k]
+
+
+@_jit
 def horn_row(above, cur, below, dx8, dy8, zlo, rng, out):
     """Level-0 shading of the wide rows ``cur`` (M, W) float32 with the global rows just above
     and below (W,): ``out`` (M, W, 3) uint16 = float16 bits of Horn's ∂h/∂x (east), ∂h/∂y
     (north) and (h − zlo)/rng; ``dx8`` = float32(8·dx) etc. (colors.horn_slopes)."""
     M, W = cur.shape
-    buf = np.empty(3, np.float32)
-    bits = buf.view(np.uint32)
+    planes = np.empty((3, max(W - 2, 1)), np.uint16)
     for r in range(M):
         up = above if r == 0 else cur[r - 1]
         dn = below if r == M - 1 else cur[r + 1]
         mid = cur[r]
-        for c in range(W):
-            cl, cr = max(c - 1, 0), min(c + 1, W - 1)
-            a, b_, c_ = up[cl], up[c], up[cr]
-            d, f = mid[cl], mid[cr]
-            g, h, i = dn[cl], dn[c], dn[cr]
-            buf[0] = ((c_ + _TWO * f + i) - (a + _TWO * d + g)) / dx8
-            buf[1] = ((a + _TWO * b_ + c_) - (g + _TWO * h + i)) / dy8
-            buf[2] = (mid[c] - zlo) / rng
-            for ch in range(3):
-                out[r, c, ch] = _half_bits(bits[ch])
+        o = out[r]
+        _horn_px(up, mid, dn, 0, W, dx8, dy8, zlo, rng, o)
+        if W > 2:
+            _horn_inner(up, mid, dn, dx8, dy8, zlo, rng, o[1: W - 1], planes)
+        if W > 1:
+            _horn_px(up, mid, dn, W - 1, W, dx8, dy8, zlo, rng, o)
 
 
 @_jit
@@ -156,6 +239,15 @@ def _padded_row(above, m0, m1, below, p):
 
 
 @_jit
+def _vtent(g0, g1, g2, lut, v):
+    """v[k] = the [1 2 1]/4 tent of lut[g0[k]], lut[g1[k]], lut[g2[k]] (three rows' float16
+    bits, flattened): :func:`tent_row`'s vertical step for every column and channel once (it
+    took the odd columns twice)."""
+    for k in range(v.shape[0]):
+        v[k] = _tent3(lut[g0[k]], lut[g1[k]], lut[g2[k]])
+
+
+@_jit
 def tent_row(above, m0, m1, below, lut, out):
     """One block row of shading level l from level l-1's float16 wide rows (uint16 bits):
     ``above`` (1, W, 3) the global row just above, ``m0``/``m1`` (M, W, 3) block rows 2i and
@@ -164,20 +256,17 @@ def tent_row(above, m0, m1, below, lut, out):
     (colors.tent_decimate); ``lut`` = :func:`half_lut`."""
     M, W = m0.shape[0], m0.shape[1]
     Wo = out.shape[1]
-    buf = np.empty(1, np.float32)
-    bits = buf.view(np.uint32)
+    v = np.empty((W, 3), np.float32)
     for r in range(M):
         g0 = _padded_row(above, m0, m1, below, 2 * r)
         g1 = _padded_row(above, m0, m1, below, 2 * r + 1)
         g2 = _padded_row(above, m0, m1, below, 2 * r + 2)
+        _vtent(g0.reshape(-1), g1.reshape(-1), g2.reshape(-1), lut, v.reshape(-1))  # every column's vertical tent once
+        o_r = out[r]
         for o in range(Wo):
             xl, xc, xr = max(2 * o - 1, 0), 2 * o, min(2 * o + 1, W - 1)
             for ch in range(3):
-                vl = _tent3(lut[g0[xl, ch]], lut[g1[xl, ch]], lut[g2[xl, ch]])
-                vc = _tent3(lut[g0[xc, ch]], lut[g1[xc, ch]], lut[g2[xc, ch]])
-                vr = _tent3(lut[g0[xr, ch]], lut[g1[xr, ch]], lut[g2[xr, ch]])
-                buf[0] = _tent3(vl, vc, vr)
-                out[r, o, ch] = _half_bits(bits[0])
+                o_r[o, ch] = f2h(_tent3(v[xl, ch], v[xc, ch], v[xr, ch]))
 
 
 @_jit
