@@ -8,7 +8,9 @@
   row) writes the same shading chunks as reading the neighbouring rows back;
 * ``bench ingest``'s write floor writes the same names and bytes as the store it copies;
 * ``make_chunk_root`` is only a hint: it makes the folder and never fails on a file system
-  without the flag.
+  without the flag;
+* ``run_ready`` (the shading pass's scheduler) starts a task that a finished one made ready
+  before the next first task, and after a failure finishes what runs, then raises.
 """
 
 from __future__ import annotations
@@ -134,3 +136,53 @@ def test_run_ordered_hands_on_the_results_before_a_failure_then_raises():
     with pytest.raises(ValueError, match="task 4"):
         run_ordered(2, (task(k) for k in range(10)), got.append)
     assert got == [0, 1, 2, 3]
+
+
+def _ready_tasks(started, lock, gate=None):
+    """First tasks 0, 1, 2; task 0 makes a follower "f0" ready; task 1 waits (``gate``) until it ran."""
+    def task(k):
+        def run():
+            with lock:
+                started.append(k)
+            if k == "f0" and gate is not None:
+                gate.set()
+            if k == 1 and gate is not None:
+                assert gate.wait(30), "the follower of task 0 did not run while task 1 waited"
+            return k
+        return run
+    return (task(k) for k in range(3)), (lambda res: [task("f0")] if res == 0 else []), task
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_run_ready_starts_followers_before_the_next_first_task(workers):
+    import threading
+
+    from massview.data.terrain.workers import run_ready
+
+    started, lock, got = [], threading.Lock(), []
+    first, then, _ = _ready_tasks(started, lock, threading.Event() if workers > 1 else None)
+    run_ready(workers, first, then, got.append, depth=1)
+    assert sorted(map(str, got)) == ["0", "1", "2", "f0"]
+    assert started.index("f0") < started.index(2)
+    if workers == 1:
+        assert started == [0, "f0", 1, 2]
+
+
+def test_run_ready_finishes_the_running_tasks_after_a_failure_then_raises():
+    import threading
+
+    from massview.data.terrain.workers import run_ready
+
+    started, lock, got = [], threading.Lock(), []
+    first, _, task = _ready_tasks(started, lock)
+
+    def then(res):
+        if res == 0:
+            def fail():
+                raise ValueError("follower")
+            return [fail]
+        return []
+
+    with pytest.raises(ValueError, match="follower"):
+        run_ready(2, first, then, got.append, depth=1)
+    assert {0, 1} <= set(got)  # the tasks submitted before the failure were finished and handed on

@@ -128,20 +128,18 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
                   row_hook: Callable[[int, np.ndarray], None] | None = None, edges: dict | None = None) -> None:
     """Compute ``shade/<l>`` for every level of ``store`` into the zarr group ``g``.
 
-    Level 0 block rows are read in order here and computed by worker threads; each finished
-    row (float16, as stored) feeds the coarser levels in memory — block row i of level l is a
-    task of its own, submitted as soon as the tasks of rows 2i-1 .. 2i+2 of level l-1 are, and
-    run on a worker once they finish — so no level is read back and no row is computed on this
-    thread. Every output sample is the same float32 expression as on the whole grid.
+    Level 0 block rows are computed by worker threads, in order; each finished row (float16, as
+    stored) feeds the coarser levels in memory — block row i of level l is a task of its own,
+    submitted (ahead of the next level-0 row) once the rows 2i-1 .. 2i+2 of level l-1 are
+    finished (:func:`workers.run_ready`), so no worker waits for another and no level is read
+    back. Every output sample is the same float32 expression as on the whole grid.
     ``row_hook(i, blocks)``, when given, also runs on the worker for every level-0 block row
     (``prepare`` computes the exact errors that need the whole level 0 there). ``edges``, when
     given ({i: (grid row 1, grid row M-2) of level-0 block row i}, what ``prepare`` keeps from
-    its pyramid pass: 2 grid rows a block row), lets each worker read and decode its own row:
-    the rows above and below it are then not needed."""
-    from concurrent.futures import Future
-
+    its pyramid pass: 2 grid rows a block row), lets each worker read and decode its own row;
+    without it the rows are read here, in order, and each task gets its neighbours' edge rows."""
     from .store import ChunkWriter
-    from .workers import resolve_workers, run_ordered
+    from .workers import resolve_workers, run_ready
 
     lay = store.layout
     M, (dx, dy) = lay.M, store.spacing
@@ -149,67 +147,59 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
     total = sum(lay.blocks(lv) for lv in range(lay.levels))
     nb0 = lay.blocks(0)
     writers = [ChunkWriter(g, f"shade/{lv}") for lv in range(lay.levels)]
-    slots: list[dict] = [{} for _ in range(lay.levels)]  # level → {row: Future of its float16 wide row}, while needed
-    made = [0] * lay.levels  # block rows submitted per level
+    rows: list[dict] = [{} for _ in range(lay.levels)]  # level → {row: its float16 wide row}, while a coarser row needs it
+    made = [0] * lay.levels  # block rows submitted per level (in order)
 
-    def task(slot: Future, fn, *args):
-        def run():
-            try:
-                slot.set_result(fn(*args))
-            except BaseException as e:
-                slot.set_exception(e)  # a row waiting for this one fails too, instead of waiting forever
-                raise
-        return run
-
-    def level0(k: int, p, c, n):
+    def level0(k: int, above, cur, below):
         if row_hook is not None:
-            row_hook(k, block_view(c, nb0, M))
-        return _shade0_row(p[M - 2] if p is not None else None, c, n[1] if n is not None else None, dx, dy, zlo, rng,
-                           writers[0], k)
+            row_hook(k, block_view(cur, nb0, M))
+        return 0, k, _shade0_row(above, cur, below, dx, dy, zlo, rng, writers[0], k)
 
     def level0_own(k: int):  # reads its own row (``edges``)
         blocks = store.get_block_row(0, k)
         if row_hook is not None:
             row_hook(k, blocks)
         above, below = edges[k - 1][1] if k > 0 else None, edges[k + 1][0] if k + 1 < nb0 else None
-        return _shade0_row(above, wide_row(blocks), below, dx, dy, zlo, rng, writers[0], k)
+        return 0, k, _shade0_row(above, wide_row(blocks), below, dx, dy, zlo, rng, writers[0], k)
 
     def coarser(lv: int, i: int, inputs: dict):
-        return _tent_row({k: f.result() for k, f in inputs.items()}, i, writers[lv])
+        return lv, i, _tent_row(inputs, i, writers[lv])
 
-    def cascade(lv: int):
-        """Tasks of level ``lv`` (and above) whose inputs' tasks are all submitted."""
-        if lv >= lay.levels:
-            return
-        below, nbp = slots[lv - 1], lay.blocks(lv - 1)
-        while made[lv] < lay.blocks(lv) and made[lv - 1] > min(2 * made[lv] + 2, nbp - 1):
-            i = made[lv]
-            inputs = {k: below[k] for k in range(2 * i - 1, 2 * i + 3) if k in below}
-            slots[lv][i] = Future()
-            yield task(slots[lv][i], coarser, lv, i, inputs)
-            for k in [k for k in below if k < 2 * i + 1]:
-                del below[k]
-            made[lv] += 1
-            yield from cascade(lv + 1)
+    def then(res) -> list:
+        """The coarser rows that the finished row ``res`` completes the inputs of, in order."""
+        lv, k, out = res
+        if lv + 1 >= lay.levels:
+            return []
+        below, nbp, up = rows[lv], lay.blocks(lv), lv + 1
+        below[k] = out
+        ready = []
+        while made[up] < lay.blocks(up):
+            i = made[up]
+            need = range(max(2 * i - 1, 0), min(2 * i + 3, nbp))
+            if not all(q in below for q in need):
+                break
+            ready.append(lambda up=up, i=i, inputs={q: below[q] for q in need}: coarser(up, i, inputs))
+            for q in [q for q in below if q < 2 * i + 1]:  # row i+1 needs rows 2i+1 .. only
+                del below[q]
+            made[up] += 1
+        if made[up] == lay.blocks(up):
+            below.clear()
+        return ready
 
-    def tasks():
+    def first():
         if edges is not None:
             for k in range(nb0):
-                slots[0][k] = Future()
-                yield task(slots[0][k], level0_own, k)
-                made[0] += 1
-                yield from cascade(1)
+                yield lambda k=k: level0_own(k)
             return
-        rows = {}
+        grid = {}
         for i in range(nb0 + 1):
             if i < nb0:
-                rows[i] = wide_row(store.get_block_row(0, i))
+                grid[i] = wide_row(store.get_block_row(0, i))
             if i >= 1:
-                k = i - 1
-                slots[0][k] = Future()
-                yield task(slots[0][k], level0, k, rows.get(k - 1), rows[k], rows.get(k + 1))
-                rows.pop(k - 1, None)
-                made[0] += 1
-                yield from cascade(1)
+                k, p, n = i - 1, grid.get(i - 2), grid.get(i)
+                above, below = p[M - 2].copy() if p is not None else None, n[1].copy() if n is not None else None
+                yield lambda k=k, a=above, c=grid[k], b=below: level0(k, a, c, b)
+                grid.pop(k - 1, None)
 
-    run_ordered(resolve_workers(workers), tasks(), lambda res: progress("shading", 1, total), depth=1)  # bounded: a float16 row is 50 MB at 32769²
+    run_ready(resolve_workers(workers), first(), then, lambda res: progress("shading", 1, total),
+              depth=1 if edges is not None else 2)  # bounded: a float16 row is 50 MB at 32769²

@@ -16,7 +16,7 @@ from typing import Callable, Iterable
 
 from ...core.errors import ConfigError
 
-__all__ = ["resolve_workers", "run_ordered", "return_freed_memory"]
+__all__ = ["resolve_workers", "run_ordered", "run_ready", "return_freed_memory"]
 
 
 def resolve_workers(workers: int | None) -> int:
@@ -81,6 +81,54 @@ def run_ordered(workers: int, tasks: Iterable[Callable[[], object]], done: Calla
             for f in pending:
                 f.cancel()
             raise
+
+
+def run_ready(workers: int, first: Iterable[Callable[[], object]], then: Callable[[object], Iterable[Callable[[], object]]],
+              done: Callable[[object], None] | None = None, depth: int = 1) -> None:
+    """Run the tasks of ``first`` (produced lazily, in order) and the tasks that finished ones
+    make ready on ``workers`` threads, no task ever waiting for another: ``then(result)``,
+    called on this thread as each task finishes, returns the tasks whose inputs are now all
+    there; they are submitted before the next task of ``first``. At most ``depth × workers``
+    tasks are unfinished at once; ``done(result)`` sees every result, in the order they finish.
+    One worker runs everything inline (each task's ready tasks before the next of ``first``).
+    If producing a task, a task, ``then`` or ``done`` fails, nothing more is submitted, the
+    running tasks are finished (their results still handed on) and the first error is raised."""
+    sink = done or (lambda r: None)
+    ready: deque = deque()
+    if workers <= 1:
+        for t in first:
+            ready.append(t)
+            while ready:
+                res = ready.popleft()()
+                sink(res)
+                ready.extend(then(res))
+        return
+    source, running, errors = iter(first), set(), []
+    limit = depth * workers
+    with ThreadPoolExecutor(workers, thread_name_prefix="ingest") as ex:
+        while True:
+            while not errors and len(running) < limit:
+                try:
+                    t = ready.popleft() if ready else next(source, None)
+                except BaseException as e:  # noqa: BLE001 - producing a task failed: finish the running ones
+                    errors.append(e)
+                    break
+                if t is None:
+                    break
+                running.add(ex.submit(t))
+            if not running:
+                break
+            finished, running = wait(running, return_when=FIRST_COMPLETED)
+            for f in finished:
+                try:
+                    res = f.result()
+                    sink(res)
+                    if not errors:
+                        ready.extend(then(res))
+                except BaseException as e:  # noqa: BLE001 - the first error is the one raised
+                    errors.append(e)
+    if errors:
+        raise errors[0]
 
 
 def return_freed_memory(mmap_min: int = 1 << 20) -> bool:
