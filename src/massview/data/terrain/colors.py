@@ -76,24 +76,24 @@ def shade0_wide(prev: np.ndarray | None, cur: np.ndarray, nxt: np.ndarray | None
 
 
 def _shade0(above: np.ndarray | None, cur: np.ndarray, below: np.ndarray | None, dx: float, dy: float, zlo: float,
-            rng: float) -> np.ndarray:
+            rng: float, out: np.ndarray | None = None) -> np.ndarray:
     """:func:`shade0_wide` from the one grid row above ``cur`` and the one below (None beyond
-    the border)."""
+    the border), into ``out`` (float16 (M, W, 3), C-contiguous) when given."""
     from .rowkernels import horn_row
 
     M = cur.shape[0]
     above = above if above is not None else cur[0]
     below = below if below is not None else cur[M - 1]
-    out = np.empty(cur.shape + (3,), np.float16)
+    out = np.empty(cur.shape + (3,), np.float16) if out is None else out
     horn_row(np.ascontiguousarray(above), np.ascontiguousarray(cur, np.float32), np.ascontiguousarray(below),
              np.float32(8 * dx), np.float32(8 * dy), np.float32(zlo), np.float32(rng), out.view(np.uint16))
     return out
 
 
-def tent_wide(rows: dict, i: int) -> np.ndarray:
+def tent_wide(rows: dict, i: int, out: np.ndarray | None = None) -> np.ndarray:
     """Block row i of level l (M, (W-1)/2+1, 3) float16 from the float16 wide rows 2i-1 .. 2i+2
     of level l-1 (``rows``: a dict, entries beyond the border absent): :func:`tent_decimate`
-    at the kept samples only, in one compiled pass."""
+    at the kept samples only, in one compiled pass; into ``out`` (C-contiguous) when given."""
     from .rowkernels import half_lut, tent_row
 
     if not _LUT:
@@ -102,23 +102,25 @@ def tent_wide(rows: dict, i: int) -> np.ndarray:
     M, W = m0.shape[0], m0.shape[1]
     above = a[M - 2: M - 1] if a is not None else m0[:1]
     below = b[0:2] if b is not None else np.concatenate([m1[M - 1:]] * 2)  # global rows (2i+2)(M-1) + 0, 1
-    out = np.empty((M, (W - 1) // 2 + 1, 3), np.float16)
+    out = np.empty((M, (W - 1) // 2 + 1, 3), np.float16) if out is None else out
     u = [np.ascontiguousarray(x).view(np.uint16) for x in (above, m0, m1, below)]
     tent_row(*u, _LUT[0], out.view(np.uint16))
     return out
 
 
-def _shade0_row(above, cur, below, dx: float, dy: float, zlo: float, rng: float, dst, i: int) -> np.ndarray:
-    """Level-0 shading of block row i (:func:`_shade0`); writes ``dst[i]``, returns the row."""
-    out = _shade0(above, cur, below, dx, dy, zlo, rng)
+def _shade0_row(above, cur, below, dx: float, dy: float, zlo: float, rng: float, dst, i: int, out=None) -> np.ndarray:
+    """Level-0 shading of block row i (:func:`_shade0`, into ``out`` when given); writes
+    ``dst[i]``, returns the row."""
+    out = _shade0(above, cur, below, dx, dy, zlo, rng, out)
     M = cur.shape[0]
     dst.write(i, 0, block_view(out, (cur.shape[1] - 1) // (M - 1), M))
     return out
 
 
-def _tent_row(rows: dict, i: int, dst) -> np.ndarray:
-    """Level-l block row i (:func:`tent_wide`); writes ``dst[i]``, returns the row."""
-    out = tent_wide(rows, i)
+def _tent_row(rows: dict, i: int, dst, out=None) -> np.ndarray:
+    """Level-l block row i (:func:`tent_wide`, into ``out`` when given); writes ``dst[i]``,
+    returns the row."""
+    out = tent_wide(rows, i, out)
     M = out.shape[0]
     dst.write(i, 0, block_view(out, (out.shape[1] - 1) // (M - 1), M))
     return out
@@ -138,68 +140,113 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
     given ({i: (grid row 1, grid row M-2) of level-0 block row i}, what ``prepare`` keeps from
     its pyramid pass: 2 grid rows a block row), lets each worker read and decode its own row;
     without it the rows are read here, in order, and each task gets its neighbours' edge rows."""
-    from .store import ChunkWriter
     from .workers import resolve_workers, run_ready
 
-    lay = store.layout
-    M, (dx, dy) = lay.M, store.spacing
-    rng = max(zhi - zlo, 1e-6)
-    total = sum(lay.blocks(lv) for lv in range(lay.levels))
-    nb0 = lay.blocks(0)
-    writers = [ChunkWriter(g, f"shade/{lv}") for lv in range(lay.levels)]
-    rows: list[dict] = [{} for _ in range(lay.levels)]  # level → {row: its float16 wide row}, while a coarser row needs it
-    made = [0] * lay.levels  # block rows submitted per level (in order)
+    sp = _ShadingPass(store, g, zlo, zhi, row_hook, edges)
+    total = sum(sp.lay.blocks(lv) for lv in range(sp.lay.levels))
+    run_ready(resolve_workers(workers), sp.first(), sp.then, lambda res: progress("shading", 1, total),
+              depth=1 if edges is not None else 2)  # bounded: a float16 row is 50 MB at 32769²
 
-    def level0(k: int, above, cur, below):
-        if row_hook is not None:
-            row_hook(k, block_view(cur, nb0, M))
-        return 0, k, _shade0_row(above, cur, below, dx, dy, zlo, rng, writers[0], k)
 
-    def level0_own(k: int):  # reads its own row (``edges``)
-        blocks = store.get_block_row(0, k)
-        if row_hook is not None:
-            row_hook(k, blocks)
+class _ShadingPass:
+    """The tasks of :func:`write_shading` (``first``: level 0, in order; ``then``: the coarser
+    rows a finished row completes the inputs of; both called on the submitting thread) and the
+    wide-row buffers, reused through a :class:`workers.BufferPool`: a row's buffer goes back
+    once every coarser row that reads it is finished, a level-0 task's height rows once it is."""
+
+    def __init__(self, store, g, zlo: float, zhi: float, row_hook, edges: dict | None, keep_rows: float = 1.0):
+        from .store import ChunkWriter
+        from .workers import BufferPool
+
+        self.store, self.lay, self.hook, self.edges = store, store.layout, row_hook, edges
+        self.shade = store.spacing + (zlo, max(zhi - zlo, 1e-6))  # dx, dy, zlo, rng
+        nlev = self.lay.levels
+        self.writers = [ChunkWriter(g, f"shade/{lv}") for lv in range(nlev)]
+        self.rows: list[dict] = [{} for _ in range(nlev)]  # level → {row: float16 wide row}, until its readers are submitted
+        self.held: list[dict] = [{} for _ in range(nlev)]  # level → {row: [its buffer, readers not yet finished]}
+        self.made = [0] * nlev  # block rows submitted per level (in order)
+        M, nb0 = self.lay.M, self.lay.blocks(0)
+        self.pool = BufferPool(int(keep_rows * (nb0 * M * M * 4 + M * self._wide(0) * 10)))  # a level-0 task's buffers
+
+    def _wide(self, lv: int) -> int:
+        return self.lay.blocks(lv) * (self.lay.M - 1) + 1
+
+    def level0(self, k: int, above, cur, below):
+        M = self.lay.M
+        if self.hook is not None:
+            self.hook(k, block_view(cur, self.lay.blocks(0), M))
+        out = self.pool.take((M, self._wide(0), 3), np.float16)
+        return 0, k, _shade0_row(above, cur, below, *self.shade, self.writers[0], k, out)
+
+    def level0_own(self, k: int):  # reads its own row (``edges``)
+        M, nb0, edges = self.lay.M, self.lay.blocks(0), self.edges
+        buf, wide = self.pool.take((nb0, M, M), np.float32), self.pool.take((M, self._wide(0)), np.float32)
+        blocks = self.store.get_block_row(0, k, out=buf)
+        if self.hook is not None:
+            self.hook(k, blocks)
         above, below = edges[k - 1][1] if k > 0 else None, edges[k + 1][0] if k + 1 < nb0 else None
-        return 0, k, _shade0_row(above, wide_row(blocks), below, dx, dy, zlo, rng, writers[0], k)
+        out = self.pool.take((M, self._wide(0), 3), np.float16)
+        res = _shade0_row(above, wide_row(blocks, wide), below, *self.shade, self.writers[0], k, out)
+        self.pool.give(buf)
+        self.pool.give(wide)
+        return 0, k, res
 
-    def coarser(lv: int, i: int, inputs: dict):
-        return lv, i, _tent_row(inputs, i, writers[lv])
+    def coarser(self, lv: int, i: int, inputs: dict):
+        out = self.pool.take((self.lay.M, self._wide(lv), 3), np.float16)
+        return lv, i, _tent_row(inputs, i, self.writers[lv], out)
 
-    def then(res) -> list:
-        """The coarser rows that the finished row ``res`` completes the inputs of, in order."""
+    def _inputs(self, lv: int, i: int) -> range:
+        """The level lv-1 rows that block row i of level lv reads."""
+        return range(max(2 * i - 1, 0), min(2 * i + 3, self.lay.blocks(lv - 1)))
+
+    def _readers(self, lv: int, q: int) -> int:
+        """How many block rows of level lv+1 read row q of level lv (rows ⌈(q-2)/2⌉ .. ⌊(q+1)/2⌋)."""
+        if lv + 1 >= self.lay.levels:
+            return 0
+        return min(self.lay.blocks(lv + 1) - 1, (q + 1) // 2) - max(0, (q - 1) // 2) + 1
+
+    def then(self, res) -> list:
+        """Book the finished row ``res`` (and free the inputs it was the last reader of); the
+        coarser rows whose inputs are now all finished, in order."""
         lv, k, out = res
-        if lv + 1 >= lay.levels:
+        if lv > 0:
+            for q in self._inputs(lv, k):
+                entry = self.held[lv - 1][q]
+                entry[1] -= 1
+                if entry[1] == 0:
+                    self.pool.give(self.held[lv - 1].pop(q)[0])
+        n = self._readers(lv, k)
+        if n == 0:
+            self.pool.give(out)
             return []
-        below, nbp, up = rows[lv], lay.blocks(lv), lv + 1
+        self.held[lv][k] = [out, n]
+        below, up, ready = self.rows[lv], lv + 1, []
         below[k] = out
-        ready = []
-        while made[up] < lay.blocks(up):
-            i = made[up]
-            need = range(max(2 * i - 1, 0), min(2 * i + 3, nbp))
-            if not all(q in below for q in need):
+        while self.made[up] < self.lay.blocks(up):
+            i = self.made[up]
+            if not all(q in below for q in self._inputs(up, i)):
                 break
-            ready.append(lambda up=up, i=i, inputs={q: below[q] for q in need}: coarser(up, i, inputs))
-            for q in [q for q in below if q < 2 * i + 1]:  # row i+1 needs rows 2i+1 .. only
+            ready.append(lambda up=up, i=i, inputs={q: below[q] for q in self._inputs(up, i)}: self.coarser(up, i, inputs))
+            for q in [q for q in below if q < 2 * i + 1]:  # row i+1 reads rows 2i+1 .. only
                 del below[q]
-            made[up] += 1
-        if made[up] == lay.blocks(up):
+            self.made[up] += 1
+        if self.made[up] == self.lay.blocks(up):
             below.clear()
         return ready
 
-    def first():
-        if edges is not None:
+    def first(self):
+        """Level 0's tasks, in order (without ``edges``: reading the rows here)."""
+        nb0, M = self.lay.blocks(0), self.lay.M
+        if self.edges is not None:
             for k in range(nb0):
-                yield lambda k=k: level0_own(k)
+                yield lambda k=k: self.level0_own(k)
             return
         grid = {}
         for i in range(nb0 + 1):
             if i < nb0:
-                grid[i] = wide_row(store.get_block_row(0, i))
+                grid[i] = wide_row(self.store.get_block_row(0, i))
             if i >= 1:
                 k, p, n = i - 1, grid.get(i - 2), grid.get(i)
                 above, below = p[M - 2].copy() if p is not None else None, n[1].copy() if n is not None else None
-                yield lambda k=k, a=above, c=grid[k], b=below: level0(k, a, c, b)
+                yield lambda k=k, a=above, c=grid[k], b=below: self.level0(k, a, c, b)
                 grid.pop(k - 1, None)
-
-    run_ready(resolve_workers(workers), first(), then, lambda res: progress("shading", 1, total),
-              depth=1 if edges is not None else 2)  # bounded: a float16 row is 50 MB at 32769²

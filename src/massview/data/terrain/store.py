@@ -190,10 +190,11 @@ def block_view(wide: np.ndarray, nb: int, M: int) -> np.ndarray:
     return np.lib.stride_tricks.as_strided(wide, (nb, M, M) + wide.shape[2:], ((M - 1) * st[1],) + st, writeable=False)
 
 
-def wide_row(blocks: np.ndarray) -> np.ndarray:
-    """(nb, M, M, ...) blocks of one block row → (M, nb·(M-1)+1, ...) global rows (a copy)."""
+def wide_row(blocks: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """(nb, M, M, ...) blocks of one block row → (M, nb·(M-1)+1, ...) global rows (a copy, into
+    ``out`` when given)."""
     nb, M = blocks.shape[0], blocks.shape[1]
-    out = np.empty((M, nb * (M - 1) + 1) + blocks.shape[3:], blocks.dtype)
+    out = np.empty((M, nb * (M - 1) + 1) + blocks.shape[3:], blocks.dtype) if out is None else out
     for j in range(nb):
         out[:, j * (M - 1): j * (M - 1) + M] = blocks[j]
     return out
@@ -270,11 +271,13 @@ class TerrainStore:
                                      "re-run prepare with --overwrite")
         return b
 
-    def get_block_row(self, level: int, i: int) -> np.ndarray:
+    def get_block_row(self, level: int, i: int, out: np.ndarray | None = None) -> np.ndarray:
         """All blocks of block row ``i`` at ``level`` (nb, M, M), read in one call (zarr decodes
-        the chunks concurrently); failures are re-raised per block with its name."""
+        the chunks concurrently); failures are re-raised per block with its name. ``out``, a
+        C-contiguous float32 (nb, M, M) buffer, receives them where the chunks decode directly
+        (the usual case; check the returned array, which is then ``out``)."""
         self._check_key(level, i, 0)
-        row = self._direct_row(level, i)
+        row = self._direct_row(level, i, out)
         if row is not None:
             return row
         try:
@@ -286,7 +289,7 @@ class TerrainStore:
             self.get_block(level, i, j)  # raises BlockNotFoundError naming it
         return row
 
-    def _direct_row(self, level: int, i: int) -> np.ndarray | None:
+    def _direct_row(self, level: int, i: int, out: np.ndarray | None = None) -> np.ndarray | None:
         """Block row ``i`` decoded straight from its chunk files with the array's blosc codec
         (the inverse of :class:`ChunkWriter`: the same decoded values as zarr's read, without its
         per-chunk event-loop round trip), or None when any chunk is missing, does not decode to a
@@ -301,7 +304,8 @@ class TerrainStore:
         if self._blosc is False:
             return None
         M, nb = self.layout.M, self.layout.blocks(level)
-        out = np.empty((nb, M, M), "<f4")
+        if out is None or out.shape != (nb, M, M) or out.dtype != np.dtype("<f4") or not out.flags.c_contiguous:
+            out = np.empty((nb, M, M), "<f4")
         try:
             for j in range(nb):
                 data = self.chunk_path(level, i, j).read_bytes()

@@ -10,13 +10,16 @@ number of workers or on the order tasks finish in (tests/test_ingest_parallel.py
 from __future__ import annotations
 
 import os
+import threading
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from typing import Callable, Iterable
 
+import numpy as np
+
 from ...core.errors import ConfigError
 
-__all__ = ["resolve_workers", "run_ordered", "run_ready", "return_freed_memory"]
+__all__ = ["resolve_workers", "run_ordered", "run_ready", "BufferPool", "return_freed_memory"]
 
 
 def resolve_workers(workers: int | None) -> int:
@@ -129,6 +132,35 @@ def run_ready(workers: int, first: Iterable[Callable[[], object]], then: Callabl
                     errors.append(e)
     if errors:
         raise errors[0]
+
+
+class BufferPool:
+    """Large arrays handed back for reuse instead of freed (thread-safe). A new large array is
+    a fresh mapping (:func:`return_freed_memory`) whose every page faults in, zero-filled, when
+    first written; a pass that allocates a 50 MB row per task spends seconds of system time on
+    that. ``take`` returns a buffer of that shape and dtype given back earlier, or a new one
+    (contents undefined, like ``np.empty``). At most ``keep`` bytes of buffers wait in the pool
+    (one given back beyond that is freed), so the pool adds at most that to the peak memory."""
+
+    def __init__(self, keep: int):
+        self._free: dict = {}
+        self._keep, self._bytes = keep, 0
+        self._lock = threading.Lock()
+
+    def take(self, shape: tuple, dtype) -> np.ndarray:
+        key = (tuple(shape), np.dtype(dtype).str)
+        with self._lock:
+            free = self._free.get(key)
+            if free:
+                self._bytes -= free[-1].nbytes
+                return free.pop()
+        return np.empty(shape, dtype)
+
+    def give(self, a: np.ndarray) -> None:
+        with self._lock:
+            if self._bytes + a.nbytes <= self._keep:
+                self._free.setdefault((a.shape, a.dtype.str), []).append(a)
+                self._bytes += a.nbytes
 
 
 def return_freed_memory(mmap_min: int = 1 << 20) -> bool:
