@@ -186,3 +186,16 @@ def test_run_ready_finishes_the_running_tasks_after_a_failure_then_raises():
     with pytest.raises(ValueError, match="follower"):
         run_ready(2, first, then, got.append, depth=1)
     assert {0, 1} <= set(got)  # the tasks submitted before the failure were finished and handed on
+
+
+def test_buffer_pool_reuses_given_buffers_and_keeps_no_more_than_its_budget():
+    from massview.data.terrain.workers import BufferPool
+
+    pool = BufferPool(keep=2 * 4000)
+    a, b, c = (pool.take((10, 100), np.float32) for _ in range(3))
+    assert a.shape == (10, 100) and a.dtype == np.float32
+    for x in (a, b, c):  # the third is over the budget: freed, not kept
+        pool.give(x)
+    got = [pool.take((10, 100), np.float32) for _ in range(3)]
+    assert sum(any(g is x for x in (a, b)) for g in got) == 2 and not any(g is c for g in got)
+    assert pool.take((10, 100), np.float16) is not a  # another dtype: a new buffer
