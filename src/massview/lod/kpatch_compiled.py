@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from .kpatch_cut import Residency, View, draw_level
-from .kpatch_walk import _M, _resident, _vertex_tables
+from .kpatch_walk import _M, _resident, _vertex_tables, walk_depths
 
 __all__ = ["walk", "seed_children", "emit"]
 
@@ -26,16 +26,7 @@ __all__ = ["walk", "seed_children", "emit"]
 def walk(h, view: View, res: Residency, request, t0: int, key: np.ndarray):
     """:func:`.kpatch_walk.walk`: depths t0 … 2J from the present diamonds ``key``; each kept
     part is (t, half-0 count, ids, keys, codes, z-ranges (2, k))."""
-    parts, deferred = [], 0
-    for t in range(t0, 2 * h.dims.J):
-        if len(key) == 0:
-            return parts, deferred
-        key, kept, d = _step(h, view, res, request, t, key)
-        parts.append(kept)
-        deferred += d
-    if len(key):
-        parts.append(_leaves(h, view, key))
-    return parts, deferred
+    return walk_depths(h, t0, key, lambda t, k: _step(h, view, res, request, t, k), lambda k: _leaves(h, view, k))
 
 
 def _step(h, view: View, res: Residency, request, t: int, key):

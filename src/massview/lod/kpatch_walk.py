@@ -31,7 +31,7 @@ import numpy as np
 
 from .kpatch_cut import Residency, View, draw_level, merge_halves, patch_vertices
 
-__all__ = ["pack", "walk", "edge_children", "emit"]
+__all__ = ["pack", "walk", "walk_depths", "edge_children", "emit"]
 
 _M = (1 << 30) - 1
 _O, _H0, _H1 = 1 << 60, 1 << 61, 1 << 62
@@ -48,16 +48,22 @@ def walk(h, view: View, res: Residency, request, t0: int, key: np.ndarray):
     """Depths t0 … 2J of the walk from the present diamonds ``key`` at depth t0. Returns the
     kept parts (per depth: t, half-0 count, ids, keys, codes; see :func:`_kept`) and the
     deferred-split count."""
+    return walk_depths(h, t0, key, lambda t, k: _step(h, view, res, request, t, k), lambda k: _leaves(h, view, k))
+
+
+def walk_depths(h, t0: int, key: np.ndarray, step, leaves):
+    """The depth loop of a walk (numpy here, compiled in :mod:`.kpatch_compiled`): per depth
+    t0 … 2J − 1 while diamonds remain, ``step(t, key)`` → (next depth's keys, kept part,
+    deferred count); then ``leaves(key)`` for those reaching depth 2J. Returns (parts, deferred)."""
     parts, deferred = [], 0
-    J = h.dims.J
-    for t in range(t0, 2 * J):
+    for t in range(t0, 2 * h.dims.J):
         if len(key) == 0:
             return parts, deferred
-        key, kept, d = _step(h, view, res, request, t, key)
+        key, kept, d = step(t, key)
         parts.append(kept)
         deferred += d
     if len(key):
-        parts.append(_leaves(h, view, key))
+        parts.append(leaves(key))
     return parts, deferred
 
 
