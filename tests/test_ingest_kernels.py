@@ -232,3 +232,47 @@ def test_window_errors_match_the_per_sample_masked_loop(s, off, masked, parity):
     kernels.window_errors(b, valid, fx, fy, *corners, parity, tab, f, v0, u0, *got)
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
     assert want[1].max() > 0
+
+
+def _padded_cases(rng, M, s):
+    """Valid extents (hv, wv) for stride s: random ones, ones smaller than a square, ones exactly
+    on a lattice line (hv − 1 a multiple of s), one past it, and the whole block."""
+    n = M - 1
+    on = min(n, s * int(rng.integers(1, max(n // s, 1) + 1))) + 1  # a lattice line
+    cases = [(int(rng.integers(1, M + 1)), int(rng.integers(1, M + 1))) for _ in range(3)]
+    cases += [(int(rng.integers(1, min(s, M) + 1)), int(rng.integers(1, M + 1))),  # hv within one square
+              (int(rng.integers(1, M + 1)), int(rng.integers(1, min(s, M) + 1))),  # wv within one square
+              (on, int(rng.integers(1, M + 1))), (int(rng.integers(1, M + 1)), on), (on, on),
+              (min(on + 1, M), on), (on - 1, M), (M, max(on - 1, 1)),  # the last valid sample just before a line
+              (1, 1), (M, int(rng.integers(1, M))), (M, M)]
+    return cases
+
+
+@pytest.mark.parametrize("m,f", [(8, 16), (6, 4), (5, 32)])
+@pytest.mark.parametrize("bi,bj", [(0, 0), (3, 2), (1, 6)])
+def test_padded_grid_errors_match_the_masked_per_square_loop(m, f, bi, bj):
+    """kernels.padded_grid_errors (whole squares by the vectorized row kernels, only those on
+    the valid edge masked) folds to masked_grid_errors' maxima bit for bit, for random padding
+    extents (hv, wv) at every stride and both parities, including extents within one square
+    and exactly on a lattice line."""
+    from massview.data.terrain import kernels
+
+    rng = np.random.default_rng(m * 1000 + bi * 10 + bj + f)
+    M = 2**m + 1
+    b = _terrain(rng, (M, M), scale=3000.0)
+    b[rng.random((M, M)) < 0.05] = np.float32(1e4)  # spikes: the maxima come from single samples
+    r, c = np.arange(M)[:, None], np.arange(M)[None, :]
+    checked = 0
+    for l in range(1, m + 1):
+        s = 2**l
+        for hv, wv in _padded_cases(rng, M, s):
+            valid = np.ascontiguousarray((r < hv) & (c < wv))
+            b_pad = b.copy()
+            b_pad[~valid] = rng.normal(size=int((~valid).sum())).astype(np.float32) * 5e4  # padding must not count
+            want, got = _grid_inputs(b_pad, s, f, bi, bj, m), _grid_inputs(b_pad, s, f, bi, bj, m)
+            start = want[-1].copy()
+            kernels.masked_grid_errors(b_pad, valid, *want[1:])
+            kernels.padded_grid_errors(b_pad, valid, *got[1:])
+            assert np.array_equal(got[-2], want[-2]) and np.array_equal(got[-1], want[-1]), f"stride {s}, hv {hv}, wv {wv}"
+            checked += not np.array_equal(want[-1], start)
+    assert checked > 0  # the maxima did change the accumulators somewhere

@@ -88,6 +88,9 @@ class DeviationAccumulator:
         self.sq = [np.zeros((2**j, 2**j), np.float32) for j in range(J)]
         self.dg = [np.zeros((2, 2**j + 1, 2**j + 1), np.float32) for j in range(J)]
         self._tables = {}
+        # the layout's sizes once (its properties recompute them: ~40 calls a block before), and
+        # the compiled kernels, imported on first use (numba) rather than by every level's call
+        self._J, self._m, self._f, self._kern = J, layout.m, 2**layout.k, None
 
     def _lattice(self, l: int) -> np.ndarray:
         return self.coarse[:: 2 ** (l - self.lay.m), :: 2 ** (l - self.lay.m)]
@@ -96,7 +99,7 @@ class DeviationAccumulator:
         """Fold in level-0 block (bi, bj): float32 (M, M) heights. ``part``: "all" levels, or
         only the "grid" levels (lattice spacing ≤ the block span: the block alone decides them)
         or the "window" ones (lattice squares larger than a block: they need ``coarse``)."""
-        lay = self.lay
+        lay, J, m = self.lay, self._J, self._m
         b = np.ascontiguousarray(b, np.float32)
         valid = None
         if (bi + 1) * (lay.M - 1) >= lay.rows or (bj + 1) * (lay.M - 1) >= lay.cols:  # the block may hold padding
@@ -105,10 +108,11 @@ class DeviationAccumulator:
             valid = np.ascontiguousarray((r[:, None] < lay.rows) & (c[None, :] < lay.cols))
             if valid.all():
                 valid = None
-        self._eps = np.float32(8 * np.finfo(np.float32).eps * float(np.abs(b).max()))  # float32 rounding of z
-        for j in range(lay.J):
-            if part == "all" or (part == "grid") == (lay.J - j <= lay.m):
-                self._add_level(j, b, valid, bi, bj, lay.J - j)
+        zabs = max(float(b.max()), -float(b.min()))  # = float(np.abs(b).max()), without the block-sized temporary
+        self._eps = np.float32(8 * np.finfo(np.float32).eps * zabs)  # float32 rounding of z
+        for j in range(J):
+            if part == "all" or (part == "grid") == (J - j <= m):
+                self._add_level(j, b, valid, bi, bj, J - j)
 
     def _add_level(self, j: int, b: np.ndarray, valid: np.ndarray | None, bi: int, bj: int, l: int) -> None:
         """Square-mesh and centred-mesh errors of patch level j (lattice spacing 2^l) over the
@@ -116,9 +120,12 @@ class DeviationAccumulator:
         y·(c01 − c00) + w·D with w = min(x, y) or max(0, x + y − 1) by the parity rule; the
         centred mesh's four quarter triangles), max-reduced per patch square and per region of
         :func:`_region_table`, then folded in with the float32 rounding margin."""
-        from .kernels import grid_level, window_errors  # numba: loaded on first use
+        if self._kern is None:
+            from .kernels import grid_level, window_errors  # numba: loaded on first use
 
-        m, s, f = self.lay.m, 2**l, 2**self.lay.k
+            self._kern = grid_level, window_errors
+        grid_level, window_errors = self._kern
+        m, s, f = self._m, 2**l, self._f
         tab = self._tables.get(f)
         if tab is None:
             tab = self._tables[f] = _region_table(f)

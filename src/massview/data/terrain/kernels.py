@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["grid_errors", "masked_grid_errors", "window_errors"]
+__all__ = ["grid_errors", "masked_grid_errors", "padded_grid_errors", "window_errors"]
 
 
 
@@ -84,10 +84,10 @@ def _fold_rows(m5, tab, f, v0, u0, V0, U0, sq_out, per_out):
     sh, mask = 0, f - 1
     while (1 << sh) < f:
         sh += 1
-    nq = m5.shape[1]
-    if nq % f == 0 and v0 % f == 0 and u0 % f == 0:  # whole patch squares (the fine strides): no index
-        nb = nq // f                                   # arithmetic or table look-up per lattice square
-        for iv in range(nq):
+    nv, nu = m5.shape[1], m5.shape[2]
+    if nv % f == 0 and nu % f == 0 and v0 % f == 0 and u0 % f == 0:  # whole patch squares (the fine strides):
+        nb = nu // f                                   # no index arithmetic or table look-up per lattice square
+        for iv in range(nv):
             a, vm = iv >> sh, iv & mask  # (v0 + iv) // f - V0 and (v0 + iv) % f, as v0 = V0·f
             for um in range(f):
                 r0, r1, r2, r3 = tab[0, vm, um], tab[1, vm, um], tab[2, vm, um], tab[3, vm, um]
@@ -99,10 +99,10 @@ def _fold_rows(m5, tab, f, v0, u0, V0, U0, sq_out, per_out):
                     per_out[r2, a, bb] = max(per_out[r2, a, bb], m5[3, iv, iu])
                     per_out[r3, a, bb] = max(per_out[r3, a, bb], m5[4, iv, iu])
         return
-    for iv in range(nq):
+    for iv in range(nv):
         v = v0 + iv
         a, vm = (v >> sh) - V0, v & mask
-        for iu in range(nq):
+        for iu in range(nu):
             u = u0 + iu
             bb, um = (u >> sh) - U0, u & mask
             sq_out[a, bb] = max(sq_out[a, bb], m5[0, iv, iu])
@@ -222,8 +222,8 @@ def _wright(M, X, Z, V, y, a10, dy3, er):
 
 
 @_jit
-def _window_maxima(b, valid, fy, fx, even, k):
-    """:func:`_masked_maxima` over a whole block (r0 = c0 = 0), a row at a time: one loop per
+def _window_maxima(b, valid, r0, c0, fy, fx, even, k):
+    """:func:`_masked_maxima` of the samples ``b[r0 + r, c0 + c]``, a row at a time: one loop per
     mesh over the row's columns (:func:`_wsq` …: the same expressions and masks, invalid or
     masked-out samples giving 0, never NaN; vectorized), per-column maxima reduced at the end."""
     a00, a10, a01, a11, dx, dy, dd, et, eb, el, er, dx2, dy3 = k
@@ -231,7 +231,7 @@ def _window_maxima(b, valid, fy, fx, even, k):
     Msq, Mt, Mb = np.zeros(w, np.float32), np.zeros(w, np.float32), np.zeros(w, np.float32)
     Ml, Mr = np.zeros(w, np.float32), np.zeros(w, np.float32)
     for r in range(fy.shape[0]):
-        y, Z, V = fy[r], b[r, :w], valid[r, :w]
+        y, Z, V = fy[r], b[r0 + r, c0: c0 + w], valid[r0 + r, c0: c0 + w]
         _wsq(Msq, fx, Z, V, y, a00, dx, dy, dd, even)
         _wtop(Mt, fx, Z, V, y, a00, dx, et)
         _wbottom(Mb, fx, Z, V, y, a01, dx2, eb)
@@ -246,7 +246,7 @@ def window_errors(b, valid, fx, fy, c00, c10, c01, c11, cc, parity, tab, f, v0, 
     coordinates fx (w,), fy (h,), float32; only ``valid`` samples count), by the masks of
     the numpy formulation. Max-folds into sq_out (1, 1) and per_out (4, 1, 1)."""
     k = _corners(c00, c10, c01, c11, cc, 0, 0)
-    msq, mt, mb, ml, mr = _window_maxima(b, valid, fy, fx, parity % 2 == 0, k)
+    msq, mt, mb, ml, mr = _window_maxima(b, valid, 0, 0, fy, fx, parity % 2 == 0, k)
     _fold(sq_out, per_out, tab, f, v0, u0, v0 // f, u0 // f, 0, 0, msq, mt, mb, ml, mr)
 
 
@@ -262,7 +262,56 @@ def masked_grid_errors(b, valid, s, nq, fx, c00, c10, c01, c11, cc, parity, tab,
             _fold(sq_out, per_out, tab, f, v0, u0, V0, U0, iv, iu, msq, mt, mb, ml, mr)
 
 
+@_jit
+def _valid_extent(valid):
+    """(hv, wv): the valid samples of a block are the rectangle [0:hv, 0:wv] (padding is a
+    suffix in rows and columns)."""
+    hv, wv = 0, 0
+    while hv < valid.shape[0] and valid[hv, 0]:
+        hv += 1
+    while wv < valid.shape[1] and valid[0, wv]:
+        wv += 1
+    return hv, wv
 
+
+@_jit
+def padded_grid_errors(b, valid, s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f, v0, u0, V0, U0, sq_out, per_out):  # noqa: PLR0913
+    """:func:`masked_grid_errors` split by where the padding lies: the squares whose samples are
+    all valid (the first (hv − 1) // s rows and (wv − 1) // s columns of squares) go through the
+    vectorized row kernels of :func:`grid_errors`, only the squares straddling the valid edge
+    through the masked per-square maxima over their valid rows and columns (:func:`_window_maxima`,
+    a vectorized row at a time, from stride 16; :func:`_masked_maxima` below), squares entirely
+    padding are skipped (as there). The same
+    maxima, so the same folds, bit for bit (tests/test_ingest_kernels.py)."""
+    hv, wv = _valid_extent(valid)
+    if hv == 0 or wv == 0:
+        return
+    nv, nu = min((hv - 1) // s, nq), min((wv - 1) // s, nq)
+    if nv > 0 and nu > 0:
+        a00, a10 = np.ascontiguousarray(c00[:nv, :nu]), np.ascontiguousarray(c10[:nv, :nu])
+        a01, a11 = np.ascontiguousarray(c01[:nv, :nu]), np.ascontiguousarray(c11[:nv, :nu])
+        ac = np.ascontiguousarray(cc[:nv, :nu])
+        if s == 2:
+            m5 = _direct_maxima(b, s, nq, fx, a00, a10, a01, a11, ac, parity)
+        else:
+            m5 = _lattice_maxima(b, s, nq, fx, a00, a10, a01, a11, ac, parity, s <= 32)
+        _fold_rows(m5, tab, f, v0, u0, V0, U0, sq_out, per_out)
+    for iv in range(nq):
+        if iv * s >= hv:
+            break
+        for iu in range(nq):
+            if iu * s >= wv:
+                break
+            if iv < nv and iu < nu:
+                continue
+            k = _corners(c00, c10, c01, c11, cc, iv, iu)
+            even = (parity + iv + iu) % 2 == 0
+            fy, fxv = fx[: min(s + 1, hv - iv * s)], fx[: min(s + 1, wv - iu * s)]  # its valid rows and columns
+            if s >= 16:
+                msq, mt, mb, ml, mr = _window_maxima(b, valid, iv * s, iu * s, fy, fxv, even, k)
+            else:
+                msq, mt, mb, ml, mr = _masked_maxima(b, valid, iv * s, iu * s, fy, fxv, even, k)
+            _fold(sq_out, per_out, tab, f, v0, u0, V0, U0, iv, iu, msq, mt, mb, ml, mr)
 
 
 # -- issue 20, fourth round: the lattice-square maxima as vectorizable loops ----------------------
@@ -438,49 +487,52 @@ def _fold_q3(M, A, B, C, D, Z, t, c0, c1, s, nq, cm):
 def _lattice_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity, cm):  # noqa: PLR0913
     """The five maxima (square, top, bottom, left, right) of every lattice square, (5, nq, nq)
     float32, by the laid-out rows above (``cm``: c-major, else square-major); bit-identical to
-    :func:`_grid_squares`'s (tests/test_ingest_kernels.py)."""
+    :func:`_grid_squares`'s (tests/test_ingest_kernels.py). The squares are those of the corner
+    arrays, (nv, nu) = c00.shape (``nq`` × ``nq`` for a whole block; fewer in a padded block),
+    the output (5, nv, nu)."""
+    nv, nu = c00.shape[0], c00.shape[1]
     dx, dy, dd, et, eb, el, er, dx2, dy3 = _terms(c00, c10, c01, c11, cc)
-    W = nq * (s + 1)
+    W = nu * (s + 1)
     X, OMX, EVN, P, PB = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32)
     GY, GD, ET, EB, A00 = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32)
     EL, A10, DY3, ER, Z = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32)
     Msq, Mt, Mb, Ml, Mr = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32)
-    one, zero, ev = np.ones(nq, np.float32), np.zeros(nq, np.float32), np.empty(nq, np.float32)
+    one, zero, ev = np.ones(nu, np.float32), np.zeros(nu, np.float32), np.empty(nu, np.float32)
     omx = _F1 - fx
-    _spread(X, one, zero, fx, s, nq, cm, True)  # 0 + x·1 = x exactly
-    _spread(OMX, one, zero, omx, s, nq, cm, True)
-    out = np.empty((5, nq, nq), np.float32)
-    for iv in range(nq):
-        for iu in range(nq):
+    _spread(X, one, zero, fx, s, nu, cm, True)  # 0 + x·1 = x exactly
+    _spread(OMX, one, zero, omx, s, nu, cm, True)
+    out = np.empty((5, nv, nu), np.float32)
+    for iv in range(nv):
+        for iu in range(nu):
             ev[iu] = _F1 if (parity + iv + iu) % 2 == 0 else _F0
-        _spread(EVN, ev, zero, fx, s, nq, cm, False)
-        _spread(P, dx[iv], c00[iv], fx, s, nq, cm, True)
-        _spread(PB, dx2[iv], c01[iv], fx, s, nq, cm, True)
-        _spread(GY, dy[iv], zero, fx, s, nq, cm, False)
-        _spread(GD, dd[iv], zero, fx, s, nq, cm, False)
-        _spread(ET, et[iv], zero, fx, s, nq, cm, False)
-        _spread(EB, eb[iv], zero, fx, s, nq, cm, False)
-        _spread(A00, c00[iv], zero, fx, s, nq, cm, False)
-        _spread(EL, el[iv], zero, fx, s, nq, cm, False)
-        _spread(A10, c10[iv], zero, fx, s, nq, cm, False)
-        _spread(DY3, dy3[iv], zero, fx, s, nq, cm, False)
-        _spread(ER, er[iv], zero, fx, s, nq, cm, False)
+        _spread(EVN, ev, zero, fx, s, nu, cm, False)
+        _spread(P, dx[iv], c00[iv], fx, s, nu, cm, True)
+        _spread(PB, dx2[iv], c01[iv], fx, s, nu, cm, True)
+        _spread(GY, dy[iv], zero, fx, s, nu, cm, False)
+        _spread(GD, dd[iv], zero, fx, s, nu, cm, False)
+        _spread(ET, et[iv], zero, fx, s, nu, cm, False)
+        _spread(EB, eb[iv], zero, fx, s, nu, cm, False)
+        _spread(A00, c00[iv], zero, fx, s, nu, cm, False)
+        _spread(EL, el[iv], zero, fx, s, nu, cm, False)
+        _spread(A10, c10[iv], zero, fx, s, nu, cm, False)
+        _spread(DY3, dy3[iv], zero, fx, s, nu, cm, False)
+        _spread(ER, er[iv], zero, fx, s, nu, cm, False)
         Msq[:], Mt[:], Mb[:], Ml[:], Mr[:] = _F0, _F0, _F0, _F0, _F0
         for r in range(s + 1):
             y = fx[r]
-            _spread_row(Z, b[iv * s + r], s, nq, cm)
+            _spread_row(Z, b[iv * s + r], s, nu, cm)
             _fold_sq(Msq, X, EVN, P, GY, GD, Z, y)
             if 2 * r <= s:  # top: r <= c <= s - r
-                _fold_q2(Mt, P, ET, Z, y, r, s - r, s, nq, cm)
+                _fold_q2(Mt, P, ET, Z, y, r, s - r, s, nu, cm)
             if 2 * r >= s:  # bottom: s - r <= c <= r
-                _fold_q2(Mb, PB, EB, Z, _F1 - y, s - r, r, s, nq, cm)
-            _fold_q3(Ml, A00, GY, X, EL, Z, y, 0, min(r, s - r), s, nq, cm)  # left: c <= min(r, s - r)
-            _fold_q3(Mr, A10, DY3, OMX, ER, Z, y, max(r, s - r), s, s, nq, cm)  # right: c >= max(r, s - r)
-        _reduce(out[0, iv], Msq, s, nq, cm)
-        _reduce(out[1, iv], Mt, s, nq, cm)
-        _reduce(out[2, iv], Mb, s, nq, cm)
-        _reduce(out[3, iv], Ml, s, nq, cm)
-        _reduce(out[4, iv], Mr, s, nq, cm)
+                _fold_q2(Mb, PB, EB, Z, _F1 - y, s - r, r, s, nu, cm)
+            _fold_q3(Ml, A00, GY, X, EL, Z, y, 0, min(r, s - r), s, nu, cm)  # left: c <= min(r, s - r)
+            _fold_q3(Mr, A10, DY3, OMX, ER, Z, y, max(r, s - r), s, s, nu, cm)  # right: c >= max(r, s - r)
+        _reduce(out[0, iv], Msq, s, nu, cm)
+        _reduce(out[1, iv], Mt, s, nu, cm)
+        _reduce(out[2, iv], Mb, s, nu, cm)
+        _reduce(out[3, iv], Ml, s, nu, cm)
+        _reduce(out[4, iv], Mr, s, nu, cm)
     return out
 
 
@@ -499,7 +551,7 @@ def _fold_eps(acc, V0, U0, e, eps):
 def grid_level(b, valid, masked, s, m, f, bi, bj, tab, eps, SQ, DG):  # noqa: PLR0913
     """One grid level of :meth:`deviation.DeviationAccumulator._add_level` in one call: the
     lattice corners of stride ``s`` of block (bi, bj) (what ``grid_error_args`` cuts out),
-    :func:`grid_errors` (or :func:`masked_grid_errors` where ``masked``) into zeroed maxima,
+    :func:`grid_errors` (or :func:`padded_grid_errors` where ``masked``) into zeroed maxima,
     then those plus ``eps`` max-folded into the level's square errors SQ and diagonal errors DG
     (the Python code's ``np.maximum`` folds: same float32 sums, exact maxima)."""
     nq = (1 << m) // s
@@ -515,7 +567,7 @@ def grid_level(b, valid, masked, s, m, f, bi, bj, tab, eps, SQ, DG):  # noqa: PL
     n = max(nq // f, 1)
     sq, per = np.zeros((n, n), np.float32), np.zeros((4, n, n), np.float32)
     if masked:
-        masked_grid_errors(b, valid, s, nq, fx, c00, c10, c01, c11, cc, (v0 + u0) % 2, tab, f, v0, u0, V0, U0, sq, per)
+        padded_grid_errors(b, valid, s, nq, fx, c00, c10, c01, c11, cc, (v0 + u0) % 2, tab, f, v0, u0, V0, U0, sq, per)
     else:
         grid_errors(b, s, nq, fx, c00, c10, c01, c11, cc, (v0 + u0) % 2, tab, f, v0, u0, V0, U0, sq, per)
     _fold_eps(SQ, V0, U0, sq, eps)
@@ -545,12 +597,12 @@ def _dlin(M, A, B, C, Z, zo, p, q):
 
 
 @_jit
-def _deinterleave_block(b, s, nq):
-    """D[p, R, j] = b[R, j·s + p] for the block rows R = 0..nq·s (j ≤ nq where it exists)."""
-    n = nq * s + 1
-    D = np.zeros((s, n, nq + 1), np.float32)
+def _deinterleave_block(b, s, nv, nu):
+    """D[p, R, j] = b[R, j·s + p] for the block rows R = 0..nv·s (j ≤ nu where j·s + p ≤ nu·s)."""
+    n = nv * s + 1
+    D = np.zeros((s, n, nu + 1), np.float32)
     for p in range(s):
-        cnt = (n - 1 - p) // s + 1
+        cnt = (nu * s - p) // s + 1
         for R in range(n):
             d, row = D[p, R], b[R]
             if s == 2:  # constant strides: LLVM vectorizes the strided loads
@@ -571,13 +623,15 @@ def _direct_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity):  # noqa: PLR09
     sample position (r, c) of a square, one loop over the row of squares (:func:`_dsq`,
     :func:`_dlin`: per-square terms as they are, the samples from the block de-interleaved
     once by stride, unsigned offsets: vectorized). The same float32 expressions, operands and
-    order as :func:`_grid_squares`; maxima are exact in any order."""
+    order as :func:`_grid_squares`; maxima are exact in any order. The squares are those of
+    the corner arrays, (nv, nu) = c00.shape, the output (5, nv, nu)."""
+    nv, nu = c00.shape[0], c00.shape[1]
     dx, dy, dd, et, eb, el, er, dx2, dy3 = _terms(c00, c10, c01, c11, cc)
-    D = _deinterleave_block(b, s, nq)
-    out = np.zeros((5, nq, nq), np.float32)
-    ev = np.empty(nq, np.float32)
-    for iv in range(nq):
-        for iu in range(nq):
+    D = _deinterleave_block(b, s, nv, nu)
+    out = np.zeros((5, nv, nu), np.float32)
+    ev = np.empty(nu, np.float32)
+    for iv in range(nv):
+        for iu in range(nu):
             ev[iu] = _F1 if (parity + iv + iu) % 2 == 0 else _F0
         o0, o1, o2, o3, o4 = out[0, iv], out[1, iv], out[2, iv], out[3, iv], out[4, iv]
         a00, a10, a01 = c00[iv], c10[iv], c01[iv]
