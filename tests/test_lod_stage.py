@@ -187,6 +187,44 @@ STAGE_DIGESTS = {
     'forward@0.9/0.25:horizontal': '8ae18d3759c586c56f8f',
     'forward@0.9/0.25:grid': '3238e79edf0e258f5e14',
 }
+# The same digests for the store's other input: on a CPU without AVX-512 the synthetic DEM differs
+# in the last bit at some samples (numpy's float64 power; see tests/ingest_golden.py), so the cut
+# differs too. Keyed by the store's heights/0 digest; recorded 2026-11-27 on such a host, where
+# 8e7be8a (the code the digests above were recorded with) and main e13c53f gave these same values.
+STAGE_DIGESTS_BY_INPUT = {
+    'dfb36a217efd8addf9b61c3bb03b39ab652dda666c65a1aca52de2a6acae8295': {
+        'flyover@0.3/1.0': 'e7e6ca7828bd24173b07',
+        'flyover@0.3/1.0:grid': '28f31ff6e4eede69bc23',
+        'flyover@0.3/1.0:horizontal': '5293e209fc893e63c0f5',
+        'flyover@0.3/1.0:kpatch': '24f8ec1965cbd78a184b',
+        'flyover@0.3/1.0:linear': '8c18223300f54e6f9a77',
+        'flyover@0.3/1.0:quadtree': 'ec4d4ced9633c329c657',
+        'flyover@0.8/0.35': '74d98fb2ce84ec573f58',
+        'flyover@0.8/0.35:grid': '1a229638b9aecd16b97a',
+        'flyover@0.8/0.35:horizontal': '40dc71544c21856ee172',
+        'flyover@0.8/0.35:kpatch': '172ce84c5fce67d76381',
+        'flyover@0.8/0.35:linear': 'a40ba8c55ab57875d70b',
+        'flyover@0.8/0.35:quadtree': '3a8ed6542c53a8c2774a',
+        'forward@0.9/0.25': '523cb3a0a4a88ea9d78c',
+        'forward@0.9/0.25:grid': '727eff4751a5b32116ba',
+        'forward@0.9/0.25:horizontal': '406d0946a8807901daac',
+        'forward@0.9/0.25:kpatch': '26f19339d6ff1a8dddd6',
+        'forward@0.9/0.25:linear': 'a8db50ae2829b927233b',
+        'forward@0.9/0.25:quadtree': 'a273fa6fa908d46f5c75',
+        'turn@0.4/2.0': '2e96010a499fc58d6d6d',
+        'turn@0.4/2.0:grid': 'aae67672af099dcbe12d',
+        'turn@0.4/2.0:horizontal': 'e42b89582aa1544cf3c7',
+        'turn@0.4/2.0:kpatch': '29aa01b4355970064e3a',
+        'turn@0.4/2.0:linear': 'e66497aec3c4daf0d5b9',
+        'turn@0.4/2.0:quadtree': 'b70ec5e1796f2bde1f23',
+        'zoom@0.6/0.5': '27454e45f1d5a0a6f6d3',
+        'zoom@0.6/0.5:grid': '2ee464d874e7c0cc9cb9',
+        'zoom@0.6/0.5:horizontal': 'b7840be6e044609ea72e',
+        'zoom@0.6/0.5:kpatch': '191ca7fc6082b2d3e061',
+        'zoom@0.6/0.5:linear': 'df8fd66540c588e04484',
+        'zoom@0.6/0.5:quadtree': '6473a1eb7aeb8e705e39',
+    },
+}
 
 
 def _stage_digests(store) -> dict:
@@ -231,10 +269,14 @@ def _stage_digests(store) -> dict:
 def test_stage_output_is_todays(terrain_store):
     """The whole LOD stage (front, shading wants, every task's share) is bit for bit what it was
     before the lod5 speed-ups, in the same order, for sort-last and per-tile sort-first."""
+    from ingest_golden import input_digest
+
+    key = input_digest(terrain_store)
+    want = STAGE_DIGESTS_BY_INPUT.get(key, STAGE_DIGESTS)
     got = _stage_digests(terrain_store)
-    assert got.keys() == STAGE_DIGESTS.keys()
-    bad = [k for k in got if got[k] != STAGE_DIGESTS[k]]
-    assert not bad, bad
+    assert got.keys() == want.keys()
+    bad = [k for k in got if got[k] != want[k]]
+    assert not bad, f"{bad} (input heights/0 {key[:16]})"
 
 
 def test_shading_pyramid_is_shading_blocks(hier):
