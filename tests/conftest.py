@@ -25,6 +25,60 @@ def run_cli(*args, timeout=300, check=True) -> subprocess.CompletedProcess:
     return proc
 
 
+def _clean_env(**extra) -> dict:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
+    return {**env, **extra}
+
+
+def render_cases(root: Path, ranks: int, cases: dict, env: dict | None = None, timeout=900) -> dict:
+    """Run ``massview render`` once per case (name -> its arguments, without --ranks/--out/-q),
+    all in one job (tests/render_cases_job.py): under real ``mpiexec -n ranks`` with the
+    launcher's environment (``launch_env``, as ``--ranks`` sets it), or for one rank in one plain
+    process. Returns name -> the case's --out folder (frames, stats.jsonl, summary.json).
+    A failing case fails the job; the error names the case."""
+    from massview.parallel.runtime import find_mpiexec, launch_env
+
+    root.mkdir(parents=True, exist_ok=True)
+    outs = {name: root / name for name in cases}
+    spec = [[name, [*map(str, args), "--ranks", str(ranks), "--out", str(outs[name]), "-q"]] for name, args in cases.items()]
+    (root / "cases.json").write_text(json.dumps(spec))
+    job = [sys.executable, str(Path(__file__).parent / "render_cases_job.py"), str(root / "cases.json")]
+    full_env = _clean_env(**(env or {}))
+    if ranks > 1:
+        job = [find_mpiexec(), "-n", str(ranks), *job]
+        full_env = launch_env(ranks, {**full_env, "MASSVIEW_UNDER_MPI": "1"})
+    proc = subprocess.run(job, capture_output=True, text=True, env=full_env, timeout=timeout)
+    if proc.returncode != 0 or "cases ok" not in proc.stdout:
+        started = [line[5:] for line in proc.stdout.splitlines() if line.startswith("case ")]
+        raise AssertionError(f"the {ranks}-rank job of {len(cases)} render cases failed in case "
+                             f"{started[-1] if started else '(none started)'} (status {proc.returncode})\n"
+                             f"stderr:\n{proc.stderr[-4000:]}")
+    return outs
+
+
+class RenderBatches:
+    """Render cases (name -> (ranks, args)) grouped by rank count: the first test that asks for
+    a case renders every case of its rank count in one job (:func:`render_cases`); a failed job
+    fails every test that asks for one of its cases, with the same message."""
+
+    def __init__(self, tmp_path_factory, cases: dict, env: dict | None = None, label: str = "cases"):
+        self.factory, self.cases, self.env, self.label = tmp_path_factory, cases, env, label
+        self.done: dict = {}
+
+    def out(self, name: str) -> Path:
+        ranks = self.cases[name][0]
+        if ranks not in self.done:
+            group = {n: args for n, (r, args) in self.cases.items() if r == ranks}
+            try:
+                self.done[ranks] = render_cases(self.factory.mktemp(f"{self.label}{ranks}"), ranks, group, self.env)
+            except AssertionError as e:
+                self.done[ranks] = e
+        got = self.done[ranks]
+        if isinstance(got, AssertionError):
+            raise got
+        return got[name]
+
+
 def summary(out: Path) -> dict:
     return json.loads((out / "summary.json").read_text())
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import SMALL_SCENE, SMALL_SIZE, load_png
+from conftest import SMALL_SCENE, SMALL_SIZE, RenderBatches, load_png
 
 pytestmark = pytest.mark.mpi
 
@@ -32,23 +32,30 @@ def test_sleep_wait_composites_equal_the_serial_fold(ranks):
     assert "composite job ok" in proc.stdout
 
 
-def _render(out: Path, ranks: int, compositor: str, mode: str) -> dict:
-    proc = subprocess.run([sys.executable, "-m", "massview", "render", SMALL_SCENE, "--ranks", str(ranks), "--decomposition", "sort-last",
-                           "--compositor", compositor, "--frames", "2", "--size", SMALL_SIZE, "--out", str(out), "--reference", "-q"],
-                          capture_output=True, text=True, env=_env(MASSVIEW_MPI_WAIT=mode), timeout=300)
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    return json.loads((out / "summary.json").read_text())
+WAIT_CASES = [(3, "binary-swap"), (3, "direct-send"), (4, "radix-k"), (4, "binary-swap")]
 
 
-@pytest.mark.parametrize("ranks,compositor", [(3, "binary-swap"), (3, "direct-send"), (4, "radix-k"), (4, "binary-swap")])
-def test_render_is_the_same_in_both_wait_modes(tmp_path, ranks, compositor):
-    runs = {mode: _render(tmp_path / mode, ranks, compositor, mode) for mode in ("poll", "sleep")}
-    for s in runs.values():
+@pytest.fixture(scope="module")
+def cases(tmp_path_factory):
+    """Per wait mode (the job's MASSVIEW_MPI_WAIT), the sort-last renders of WAIT_CASES in one
+    job per rank count (conftest.RenderBatches)."""
+    renders = {f"{c}-{n}": (n, [SMALL_SCENE, "--decomposition", "sort-last", "--compositor", c, "--frames", 2, "--size", SMALL_SIZE,
+                                "--reference"]) for n, c in WAIT_CASES}
+    return {mode: RenderBatches(tmp_path_factory, renders, env={"MASSVIEW_MPI_WAIT": mode}, label=f"wait-{mode}")
+            for mode in ("poll", "sleep")}
+
+
+@pytest.mark.parametrize("ranks,compositor", WAIT_CASES)
+def test_render_is_the_same_in_both_wait_modes(cases, ranks, compositor):
+    outs = {mode: cases[mode].out(f"{compositor}-{ranks}") for mode in ("poll", "sleep")}
+    for out in outs.values():
+        s = json.loads((out / "summary.json").read_text())
+        assert s["ranks"] == ranks and s["compositor"] == compositor
         assert s["max_abs_diff"] == 0 and s["diff_fraction"] == 0.0
-    frames = sorted(p.name for p in (tmp_path / "poll" / "frames").glob("*.png"))
+    frames = sorted(p.name for p in (outs["poll"] / "frames").glob("*.png"))
     assert len(frames) == 2
     for name in frames:
-        a, b = (load_png(tmp_path / mode / "frames" / name) for mode in ("poll", "sleep"))
+        a, b = (load_png(outs[mode] / "frames" / name) for mode in ("poll", "sleep"))
         assert np.array_equal(a, b), name
 
 

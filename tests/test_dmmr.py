@@ -13,29 +13,27 @@ from massview.core.errors import ConfigError
 from massview.core.paths import load_path
 from massview.systems.dmmr import DmmrSystem
 
-from conftest import load_png, run_cli, save_diff, summary
+from conftest import RenderBatches, load_png, run_cli, save_diff, summary
 
 SCENE = "builtin:objects?n=400&seed=3"
 SIZE = "320x240"
 
 
-def dmmr(out, ranks, *extra, frames=3, scene=SCENE):
-    run_cli("render", scene, "--system", "dmmr", "--ranks", ranks, "--frames", frames, "--size", SIZE,
-            "--out", out, "--reference", "-q", *extra)
+def _args(*extra, frames=3, scene=SCENE):
+    return [scene, "--system", "dmmr", "--frames", frames, "--size", SIZE, "--reference", *extra]
+
+
+def _read(out):
     recs = [json.loads(line) for line in (out / "stats.jsonl").read_text().splitlines()]
     return summary(out), recs
 
 
-@pytest.mark.mpi
-@pytest.mark.parametrize("ranks,decomposition", [(3, None), (4, None), (5, None), (4, "sort-first:grid")])
-def test_parallel_equals_serial_without_occlusion_culling(tmp_path, ranks, decomposition):
-    extra = ("--decomposition", decomposition) if decomposition else ()  # grid: the equal-tile baseline
-    s, recs = dmmr(tmp_path, ranks, "--occlusion", "off", *extra)
-    assert s["ranks"] == ranks and s["frames"] == 3
-    assert s["max_abs_diff"] == 0 and s["diff_fraction"] == 0.0
-    clients = [r for r in recs if r["rank"] > 0]
-    assert {r["rank"] for r in clients} == set(range(1, ranks))
-    assert all(r["counters"].get("queries_issued", 0) == 0 for r in clients)
+def dmmr(out, ranks, *extra, frames=3, scene=SCENE):
+    run_cli("render", *_args(*extra, frames=frames, scene=scene), "--ranks", ranks, "--out", out, "-q")
+    return _read(out)
+
+
+PARALLEL = [(3, None), (4, None), (5, None), (4, "sort-first:grid")]
 
 
 @pytest.fixture(scope="module")
@@ -48,9 +46,33 @@ def plant(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def cases(tmp_path_factory, plant):
+    """The module's M1 renders on a warm store: one job per rank count (conftest.RenderBatches)."""
+    return RenderBatches(tmp_path_factory, {
+        **{f"parallel-{n}-{d}": (n, _args("--occlusion", "off", *(("--decomposition", d) if d else ()))) for n, d in PARALLEL},
+        "occlusion": (3, _args("--path", "walkthrough", "--id-check", scene=plant, frames=4)),
+        "id-check": (3, _args("--id-check", "--query-threshold", "100", frames=2)),
+    }, label="dmmr")
+
+
 @pytest.mark.mpi
-def test_occlusion_culling_keeps_the_image_and_draws_fewer_triangles(tmp_path, plant):
-    on, recs = dmmr(tmp_path, 3, "--path", "walkthrough", "--id-check", scene=plant, frames=4)
+@pytest.mark.parametrize("ranks,decomposition", PARALLEL)
+def test_parallel_equals_serial_without_occlusion_culling(cases, ranks, decomposition):
+    # grid: the equal-tile baseline
+    s, recs = _read(cases.out(f"parallel-{ranks}-{decomposition}"))
+    assert s["ranks"] == ranks and s["frames"] == 3
+    if decomposition:
+        assert s["decomposition"] == decomposition
+    assert s["max_abs_diff"] == 0 and s["diff_fraction"] == 0.0
+    clients = [r for r in recs if r["rank"] > 0]
+    assert {r["rank"] for r in clients} == set(range(1, ranks))
+    assert all(r["counters"].get("queries_issued", 0) == 0 for r in clients)
+
+
+@pytest.mark.mpi
+def test_occlusion_culling_keeps_the_image_and_draws_fewer_triangles(cases, plant):
+    on, recs = _read(cases.out("occlusion"))
     clients = [r for r in recs if r["rank"] > 0]
     assert sorted((r["frame"], r["rank"]) for r in clients) == [(f, c) for f in range(4) for c in (1, 2)]
     for r in clients:  # inside the MPI job, every frame, every client: ID-buffer visible ⊆ drawn
@@ -122,10 +144,10 @@ def test_cold_store_reads_from_the_device_and_the_speedup_digest_sums_per_level_
 
 
 @pytest.mark.mpi
-def test_id_check_reports_objects_a_lossy_query_threshold_culls(tmp_path):
+def test_id_check_reports_objects_a_lossy_query_threshold_culls(cases):
     """The check can fail: with --query-threshold 100 boxes showing fewer pixels are culled,
     and the clients' ID buffers find some of those objects visible."""
-    _, recs = dmmr(tmp_path, 3, "--id-check", "--query-threshold", "100", frames=2)
+    _, recs = _read(cases.out("id-check"))
     clients = [r for r in recs if r["rank"] > 0]
     missed = [len(set(r["idbuffer_ids"]) - set(r["drawn_ids"])) for r in clients]
     assert [r["counters"]["idbuffer_missed"] for r in clients] == missed

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import run_cli, summary
+from conftest import RenderBatches, run_cli, summary
 from massview.app.bench import lod_baseline as old
 from massview.app.bench.lod import _Rank
 from massview.core.config import RenderConfig
@@ -131,17 +131,28 @@ class _Solo:
         return v
 
 
+PER_TILE = [("sort-first:horizontal", 4), ("sort-first:grid", 4), ("sort-first:vertical", 3)]
+
+
+@pytest.fixture(scope="module")
+def per_tile(tmp_path_factory, terrain_store):
+    """The per-tile renders below, one job per rank count (conftest.RenderBatches)."""
+    return RenderBatches(tmp_path_factory, {
+        d: (n, [terrain_store, "--decomposition", d, "--path", "zoom", "--frames", 5, "--size", "320x240", "--cache-mb", 8,
+                "--gpu-mb", 8, "--loading", "async", "--reference"]) for d, n in PER_TILE}, label="per-tile")
+
+
 @pytest.mark.mpi
-@pytest.mark.parametrize("decomposition,ranks", [("sort-first:horizontal", 4), ("sort-first:grid", 4), ("sort-first:vertical", 3)])
-def test_per_tile_cuts_with_loads_assemble_to_the_serial_image(tmp_path, terrain_store, decomposition, ranks):
+@pytest.mark.parametrize("decomposition,ranks", PER_TILE)
+def test_per_tile_cuts_with_loads_assemble_to_the_serial_image(per_tile, decomposition, ranks):
     """Async loading with small budgets along a zoom: every rank cuts only its tile, blocks
     arrive while the frames run, and the tiles still assemble bit-exactly to the serial image
     of the whole frame's cut (recomputed from the agreed residency)."""
-    run_cli("render", terrain_store, "--ranks", ranks, "--decomposition", decomposition, "--path", "zoom", "--frames", 5,
-            "--size", "320x240", "--cache-mb", 8, "--gpu-mb", 8, "--loading", "async", "--reference", "--out", tmp_path, "-q")
-    s = summary(tmp_path)
+    out = per_tile.out(decomposition)
+    s = summary(out)
+    assert s["ranks"] == ranks and s["decomposition"] == decomposition
     assert s["max_abs_diff"] == 0 and s["frames"] == 5
-    recs = [json.loads(x) for x in (tmp_path / "stats.jsonl").read_text().splitlines()]
+    recs = [json.loads(x) for x in (out / "stats.jsonl").read_text().splitlines()]
     assert sum(r["counters"].get("blocks_loaded", 0) for r in recs) > 0
     assert sum(r["counters"].get("deferred_splits", 0) for r in recs) > 0  # data was missing at times
 

@@ -9,7 +9,7 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from conftest import load_png, run_cli, summary
+from conftest import RenderBatches, load_png, run_cli, summary
 from massview.core.stats import read_stats
 from massview.data.terrain import ArraySource, prepare_terrain
 from massview.systems.roettger_portion import LayerInfo
@@ -30,24 +30,60 @@ def real_store(tmp_path_factory):
     return p
 
 
+def _args(store, C, *extra, frames=2, path="zoom", layers=1):
+    return [*[store] * layers, "--system", "roettger", "--compute-ranks", C, "--frames", frames, "--size", SIZE, "--path", path, *extra]
+
+
 def _render(store, out, ranks, C, *extra, frames=2, path="zoom", layers=1):
-    run_cli("render", *[store] * layers, "--system", "roettger", "--ranks", ranks, "--compute-ranks", C, "--frames", frames,
-            "--size", SIZE, "--path", path, "--out", out, "-q", *extra)
+    run_cli("render", *_args(store, C, *extra, frames=frames, path=path, layers=layers), "--ranks", ranks, "--out", out, "-q")
+    return _read(out)
+
+
+def _read(out):
     return summary(out), read_stats(out / "stats.jsonl")
 
 
-@pytest.mark.parametrize("ranks,C,wall,layers", [(2, 1, None, 1), (4, 2, None, 1), (4, 3, None, 2), (6, 4, "2x1", 1), (4, 2, "1x2", 1)])
-def test_parallel_equals_serial_reference(real_store, tmp_path, ranks, C, wall, layers):
-    extra = ["--reference", "--color-by-rank"] + (["--wall", wall] if wall else [])
-    s, recs = _render(real_store, tmp_path, ranks, C, *extra, layers=layers)
+PARALLEL = [(2, 1, None, 1), (4, 2, None, 1), (4, 3, None, 2), (6, 4, "2x1", 1), (4, 2, "1x2", 1)]
+
+
+def _top_down_path(store, folder, col: float):
+    info = LayerInfo.of(store)
+    row = info.rows / 2
+    z = info.zrange[1] + 60 * SPACING
+    eye = [col * SPACING, -row * SPACING, z]
+    tgt = [col * SPACING, -row * SPACING + 1.0, info.zrange[0]]
+    path = folder / "down.json"
+    path.write_text(json.dumps({"keyframes": [{"time": 0, "position": eye, "look_at": tgt},
+                                              {"time": 1, "position": eye, "look_at": tgt}], "fovy": 45}))
+    return path
+
+
+@pytest.fixture(scope="module")
+def cases(tmp_path_factory, real_store):
+    """The module's independent T2 renders: one job per rank count (conftest.RenderBatches).
+    Looking straight down at col 226 (test_a_tile_that_does_not_see_a_portion_gets_zero_bytes)."""
+    down = _top_down_path(real_store, tmp_path_factory.mktemp("t2path"), 226.0)
+    return RenderBatches(tmp_path_factory, {
+        **{f"parallel-{n}-{C}-{w}-{k}": (n, _args(real_store, C, "--reference", "--color-by-rank", *(["--wall", w] if w else []), layers=k))
+           for n, C, w, k in PARALLEL},
+        "zero-bytes": (6, _args(real_store, 4, "--decomposition", "sort-first:horizontal", frames=2, path=str(down))),
+        "paper": (5, _args(real_store, 4, "--paper-partition", "--reference", frames=1)),
+    }, label="t2")
+
+
+@pytest.mark.parametrize("ranks,C,wall,layers", PARALLEL)
+def test_parallel_equals_serial_reference(cases, ranks, C, wall, layers):
+    out = cases.out(f"parallel-{ranks}-{C}-{wall}-{layers}")
+    s, recs = _read(out)
+    assert s["ranks"] == ranks and s["wall"] == wall
     assert s["max_abs_diff"] == 0 and s["diff_fraction"] == 0.0, s
     nvis = ranks - C
     if wall:
-        tiles = sorted((tmp_path / "wall").iterdir())
+        tiles = sorted((out / "wall").iterdir())
         assert len(tiles) == nvis
         frames = [load_png(t / "00001.png") for t in tiles]
     else:
-        frames = [load_png(tmp_path / "frames" / "00001.png")]
+        frames = [load_png(out / "frames" / "00001.png")]
     lit = sum(int(np.count_nonzero(f.max(axis=2) > 60)) for f in frames)
     assert lit > 0.05 * sum(f.shape[0] * f.shape[1] for f in frames)  # the terrain is there
     by_rank = defaultdict(int)
@@ -57,24 +93,11 @@ def test_parallel_equals_serial_reference(real_store, tmp_path, ranks, C, wall, 
     assert all(by_rank[c] > 0 for c in range(nvis, ranks))
 
 
-def _top_down_path(store, tmp_path, col: float):
-    info = LayerInfo.of(store)
-    row = info.rows / 2
-    z = info.zrange[1] + 60 * SPACING
-    eye = [col * SPACING, -row * SPACING, z]
-    tgt = [col * SPACING, -row * SPACING + 1.0, info.zrange[0]]
-    path = tmp_path / "down.json"
-    path.write_text(json.dumps({"keyframes": [{"time": 0, "position": eye, "look_at": tgt},
-                                              {"time": 1, "position": eye, "look_at": tgt}], "fovy": 45}))
-    return path
-
-
-def test_a_tile_that_does_not_see_a_portion_gets_zero_bytes(real_store, tmp_path):
+def test_a_tile_that_does_not_see_a_portion_gets_zero_bytes(cases):
     # C = 4: the portions are the four quadrants of the padded 513² grid (cols < 256: ranks 0, 2
     # of the computation ranks). Looking straight down at col 226, the left tile sees only
     # cols < 226; the right tile sees both halves.
-    path = _top_down_path(real_store, tmp_path, 226.0)
-    _, recs = _render(real_store, tmp_path / "run", 6, 4, "--decomposition", "sort-first:horizontal", frames=2, path=str(path))
+    _, recs = _read(cases.out("zero-bytes"))
     sent = defaultdict(int)
     for r in recs:
         if r["rank"] >= 2:
@@ -108,9 +131,10 @@ def test_triangle_budget_holds_on_every_frame(real_store, tmp_path):
         assert drawn[f] == n  # one visualization rank draws exactly what was agreed
 
 
-def test_paper_partition_renders_with_overlapping_portions(real_store, tmp_path):
-    s, recs = _render(real_store, tmp_path, 5, 4, "--paper-partition", "--reference", frames=1)
+def test_paper_partition_renders_with_overlapping_portions(cases):
+    out = cases.out("paper")
+    s, recs = _read(out)
     assert s["frames"] == 1 and "max_abs_diff" in s  # reported; the paper's seams are allowed
-    frame = load_png(tmp_path / "frames" / "00000.png")
+    frame = load_png(out / "frames" / "00000.png")
     assert np.count_nonzero(frame.max(axis=2) > 60) > 0.05 * frame.shape[0] * frame.shape[1]
     assert all(r["counters"]["store_bytes_read"] > 0 for r in recs if r["rank"] >= 1)

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import run_cli, summary
+from conftest import RenderBatches, run_cli, summary
 from massview.core.camera import Camera
 from massview.core.config import RenderConfig
 from massview.core.paths import load_path
@@ -242,18 +242,39 @@ def city_store(tmp_path_factory):
     return out
 
 
+def _args(store, decomposition, path="orbit", extra=()):
+    return [store, "--decomposition", decomposition, "--path", path, "--frames", 3, "--size", "240x180", "--reference", *extra]
+
+
+@pytest.fixture(scope="module")
+def cases(tmp_path_factory, city_store):
+    """The module's parallel renders of the city store: one job per rank count (conftest.RenderBatches)."""
+    return RenderBatches(tmp_path_factory, {
+        **{f"{d}-{n}": (n, _args(city_store, d)) for d, n in FAST},
+        "wall": (3, _args(city_store, "sort-last:visible", "flyover", ("--wall", "2x1"))),
+        "small-budgets": (3, _args(city_store, "sort-first:kd", "walkthrough",
+                                   ("--cache-mb", 2, "--gpu-mb", 2, "--loading", "async"))),
+    }, label="city")
+
+
 def _parallel_equals_serial(tmp_path, store, decomposition, ranks, path="orbit", extra=()):
-    run_cli("render", store, "--ranks", ranks, "--decomposition", decomposition, "--path", path, "--frames", 3,
-            "--size", "240x180", "--reference", "--out", tmp_path, "-q", *extra)
+    run_cli(*["render", *_args(store, decomposition, path, extra), "--ranks", ranks, "--out", tmp_path, "-q"])
     s = summary(tmp_path)
+    assert s["max_abs_diff"] == 0, s
+    return s
+
+
+def _exact(out, ranks, decomposition):
+    s = summary(out)
+    assert s["ranks"] == ranks and s["decomposition"] == decomposition
     assert s["max_abs_diff"] == 0, s
     return s
 
 
 @pytest.mark.mpi
 @pytest.mark.parametrize("decomposition,ranks", FAST)
-def test_scene_parallel_equals_serial(tmp_path, city_store, decomposition, ranks):
-    s = _parallel_equals_serial(tmp_path, city_store, decomposition, ranks)
+def test_scene_parallel_equals_serial(cases, decomposition, ranks):
+    s = _exact(cases.out(f"{decomposition}-{ranks}"), ranks, decomposition)
     assert sum(s["triangles_per_rank"]) > 0
 
 
@@ -266,20 +287,21 @@ def test_scene_parallel_equals_serial_all_rank_counts(tmp_path, city_store, deco
 
 
 @pytest.mark.mpi
-def test_scene_wall_tiles_equal_the_serial_image(tmp_path, city_store):
+def test_scene_wall_tiles_equal_the_serial_image(cases):
     """Sort-last over 3 ranks delivered to a 2x1 wall: each display rank's tile equals the
     same pixels of the serial image (--reference on every display rank)."""
-    _parallel_equals_serial(tmp_path, city_store, "sort-last:visible", 3, path="flyover", extra=("--wall", "2x1"))
-    assert len(list((tmp_path / "wall").iterdir())) == 2
+    out = cases.out("wall")
+    assert _exact(out, 3, "sort-last:visible")["wall"] == "2x1"
+    assert len(list((out / "wall").iterdir())) == 2
 
 
 @pytest.mark.mpi
-def test_scene_small_budgets_async_stay_exact(tmp_path, city_store):
+def test_scene_small_budgets_async_stay_exact(cases):
     """Budgets far below the view: meshes cycle and load meanwhile, frames never wait, and
     every rank still draws the agreed levels (reference matches)."""
-    _parallel_equals_serial(tmp_path, city_store, "sort-first:kd", 3, path="walkthrough",
-                            extra=("--cache-mb", 2, "--gpu-mb", 2, "--loading", "async"))
-    recs = read_stats(tmp_path / "stats.jsonl")
+    out = cases.out("small-budgets")
+    _exact(out, 3, "sort-first:kd")
+    recs = read_stats(out / "stats.jsonl")
     assert any(r["counters"].get("objects_coarser", 0) + r["counters"].get("objects_missing", 0) > 0 for r in recs)
     assert max(r["counters"]["gpu_used_bytes"] for r in recs) <= 2 << 20
 

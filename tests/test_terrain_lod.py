@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import run_cli, summary
+from conftest import RenderBatches, run_cli, summary
 from massview.core.camera import Camera
 from massview.core.config import RenderConfig
 from massview.core.stats import FrameStats
@@ -112,31 +112,45 @@ def test_render_has_no_holes(terrain_store, view):
 
 DECOMPS = ["sort-first:horizontal", "sort-first:vertical", "sort-first:grid", "sort-first:kd",
            "sort-last:kpatch", "sort-last:linear", "sort-last:quadtree"]
+BALANCE_MODES = ("kpatch", "linear", "quadtree")
+
+
+@pytest.fixture(scope="module")
+def cases(tmp_path_factory, terrain_store):
+    """Every multi-rank render of this module: one job per rank count (conftest.RenderBatches)."""
+    size = ("--size", "320x240")
+    return RenderBatches(tmp_path_factory, {
+        **{f"{d}-{n}": (n, [terrain_store, "--decomposition", d, "--path", "flyover", "--frames", 2, *size, "--reference"])
+           for d in DECOMPS for n in (2, 3, 4)},
+        **{f"balance-{m}": (4, [terrain_store, "--decomposition", f"sort-last:{m}", "--path", "turn", "--frames", 4, *size])
+           for m in BALANCE_MODES},
+        "small-budgets": (2, [terrain_store, "--decomposition", "sort-first:vertical", "--path", "zoom", "--frames", 6, *size,
+                              "--cache-mb", 4, "--gpu-mb", 4, "--loading", "async", "--reference"]),
+    }, label="terrain")
 
 
 @pytest.mark.mpi
 @pytest.mark.parametrize("ranks", [2, 3, 4])
 @pytest.mark.parametrize("decomposition", DECOMPS)
-def test_terrain_parallel_equals_serial(tmp_path, terrain_store, decomposition, ranks):
-    run_cli("render", terrain_store, "--ranks", ranks, "--decomposition", decomposition, "--path", "flyover",
-            "--frames", 2, "--size", "320x240", "--reference", "--out", tmp_path, "-q")
-    s = summary(tmp_path)
+def test_terrain_parallel_equals_serial(cases, decomposition, ranks):
+    out = cases.out(f"{decomposition}-{ranks}")
+    s = summary(out)
+    assert s["ranks"] == ranks and s["decomposition"] == decomposition
     if decomposition.startswith("sort-first"):
         assert s["max_abs_diff"] == 0
     else:
         assert s["diff_fraction"] < 1e-4
-    recs = [json.loads(x) for x in (tmp_path / "stats.jsonl").read_text().splitlines()]
+    recs = [json.loads(x) for x in (out / "stats.jsonl").read_text().splitlines()]
     assert all("patches" in r["counters"] and "front_patches" in r["counters"] for r in recs)
     assert sum(r["counters"]["patches"] for r in recs if r["frame"] == 1) >= recs[0]["counters"]["front_patches"] * 0.2
 
 
 @pytest.mark.mpi
-def test_kpatch_balance_on_turn(tmp_path, terrain_store):
+def test_kpatch_balance_on_turn(cases):
     out = {}
-    for mode in ("kpatch", "linear", "quadtree"):
-        d = tmp_path / mode
-        run_cli("render", terrain_store, "--ranks", 4, "--decomposition", f"sort-last:{mode}", "--path", "turn",
-                "--frames", 4, "--size", "320x240", "--out", d, "-q")
+    for mode in BALANCE_MODES:
+        d = cases.out(f"balance-{mode}")
+        assert summary(d)["decomposition"] == f"sort-last:{mode}" and summary(d)["ranks"] == 4
         out[mode] = summary(d)["imbalance"]
         if mode == "kpatch":  # equal shares of the front: ranks differ by at most one patch (256 triangles) per frame
             recs = [json.loads(x) for x in (d / "stats.jsonl").read_text().splitlines()]
@@ -148,14 +162,13 @@ def test_kpatch_balance_on_turn(tmp_path, terrain_store):
 
 
 @pytest.mark.mpi
-def test_small_budgets_never_wait_and_stay_correct(tmp_path, terrain_store):
+def test_small_budgets_never_wait_and_stay_correct(cases):
     """Async loading with budgets far below the data: frames complete, coarser where data is
     missing, and every rank still draws the same cut (reference matches)."""
-    run_cli("render", terrain_store, "--ranks", 2, "--decomposition", "sort-first:vertical", "--path", "zoom",
-            "--frames", 6, "--size", "320x240", "--cache-mb", 4, "--gpu-mb", 4, "--loading", "async", "--reference", "--out", tmp_path, "-q")
-    s = summary(tmp_path)
-    assert s["max_abs_diff"] == 0 and s["frames"] == 6
-    recs = [json.loads(x) for x in (tmp_path / "stats.jsonl").read_text().splitlines()]
+    out = cases.out("small-budgets")
+    s = summary(out)
+    assert s["max_abs_diff"] == 0 and s["frames"] == 6 and s["ranks"] == 2
+    recs = [json.loads(x) for x in (out / "stats.jsonl").read_text().splitlines()]
     assert sum(r["counters"].get("deferred_splits", 0) for r in recs) > 0  # data was missing at times
     assert sum(r["counters"].get("blocks_loaded", 0) for r in recs) > 0
 

@@ -1,0 +1,28 @@
+"""The test helper that renders several cases in one job (conftest.render_cases): every case
+writes its own outputs, and a failing case fails the job with an error naming that case, on one
+rank (a plain process) and under real mpiexec (a rank's failure ends every rank)."""
+
+import pytest
+
+from conftest import SMALL_SCENE, load_png, render_cases, run_cli, summary
+
+TINY = [SMALL_SCENE, "--frames", 1, "--size", "64x48"]
+
+
+def test_one_rank_cases_equal_their_own_cli_runs_and_a_bad_case_is_named(tmp_path):
+    outs = render_cases(tmp_path / "ok", 1, {"orbit": [*TINY, "--path", "orbit"], "turn": [*TINY, "--path", "turn"]})
+    for name, out in outs.items():
+        run_cli("render", *TINY, "--path", name, "--out", tmp_path / name, "-q")
+        assert summary(out)["path"] == name and summary(out)["ranks"] == 1
+        assert (load_png(out / "frames" / "00000.png") == load_png(tmp_path / name / "frames" / "00000.png")).all()
+    assert not (load_png(outs["orbit"] / "frames" / "00000.png") == load_png(outs["turn"] / "frames" / "00000.png")).all()
+    with pytest.raises(AssertionError, match="failed in case bad-one"):
+        render_cases(tmp_path / "bad", 1, {"fine": TINY, "bad-one": [*TINY, "--decomposition", "no-such"], "never": TINY})
+    assert (tmp_path / "bad" / "fine" / "summary.json").exists() and not (tmp_path / "bad" / "never").exists()
+
+
+@pytest.mark.mpi
+def test_a_failing_rank_ends_the_job_and_names_the_case(tmp_path):
+    with pytest.raises(AssertionError, match=r"2-rank job of 3 render cases failed in case faulty(.|\n)*injected fault at frame 0"):
+        render_cases(tmp_path, 2, {"fine": TINY, "faulty": [*TINY, "--fault", "1:0"], "never": TINY}, timeout=120)
+    assert summary(tmp_path / "fine")["ranks"] == 2 and not (tmp_path / "never").exists()
