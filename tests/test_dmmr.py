@@ -13,7 +13,7 @@ from massview.core.errors import ConfigError
 from massview.core.paths import load_path
 from massview.systems.dmmr import DmmrSystem
 
-from conftest import RenderBatches, load_png, run_cli, save_diff, summary
+from conftest import RenderBatches, run_cli, summary
 
 SCENE = "builtin:objects?n=400&seed=3"
 SIZE = "320x240"

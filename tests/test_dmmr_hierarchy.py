@@ -11,7 +11,6 @@ import pytest
 
 from massview.core.camera import Camera, Viewport
 from massview.core.paths import load_path
-from massview.data.generators import generate_objects
 from massview.lod.cull import boxes_in_frustum
 from massview.lod.scene import build_group_tree, lod_scale
 from massview.lod.visibility import boxes_reach_near

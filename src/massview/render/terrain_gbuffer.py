@@ -18,7 +18,6 @@ so pass 2 shades exactly the pixels pass 1 wrote in this draw.
 from __future__ import annotations
 
 import moderngl
-import numpy as np
 
 __all__ = ["GBuffers"]
 

@@ -229,7 +229,7 @@ def run(args) -> int:
             worst = max(r.rank_peak_rss.values(), default=0)
             ranks = ", ".join(f"{v / 2**20:.0f}" for _, v in sorted(r.rank_peak_rss.items()))
             t.add_row(f"render --path {path} --ranks {args.ranks}: wall, CPU", f"{r.wall_s:.1f} s, {r.cpu_s:.1f} s")
-            t.add_row(f"  peak RSS per rank (MiB)", f"{ranks} ({'all under' if 0 < worst < 2**30 else 'NOT all under'} 1 GiB)")
+            t.add_row("  peak RSS per rank (MiB)", f"{ranks} ({'all under' if 0 < worst < 2**30 else 'NOT all under'} 1 GiB)")
     console.print(t)
     if not args.keep:
         shutil.rmtree(store, ignore_errors=True)
