@@ -16,18 +16,20 @@ SMALL_SCENE = "builtin:objects?n=400"
 SMALL_SIZE = "320x240"
 
 
-def run_cli(*args, timeout=300, check=True) -> subprocess.CompletedProcess:
+def clean_env(**extra) -> dict:
+    """This process's environment without an enclosing MPI job's or massview's variables (so a
+    child starts its own job with its defaults), plus ``extra``."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
+    return {**env, **extra}
+
+
+def run_cli(*args, timeout=300, check=True) -> subprocess.CompletedProcess:
+    env = clean_env()
     proc = subprocess.run([sys.executable, "-m", "massview", *map(str, args)], capture_output=True, text=True,
                           timeout=timeout, env=env)
     if check and proc.returncode != 0:
         raise AssertionError(f"massview {' '.join(map(str, args))} exited {proc.returncode}\nstderr:\n{proc.stderr[-4000:]}")
     return proc
-
-
-def _clean_env(**extra) -> dict:
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
-    return {**env, **extra}
 
 
 def render_cases(root: Path, ranks: int, cases: dict, env: dict | None = None, timeout=900) -> dict:
@@ -43,7 +45,7 @@ def render_cases(root: Path, ranks: int, cases: dict, env: dict | None = None, t
     spec = [[name, [*map(str, args), "--ranks", str(ranks), "--out", str(outs[name]), "-q"]] for name, args in cases.items()]
     (root / "cases.json").write_text(json.dumps(spec))
     job = [sys.executable, str(Path(__file__).parent / "render_cases_job.py"), str(root / "cases.json")]
-    full_env = _clean_env(**(env or {}))
+    full_env = clean_env(**(env or {}))
     if ranks > 1:
         job = [find_mpiexec(), "-n", str(ranks), *job]
         full_env = launch_env(ranks, {**full_env, "MASSVIEW_UNDER_MPI": "1"})

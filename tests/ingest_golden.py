@@ -88,10 +88,7 @@ def store_digest(path: Path) -> dict[str, str]:
     g = zarr.open_group(str(path), mode="r")
     out = {}
     for name, arr in sorted(_walk(g), key=lambda t: t[0]):
-        a = np.ascontiguousarray(np.asarray(arr[...]))
-        h = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode())
-        h.update(a.tobytes())
-        out[name] = h.hexdigest()
+        out[name] = _array_digest(arr)
     attrs = {k: v for k, v in dict(g.attrs).items() if k not in _RUN_ATTRS}
     out["attrs"] = hashlib.sha256(json.dumps(attrs, sort_keys=True).encode()).hexdigest()
     return out
@@ -102,7 +99,12 @@ def input_digest(path: Path) -> str:
     golden tests key host-dependent recordings by."""
     import zarr
 
-    a = np.ascontiguousarray(np.asarray(zarr.open_group(str(path), mode="r")["heights/0"][...]))
+    return _array_digest(zarr.open_group(str(path), mode="r")["heights/0"])
+
+
+def _array_digest(arr) -> str:
+    """sha256 of a stored array's dtype, shape and decoded bytes."""
+    a = np.ascontiguousarray(np.asarray(arr[...]))
     h = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode())
     h.update(a.tobytes())
     return h.hexdigest()

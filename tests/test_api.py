@@ -8,7 +8,7 @@ import pytest
 from PIL import Image
 
 import massview as mv
-from conftest import SMALL_SCENE, load_png, run_cli
+from conftest import SMALL_SCENE, clean_env, load_png, run_cli
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +92,6 @@ def test_readme_example_runs_and_equals_the_cli(tmp_path, capsys):
 @pytest.mark.mpi
 def test_render_is_collective_inside_an_external_mpi_job(tmp_path, scene):
     """A script started by mpiexec: every rank calls render, rank 0 gets the frame."""
-    import os
     import subprocess
     import sys
     from pathlib import Path
@@ -105,7 +104,7 @@ def test_render_is_collective_inside_an_external_mpi_job(tmp_path, scene):
         "    np.save(sys.argv[1], r.images[0]); print('ranks', r.summary['ranks'])\n"
         "else:\n"
         "    print('rank without result')\n")
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
+    env = clean_env()
     mpiexec = str(Path(sys.executable).parent / "mpiexec")
     proc = subprocess.run([mpiexec, "-n", "2", sys.executable, str(script), str(tmp_path / "f.npy")], capture_output=True,
                           text=True, env=env, timeout=300)

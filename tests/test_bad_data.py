@@ -9,7 +9,7 @@ import tempfile
 import numpy as np
 import pytest
 
-from conftest import SMALL_SCENE, run_cli
+from conftest import SMALL_SCENE, clean_env, run_cli
 from massview.core.errors import StoreError
 from massview.data.terrain import TerrainStore
 
@@ -124,7 +124,7 @@ def test_unwritable_output_is_one_line_before_any_work(tmp_path, where, command)
         cmd = [sys.executable, "-m", "massview", *map(str, args)]
         if where == "readonly":
             cmd = _as_unprivileged(cmd)
-        env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
+        env = clean_env()
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     finally:
         if ro:

@@ -4,7 +4,6 @@ render gives the same image in both wait modes and equals the serial one; bad va
 with an error naming the variable; the launcher picks sleep only when ranks outnumber cores."""
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -12,14 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import SMALL_SCENE, SMALL_SIZE, RenderBatches, load_png
+from conftest import SMALL_SCENE, SMALL_SIZE, RenderBatches, clean_env, load_png
 
 pytestmark = pytest.mark.mpi
-
-
-def _env(**extra) -> dict:
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
-    return {**env, **extra}
 
 
 @pytest.mark.parametrize("ranks", [3, 4])
@@ -27,7 +21,7 @@ def test_sleep_wait_composites_equal_the_serial_fold(ranks):
     mpiexec = str(Path(sys.executable).parent / "mpiexec")
     job = Path(__file__).parent / "composite_job.py"
     proc = subprocess.run([mpiexec, "-n", str(ranks), sys.executable, str(job), "1500"], capture_output=True, text=True,
-                          env=_env(MASSVIEW_MPI_WAIT="sleep"), timeout=300)
+                          env=clean_env(MASSVIEW_MPI_WAIT="sleep"), timeout=300)
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert "composite job ok" in proc.stdout
 
@@ -61,7 +55,7 @@ def test_render_is_the_same_in_both_wait_modes(cases, ranks, compositor):
 
 def test_bad_wait_mode_names_the_variable(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "massview", "render", SMALL_SCENE, "--ranks", "2", "--frames", "1", "--size", SMALL_SIZE,
-                           "--out", str(tmp_path), "-q"], capture_output=True, text=True, env=_env(MASSVIEW_MPI_WAIT="nap"), timeout=300)
+                           "--out", str(tmp_path), "-q"], capture_output=True, text=True, env=clean_env(MASSVIEW_MPI_WAIT="nap"), timeout=300)
     assert proc.returncode != 0
     assert "MASSVIEW_MPI_WAIT='nap'" in proc.stderr and "poll, sleep" in proc.stderr and "Traceback" not in proc.stderr
 

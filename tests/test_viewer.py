@@ -12,6 +12,8 @@ import time
 
 import pytest
 
+from conftest import clean_env
+
 pytestmark = pytest.mark.mpi
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -29,7 +31,7 @@ def start_viewer(store, ranks=2, host=None, size="480x270", extra=()):
     """``massview view STORE`` in its own session; returns (url, port, process) once it serves.
     ``extra``: further command-line arguments (e.g. ``--system dmmr``)."""
     port = free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
+    env = clean_env()
     proc = subprocess.Popen([sys.executable, "-m", "massview", "view", str(store), "--ranks", str(ranks), "--port", str(port),
                              "--size", size] + (["--host", host] if host else []) + list(extra), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, env=env, start_new_session=True)
