@@ -276,3 +276,59 @@ def test_padded_grid_errors_match_the_masked_per_square_loop(m, f, bi, bj):
             assert np.array_equal(got[-2], want[-2]) and np.array_equal(got[-1], want[-1]), f"stride {s}, hv {hv}, wv {wv}"
             checked += not np.array_equal(want[-1], start)
     assert checked > 0  # the maxima did change the accumulators somewhere
+
+
+def _old_window_fold(b, valid, fx, fy, g, parity, tab, f, v0, u0, eps, SQ, DG):
+    """The window level of DeviationAccumulator._add_level before issue 20's eighth round:
+    kernels.window_errors (masked per row) into (1, 1) maxima, then np.maximum folds with eps."""
+    from massview.data.terrain import kernels
+
+    corners = [np.full((1, 1), v, np.float32) for v in g]
+    sq, per = np.zeros((1, 1), np.float32), np.zeros((4, 1, 1), np.float32)
+    kernels.window_errors(b, valid, fx, fy, *corners, parity, tab, f, v0, u0, sq, per)
+    V0, U0 = v0 // f, u0 // f
+    sl = SQ[V0: V0 + 1, U0: U0 + 1]
+    np.maximum(sl, sq + eps, out=sl)
+    for (o, dv, du), e in zip(((0, 0, 0), (0, 1, 0), (1, 0, 0), (1, 0, 1)), per):
+        sl = DG[o, V0 + dv: V0 + dv + 1, U0 + du: U0 + du + 1]
+        np.maximum(sl, e + eps, out=sl)
+
+
+@pytest.mark.parametrize("s", [512, 1024, 2048, 4096])
+@pytest.mark.parametrize("parity", [0, 1])
+def test_window_level_matches_the_masked_row_kernel(s, parity):
+    """kernels.window_level (quarter ranges by binary search, unmasked vectorized rows, the
+    folds compiled) leaves the accumulators as window_errors + the Python np.maximum folds did,
+    bit for bit: every block position of a 257² block inside a lattice square of stride s
+    (fractions as _add_level computes them), both parities, and valid rectangles [0:hv, 0:wv]
+    (random, within one row or column, empty, whole) with large padding values that must not count."""
+    from massview.data.terrain import kernels
+    from massview.data.terrain.deviation import _region_table
+
+    rng = np.random.default_rng(s + parity)
+    M, f = 257, 16
+    tab = _region_table(f)
+    r, c = np.arange(M)[:, None], np.arange(M)[None, :]
+    t = np.arange(M, dtype=np.float32)
+    changed = 0
+    for pos in range(s // (M - 1)):  # the block's offset inside the square, in blocks
+        b = _terrain(rng, (M, M), scale=3000.0)
+        b[rng.random((M, M)) < 0.05] = np.float32(1e4)  # spikes: the maxima come from single samples
+        offx, offy = pos * (M - 1), (s // (M - 1) - 1 - pos) * (M - 1)
+        fx, fy = (offx + t) / s, (offy + t) / s
+        g = tuple(rng.normal(size=5).astype(np.float32) * 3000)
+        extents = [(M, M), (int(rng.integers(1, M + 1)), int(rng.integers(1, M + 1))), (1, M), (M, 1), (0, 0), (M, 200)]
+        for hv, wv in extents:
+            valid = np.ascontiguousarray((r < hv) & (c < wv))
+            bp = b.copy()
+            bp[~valid] = np.float32(-9e4)
+            v0, u0 = 2 * int(rng.integers(0, 50)) + parity, 2 * int(rng.integers(0, 50))
+            eps = np.float32(8 * np.finfo(np.float32).eps * 1e4)
+            SQ0, DG0 = rng.random((8, 8), np.float32), rng.random((2, 9, 9), np.float32)
+            want_sq, want_dg, got_sq, got_dg = SQ0.copy(), DG0.copy(), SQ0.copy(), DG0.copy()
+            vv, uu = v0 % 8 * f, u0 % 8 * f  # lattice indices whose patch squares lie inside the 8 × 8 arrays
+            _old_window_fold(bp, valid, fx, fy, g, parity, tab, f, vv + v0 % f, uu + u0 % f, eps, want_sq, want_dg)
+            kernels.window_level(bp, hv, wv, fx, fy, *g, parity, tab, f, vv + v0 % f, uu + u0 % f, eps, got_sq, got_dg)
+            assert np.array_equal(got_sq, want_sq) and np.array_equal(got_dg, want_dg), f"pos {pos}, hv {hv}, wv {wv}"
+            changed += not (np.array_equal(want_sq, SQ0) and np.array_equal(want_dg, DG0))
+    assert changed > 0

@@ -121,10 +121,10 @@ class DeviationAccumulator:
         centred mesh's four quarter triangles), max-reduced per patch square and per region of
         :func:`_region_table`, then folded in with the float32 rounding margin."""
         if self._kern is None:
-            from .kernels import grid_level, window_errors  # numba: loaded on first use
+            from .kernels import _valid_extent, grid_level, window_level  # noqa: I001  (numba: loaded on first use)
 
-            self._kern = grid_level, window_errors
-        grid_level, window_errors = self._kern
+            self._kern = grid_level, window_level, _valid_extent
+        grid_level, window_level, valid_extent = self._kern
         m, s, f = self._m, 2**l, self._f
         tab = self._tables.get(f)
         if tab is None:
@@ -136,17 +136,8 @@ class DeviationAccumulator:
         y0, x0 = bi * 2**m, bj * 2**m
         v0, u0 = y0 // s, x0 // s
         G, H = self._lattice(l), self._lattice(l - 1)
-        corners = [np.full((1, 1), v, np.float32) for v in (G[v0, u0], G[v0, u0 + 1], G[v0 + 1, u0], G[v0 + 1, u0 + 1], H[2 * v0 + 1, 2 * u0 + 1])]
         t = np.arange(b.shape[0], dtype=np.float32)
         fx, fy = (x0 - u0 * s + t) / s, (y0 - v0 * s + t) / s
-        sq, per = np.zeros((1, 1), np.float32), np.zeros((4, 1, 1), np.float32)
-        ok = np.ones(b.shape, np.bool_) if valid is None else valid
-        window_errors(b, ok, fx, fy, *corners, (v0 + u0) % 2, tab, f, v0, u0, sq, per)
-        V0, U0 = v0 // f, u0 // f
-        n = sq.shape[0]
-        sl = self.sq[j][V0: V0 + n, U0: U0 + n]
-        np.maximum(sl, sq + self._eps, out=sl)
-        dg = self.dg[j]
-        for (o, dv, du), e in zip(((0, 0, 0), (0, 1, 0), (1, 0, 0), (1, 0, 1)), per):
-            sl = dg[o, V0 + dv: V0 + dv + n, U0 + du: U0 + du + n]
-            np.maximum(sl, e + self._eps, out=sl)
+        hv, wv = b.shape if valid is None else valid_extent(valid)  # valid: the rectangle [0:hv, 0:wv]
+        window_level(b, hv, wv, fx, fy, G[v0, u0], G[v0, u0 + 1], G[v0 + 1, u0], G[v0 + 1, u0 + 1],
+                     H[2 * v0 + 1, 2 * u0 + 1], (v0 + u0) % 2, tab, f, v0, u0, self._eps, self.sq[j], self.dg[j])

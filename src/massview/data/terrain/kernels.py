@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["grid_errors", "masked_grid_errors", "padded_grid_errors", "window_errors"]
+__all__ = ["grid_errors", "masked_grid_errors", "padded_grid_errors", "window_errors", "window_level"]
 
 
 
@@ -56,10 +56,16 @@ def _fold(sq_out, per_out, tab, f, v0, u0, V0, U0, iv, iu, msq, mt, mb, ml, mr):
 
 
 @_jit
-def _corners(c00, c10, c01, c11, cc, iv, iu):
-    a00, a10, a01, a11, ac = c00[iv, iu], c10[iv, iu], c01[iv, iu], c11[iv, iu], cc[iv, iu]
+def _corner_terms(a00, a10, a01, a11, ac):
+    """A lattice square's corners and mesh terms: (a00, a10, a01, a11, dx, dy, dd, et, eb, el,
+    er, dx2, dy3), float32."""
     return (a00, a10, a01, a11, a10 - a00, a01 - a00, a00 - a10 - a01 + a11, _F2 * ac - a00 - a10,
             _F2 * ac - a01 - a11, _F2 * ac - a00 - a01, _F2 * ac - a10 - a11, a11 - a01, a11 - a10)
+
+
+@_jit
+def _corners(c00, c10, c01, c11, cc, iv, iu):
+    return _corner_terms(c00[iv, iu], c10[iv, iu], c01[iv, iu], c11[iv, iu], cc[iv, iu])
 
 
 @_jit
@@ -248,6 +254,177 @@ def window_errors(b, valid, fx, fy, c00, c10, c01, c11, cc, parity, tab, f, v0, 
     k = _corners(c00, c10, c01, c11, cc, 0, 0)
     msq, mt, mb, ml, mr = _window_maxima(b, valid, 0, 0, fy, fx, parity % 2 == 0, k)
     _fold(sq_out, per_out, tab, f, v0, u0, v0 // f, u0 // f, 0, 0, msq, mt, mb, ml, mr)
+
+
+# -- issue 20, eighth round: the window levels as whole-row vectorized loops ---------------------
+# A window level's block lies inside one lattice square, so every per-square term is a scalar and
+# every row's samples are contiguous in the block. The columns each quarter triangle covers are a
+# contiguous range per row (fx is increasing, so ``y <= x`` holds on a suffix of the columns and
+# ``y <= 1 - x`` on a prefix; float32 rounding keeps 1 − x non-increasing); the ranges are found by
+# binary search with the masks' own comparisons, then one loop per mesh runs over its range with
+# no mask. A valid rectangle [0:hv, 0:wv] (padding is a suffix) restricts rows and columns, which
+# is what giving masked samples 0 did. Same float32 expressions, operands and order as
+# :func:`_window_maxima` (the per-sample terms that depend on x alone — a00 + x·dx, x·el, … — are
+# computed once per column: the same operations on the same operands).
+
+
+@_jit
+def _first_ge(X, n, t):
+    """The first c < n with X[c] >= t (n if none); X non-decreasing."""
+    lo, hi = 0, n
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if X[mid] >= t:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+@_jit
+def _count_le(X, n, t):
+    """How many c < n have X[c] <= t (a prefix); X non-decreasing."""
+    lo, hi = 0, n
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if X[mid] <= t:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@_jit
+def _first_omx_le(X, n, t):
+    """The first c < n with 1 − X[c] <= t (n if none)."""
+    lo, hi = 0, n
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if _F1 - X[mid] <= t:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+@_jit
+def _count_omx_ge(X, n, t):
+    """How many c < n have 1 − X[c] >= t (a prefix)."""
+    lo, hi = 0, n
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if _F1 - X[mid] >= t:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@_jit
+def _wrow_sq_even(M, P, X, Z, ydy, y, dd):
+    for k in range(M.shape[0]):
+        x = X[k]
+        v = abs(P[k] + ydy + min(x, y) * dd - Z[k])
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _wrow_sq_odd(M, P, X, Z, ydy, y, dd):
+    for k in range(M.shape[0]):
+        v = abs(P[k] + ydy + max(X[k] + y - _F1, _F0) * dd - Z[k])
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _wrow_add(M, A, Z, t, c0, c1):
+    """M[c] = max(M[c], |(A[c] + t) − Z[c]|) for c0 <= c < c1 (top, bottom: A[c] = a + x·d)."""
+    for k in range(np.uint64(c0), np.uint64(c1)):
+        v = abs(A[k] + t - Z[k])
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _wrow_radd(M, A, Z, t, c0, c1):
+    """M[c] = max(M[c], |(t + A[c]) − Z[c]|) for c0 <= c < c1 (left, right: t = a + y·d)."""
+    for k in range(np.uint64(c0), np.uint64(c1)):
+        v = abs(t + A[k] - Z[k])
+        o = M[k]
+        M[k] = v if v > o else o
+
+
+@_jit
+def _row_max(M):
+    a = _F0
+    for k in range(M.shape[0]):
+        v = M[k]
+        a = v if v > a else a
+    return a
+
+
+@_jit
+def _window_rows(b, hv, wv, fx, fy, even, k):
+    """:func:`_window_maxima` of the samples b[:hv, :wv] (all valid) at fractions fx[:wv],
+    fy[:hv]: the five maxima, bit for bit (tests/test_ingest_kernels.py)."""
+    a00, a10, a01, _a11, dx, dy, dd, et, eb, el, er, dx2, dy3 = k
+    n = wv
+    X = np.empty(n, np.float32)
+    P, PB = np.empty(n, np.float32), np.empty(n, np.float32)
+    XEL, OMXER = np.empty(n, np.float32), np.empty(n, np.float32)
+    for c in range(n):
+        x = fx[c]
+        X[c] = x
+        P[c] = a00 + x * dx
+        PB[c] = a01 + x * dx2
+        XEL[c] = x * el
+        OMXER[c] = (_F1 - x) * er
+    Msq, Mt, Mb = np.zeros(n, np.float32), np.zeros(n, np.float32), np.zeros(n, np.float32)
+    Ml, Mr = np.zeros(n, np.float32), np.zeros(n, np.float32)
+    for r in range(hv):
+        y = fy[r]
+        Z = b[r]  # the whole row (a C-contiguous view; the loops stop at n)
+        if even:
+            _wrow_sq_even(Msq, P, X, Z, y * dy, y, dd)
+        else:
+            _wrow_sq_odd(Msq, P, X, Z, y * dy, y, dd)
+        ge_y, le_y = _first_ge(X, n, y), _count_le(X, n, y)
+        omy = _F1 - y
+        _wrow_add(Mt, P, Z, y * et, ge_y, _count_omx_ge(X, n, y))  # top: y <= x and y <= 1 - x
+        _wrow_add(Mb, PB, Z, omy * eb, _first_omx_le(X, n, y), le_y)  # bottom: y >= x and y >= 1 - x
+        _wrow_radd(Ml, XEL, Z, a00 + y * dy, 0, min(le_y, _count_le(X, n, omy)))  # left: x <= y and x <= 1 - y
+        _wrow_radd(Mr, OMXER, Z, a10 + y * dy3, max(ge_y, _first_ge(X, n, omy)), n)  # right: x >= y and x >= 1 - y
+    return _row_max(Msq), _row_max(Mt), _row_max(Mb), _row_max(Ml), _row_max(Mr)
+
+
+@_jit
+def _fold_np(acc, V0, U0, e, eps):
+    """acc[V0 + i, U0 + j] = np.maximum(acc[…], e[i, j] + eps), NaN included (the window
+    levels' Python folds)."""
+    for i in range(e.shape[0]):
+        for j in range(e.shape[1]):
+            v, o = e[i, j] + eps, acc[V0 + i, U0 + j]
+            acc[V0 + i, U0 + j] = o if (o >= v or np.isnan(o)) else v
+
+
+@_jit
+def window_level(b, hv, wv, fx, fy, g00, g10, g01, g11, gc, parity, tab, f, v0, u0, eps, SQ, DG):
+    """One window level of :meth:`deviation.DeviationAccumulator._add_level` in one call: the
+    block's samples [0:hv, 0:wv] (the valid ones) at fractions fx, fy of the lattice square
+    (v0, u0) with corners g00, g10, g01, g11 and centre gc (float32 scalars), folded into the
+    (1, 1) and (4, 1, 1) maxima as :func:`window_errors` does, and those plus ``eps`` into SQ
+    and DG as the Python code's ``np.maximum`` did."""
+    k = _corner_terms(g00, g10, g01, g11, gc)
+    msq, mt, mb, ml, mr = _window_rows(b, hv, wv, fx, fy, parity % 2 == 0, k)
+    sq, per = np.zeros((1, 1), np.float32), np.zeros((4, 1, 1), np.float32)
+    V0, U0 = v0 // f, u0 // f
+    _fold(sq, per, tab, f, v0, u0, V0, U0, 0, 0, msq, mt, mb, ml, mr)
+    _fold_np(SQ, V0, U0, sq, eps)
+    _fold_np(DG[0], V0, U0, per[0], eps)
+    _fold_np(DG[0], V0 + 1, U0, per[1], eps)
+    _fold_np(DG[1], V0, U0, per[2], eps)
+    _fold_np(DG[1], V0, U0 + 1, per[3], eps)
 
 
 @_jit
