@@ -8,6 +8,14 @@ numpy expressions of :class:`deviation.DeviationAccumulator` perform through bro
 its results are bit-identical to them — the golden-store test (tests/test_ingest_parallel.py)
 checks this on whole stores. Maxima are exact whatever the order.
 
+Running maxima in memory are updated as ``M[k] = v if v > o else o`` with ``o = M[k] + 0``
+(issue 20, eighth round): without the ``+ 0`` LLVM turns the update into a store of v only
+where v > o, which the vectorized loops did with ``vmaskmovps`` — microcoded on AMD Zen, ~3 ns
+per 8 lanes, most of every loop's time. Adding +0.0 changes no value these arrays hold (they
+start at +0 and only ever take an ``abs``, never −0, nor NaN: ``v > o`` is false for a NaN v),
+so the maxima are the same bit for bit; LLVM may not drop the addition (it is not the identity
+for −0), so the store stays a plain one.
+
 Compilation happens once per machine (``cache=True`` writes it beside this file, or to
 ``NUMBA_CACHE_DIR``, or a user cache folder; where none is writable, once per process);
 later processes load it in well under a second. Imported only when errors are computed, so
@@ -97,13 +105,13 @@ def _fold_rows(m5, tab, f, v0, u0, V0, U0, sq_out, per_out):
             a, vm = iv >> sh, iv & mask  # (v0 + iv) // f - V0 and (v0 + iv) % f, as v0 = V0·f
             for um in range(f):
                 r0, r1, r2, r3 = tab[0, vm, um], tab[1, vm, um], tab[2, vm, um], tab[3, vm, um]
-                for bb in range(nb):
+                for bb in range(nb):  # (+ 0: plain stores, see the module docstring)
                     iu = bb * f + um
-                    sq_out[a, bb] = max(sq_out[a, bb], m5[0, iv, iu])
-                    per_out[r0, a, bb] = max(per_out[r0, a, bb], m5[1, iv, iu])
-                    per_out[r1, a, bb] = max(per_out[r1, a, bb], m5[2, iv, iu])
-                    per_out[r2, a, bb] = max(per_out[r2, a, bb], m5[3, iv, iu])
-                    per_out[r3, a, bb] = max(per_out[r3, a, bb], m5[4, iv, iu])
+                    sq_out[a, bb] = max(sq_out[a, bb] + _F0, m5[0, iv, iu])
+                    per_out[r0, a, bb] = max(per_out[r0, a, bb] + _F0, m5[1, iv, iu])
+                    per_out[r1, a, bb] = max(per_out[r1, a, bb] + _F0, m5[2, iv, iu])
+                    per_out[r2, a, bb] = max(per_out[r2, a, bb] + _F0, m5[3, iv, iu])
+                    per_out[r3, a, bb] = max(per_out[r3, a, bb] + _F0, m5[4, iv, iu])
         return
     for iv in range(nv):
         v = v0 + iv
@@ -325,7 +333,7 @@ def _wrow_sq_even(M, P, X, Z, ydy, y, dd):
     for k in range(M.shape[0]):
         x = X[k]
         v = abs(P[k] + ydy + min(x, y) * dd - Z[k])
-        o = M[k]
+        o = M[k] + _F0  # + 0: a plain store, not a masked one (module docstring)
         M[k] = v if v > o else o
 
 
@@ -333,7 +341,7 @@ def _wrow_sq_even(M, P, X, Z, ydy, y, dd):
 def _wrow_sq_odd(M, P, X, Z, ydy, y, dd):
     for k in range(M.shape[0]):
         v = abs(P[k] + ydy + max(X[k] + y - _F1, _F0) * dd - Z[k])
-        o = M[k]
+        o = M[k] + _F0  # + 0: a plain store, not a masked one (module docstring)
         M[k] = v if v > o else o
 
 
@@ -342,7 +350,7 @@ def _wrow_add(M, A, Z, t, c0, c1):
     """M[c] = max(M[c], |(A[c] + t) − Z[c]|) for c0 <= c < c1 (top, bottom: A[c] = a + x·d)."""
     for k in range(np.uint64(c0), np.uint64(c1)):
         v = abs(A[k] + t - Z[k])
-        o = M[k]
+        o = M[k] + _F0  # + 0: a plain store, not a masked one (module docstring)
         M[k] = v if v > o else o
 
 
@@ -351,7 +359,7 @@ def _wrow_radd(M, A, Z, t, c0, c1):
     """M[c] = max(M[c], |(t + A[c]) − Z[c]|) for c0 <= c < c1 (left, right: t = a + y·d)."""
     for k in range(np.uint64(c0), np.uint64(c1)):
         v = abs(t + A[k] - Z[k])
-        o = M[k]
+        o = M[k] + _F0  # + 0: a plain store, not a masked one (module docstring)
         M[k] = v if v > o else o
 
 
@@ -609,7 +617,7 @@ def _reduce(out, M, s, nq, cm):
         for c in range(1, s + 1):
             o = np.uint64(c) * n
             for k in range(o, o + n):
-                v, u = M[k], out[k - o]
+                v, u = M[k], out[k - o] + _F0  # + 0: a plain store (module docstring)
                 out[k - o] = v if v > u else u
     else:
         for iu in range(nq):
@@ -628,7 +636,7 @@ def _fold_sq(M, X, EVN, P, GY, GD, Z, y):
         x = X[k]
         wgt = min(x, y) if EVN[k] != _F0 else max(x + y - _F1, _F0)
         v = abs(P[k] + y * GY[k] + wgt * GD[k] - Z[k])
-        o = M[k]
+        o = M[k] + _F0  # + 0: a plain store, not a masked one (module docstring)
         M[k] = v if v > o else o
 
 
@@ -642,7 +650,7 @@ def _fold_q2(M, A, B, Z, t, c0, c1, s, nq, cm):
         o = np.uint64(g) * step
         for k in range(o + a, o + b):
             v = abs(A[k] + t * B[k] - Z[k])
-            u = M[k]
+            u = M[k] + _F0  # + 0: a plain store (module docstring)
             M[k] = v if v > u else u
 
 
@@ -656,7 +664,7 @@ def _fold_q3(M, A, B, C, D, Z, t, c0, c1, s, nq, cm):
         o = np.uint64(g) * step
         for k in range(o + a, o + b):
             v = abs(A[k] + t * B[k] + C[k] * D[k] - Z[k])
-            u = M[k]
+            u = M[k] + _F0  # + 0: a plain store (module docstring)
             M[k] = v if v > u else u
 
 
@@ -760,7 +768,7 @@ def _dsq(M, A, B, C, D, Z, zo, EVN, x, y, we, wo):
     for k in range(M.shape[0]):
         wgt = we if EVN[k] != _F0 else wo
         v = abs(A[k] + x * B[k] + y * C[k] + wgt * D[k] - Z[np.uint64(k) + zo])
-        o = M[k]
+        o = M[k] + _F0  # + 0: a plain store, not a masked one (module docstring)
         M[k] = v if v > o else o
 
 
@@ -769,7 +777,7 @@ def _dlin(M, A, B, C, Z, zo, p, q):
     """M[k] = max(M[k], |A + p·B + q·C − Z[zo + k]|)."""
     for k in range(M.shape[0]):
         v = abs(A[k] + p * B[k] + q * C[k] - Z[np.uint64(k) + zo])
-        o = M[k]
+        o = M[k] + _F0  # + 0: a plain store, not a masked one (module docstring)
         M[k] = v if v > o else o
 
 
