@@ -332,3 +332,30 @@ def test_window_level_matches_the_masked_row_kernel(s, parity):
             assert np.array_equal(got_sq, want_sq) and np.array_equal(got_dg, want_dg), f"pos {pos}, hv {hv}, wv {wv}"
             changed += not (np.array_equal(want_sq, SQ0) and np.array_equal(want_dg, DG0))
     assert changed > 0
+
+
+@pytest.mark.parametrize("m", [5, 8, 9])
+@pytest.mark.parametrize("s", [2, 4])
+@pytest.mark.parametrize("parity", [0, 1])
+def test_fine_maxima_match_the_per_square_reference(m, s, parity):
+    """kernels._fine_maxima (strides 2 and 4: a square's samples unrolled, its maxima in
+    registers) gives every lattice square's five maxima exactly as _grid_squares computes them
+    (with one lattice square per patch, f = 1, its folds are the maxima themselves): whole
+    blocks up to 513² (256 squares a row) and the (nv, nu) sub-grids padded blocks pass."""
+    from massview.data.terrain import kernels
+    from massview.data.terrain.deviation import _region_table
+
+    rng = np.random.default_rng(m * 10 + s + parity)
+    M, nq = 2**m + 1, 2**m // s
+    b = _terrain(rng, (M, M), scale=3000.0)
+    b[rng.random((M, M)) < 0.05] = np.float32(-2e4)  # spikes: the maxima come from single samples
+    lat, cc = b[::s, ::s], b[s // 2::s, s // 2::s]
+    corners = [np.ascontiguousarray(x) for x in (lat[:-1, :-1], lat[:-1, 1:], lat[1:, :-1], lat[1:, 1:], cc)]
+    fx = np.arange(s + 1, dtype=np.float32) / s
+    sq, per = np.zeros((nq, nq), np.float32), np.zeros((4, nq, nq), np.float32)
+    kernels._grid_squares(b, s, nq, fx, *corners, parity, _region_table(1), 1, 0, 0, 0, 0, sq, per)
+    want = np.concatenate([sq[None], per])
+    assert np.array_equal(kernels._fine_maxima(b, s, *corners, parity), want)
+    for nv, nu in ((nq - 1, nq), (3, nq - 2), (nq, 1), (1, 5)):
+        sub = [np.ascontiguousarray(x[:nv, :nu]) for x in corners]
+        assert np.array_equal(kernels._fine_maxima(b, s, *sub, parity), want[:, :nv, :nu]), (nv, nu)
