@@ -9,6 +9,7 @@ kernel with the numpy expression it replaces):
 
 * :func:`block_stats`: min, max and largest dropped-sample δ of a block
   (:func:`meta.vertex_deltas`) and the z-ranges of its patch squares (``DiamondAccumulator``);
+  :func:`row_stats` runs it over a block row's strided blocks in one call;
 * :func:`horn_row` / :func:`tent_row`: level-0 shading (Horn's slopes and the height fraction)
   and the [1 2 1]/4 mip step of :mod:`colors`, writing float16 with numpy's own rounding
   (:func:`f2h`: F16C's conversion where the CPU has it, else :func:`_half_bits`; numba has no
@@ -29,7 +30,7 @@ from numba.extending import intrinsic
 
 from .kernels import _jit
 
-__all__ = ["block_stats", "horn_row", "tent_row", "local_d2", "propagate_max", "half_lut", "to_half"]
+__all__ = ["block_stats", "row_stats", "horn_row", "tent_row", "local_d2", "propagate_max", "half_lut", "to_half"]
 
 _HALF = np.float32(0.5)
 _QUART = np.float32(0.25)
@@ -128,39 +129,65 @@ def block_stats(b, f, lo, hi):
     of the local square index), horizontal and vertical edge midpoints, as
     :func:`meta.vertex_deltas` — and, when ``f`` > 0, the min/max of every closed f × f square
     into ``lo``/``hi`` ((M-1)/f)²."""
-    M = b.shape[0]
-    mn, mx, dm = b[0, 0], b[0, 0], np.float32(0.0)
+    return _stats_at(b, 0, 0, b.shape[0], f, lo, hi, 0)
+
+
+@_jit
+def _stats_at(w, r0, c0, M, f, lo, hi, q0):
+    """:func:`block_stats` of the M × M block at (r0, c0) of ``w``; its squares go to the
+    columns q0 .. of ``lo``/``hi``. Indices into ``w`` are unsigned (a signed offset keeps
+    numba's negative-index wraparound on every read)."""
+    u = np.uint64
+    r0, c0 = u(r0), u(c0)
+    mn, mx, dm = w[r0, c0], w[r0, c0], np.float32(0.0)
     if f == 0:  # (with z-ranges, the block's min/max are theirs: every sample lies in a square)
         for r in range(M):
             for c in range(M):
-                v = b[r, c]
+                v = w[r0 + u(r), c0 + u(c)]
                 mn = min(mn, v)
                 mx = max(mx, v)
     h = (M - 1) // 2
     for i in range(h + 1):
         for j in range(h + 1):
+            y, x = r0 + u(2 * i), c0 + u(2 * j)
+            y1, y2, x1, x2 = y + u(1), y + u(2), x + u(1), x + u(2)
             if i < h and j < h:
                 if (i + j) % 2 == 0:
-                    diag = (b[2 * i, 2 * j] + b[2 * i + 2, 2 * j + 2]) * _HALF
+                    diag = (w[y, x] + w[y2, x2]) * _HALF
                 else:
-                    diag = (b[2 * i, 2 * j + 2] + b[2 * i + 2, 2 * j]) * _HALF
-                dm = max(dm, abs(b[2 * i + 1, 2 * j + 1] - diag))
+                    diag = (w[y, x2] + w[y2, x]) * _HALF
+                dm = max(dm, abs(w[y1, x1] - diag))
             if j < h:
-                dm = max(dm, abs(b[2 * i, 2 * j + 1] - (b[2 * i, 2 * j] + b[2 * i, 2 * j + 2]) * _HALF))
+                dm = max(dm, abs(w[y, x1] - (w[y, x] + w[y, x2]) * _HALF))
             if i < h:
-                dm = max(dm, abs(b[2 * i + 1, 2 * j] - (b[2 * i, 2 * j] + b[2 * i + 2, 2 * j]) * _HALF))
+                dm = max(dm, abs(w[y1, x] - (w[y, x] + w[y2, x]) * _HALF))
     if f > 0:
         n = (M - 1) // f
         for a in range(n):
             for q in range(n):
-                zl, zh = b[a * f, q * f], b[a * f, q * f]
-                for r in range(a * f, a * f + f + 1):
-                    for c in range(q * f, q * f + f + 1):
-                        zl = min(zl, b[r, c])
-                        zh = max(zh, b[r, c])
-                lo[a, q], hi[a, q] = zl, zh
+                ya, xq = r0 + u(a * f), c0 + u(q * f)
+                zl, zh = w[ya, xq], w[ya, xq]
+                for r in range(f + 1):
+                    for c in range(f + 1):
+                        v = w[ya + u(r), xq + u(c)]
+                        zl = min(zl, v)
+                        zh = max(zh, v)
+                lo[a, q0 + q], hi[a, q0 + q] = zl, zh
                 mn, mx = min(mn, zl), max(mx, zh)
     return mn, mx, dm
+
+
+@_jit
+def row_stats(w, nb, M, dr, dc, f, lo, hi, mm, dm):
+    """:func:`block_stats` of the ``nb`` M × M blocks of a block row, block j at (j·dr, j·dc)
+    of the 2-D array ``w`` (a wide row (M, nb·(M-1)+1): dr = 0, dc = M-1; blocks stacked
+    (nb·M, M): dr = M, dc = 0), read in place: (min, max) into ``mm[j]``, δ into ``dm[j]`` and,
+    when ``f`` > 0, block j's square z-ranges into the columns j·n .. j·n+n-1 of ``lo``/``hi``
+    (n, nb·n), n = (M-1)/f."""
+    n = (M - 1) // f if f > 0 else 0
+    for j in range(nb):
+        mn, mx, d = _stats_at(w, j * dr, j * dc, M, f, lo, hi, j * n)
+        mm[j, 0], mm[j, 1], dm[j] = mn, mx, d
 
 
 @_jit
