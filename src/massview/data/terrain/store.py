@@ -120,14 +120,10 @@ class ChunkWriter:
         self._rows: set = set()
         self._root_made = False
         self._lock = threading.Lock()
-        self._local = threading.local()  # each thread's block buffer
 
     def write(self, i: int, j0: int, blocks: np.ndarray) -> None:
         """Blocks (n, M, M[, 3]) into chunks (i, j0 .. j0+n-1). The chunk row's folder is made
-        once (under :func:`make_chunk_root`) and opened once a call; each chunk's file is
-        written by :func:`write_chunk_file` relative to it. Each block is copied into this
-        thread's reused buffer (little-endian, C order: the bytes zarr encodes) and encoded
-        from there."""
+        once (under :func:`make_chunk_root`); each chunk's file by :func:`write_chunk_file`."""
         row = os.path.join(str(self.root), str(i))
         if i not in self._rows:
             with self._lock:
@@ -136,17 +132,9 @@ class ChunkWriter:
                     self._root_made = True
             os.makedirs(row, exist_ok=True)
             self._rows.add(i)
-        buf = getattr(self._local, "buf", None)
-        if buf is None or buf.shape != blocks.shape[1:]:
-            buf = self._local.buf = np.empty(blocks.shape[1:], self.dtype)
-            self._local.raw = buf.reshape(-1).view(np.uint8)
-        raw, fd = self._local.raw, os.open(row, os.O_RDONLY | os.O_DIRECTORY)
-        try:
-            for k in range(blocks.shape[0]):
-                np.copyto(buf, blocks[k], casting="unsafe")
-                write_chunk_file(str(j0 + k), self.tail, self.blosc.encode(raw), fd)
-        finally:
-            os.close(fd)
+        for k in range(blocks.shape[0]):
+            data = self.blosc.encode(np.ascontiguousarray(blocks[k], self.dtype).reshape(-1).view(np.uint8))
+            write_chunk_file(os.path.join(row, str(j0 + k)), self.tail, data)
 
 
 _FS_IOC_GETFLAGS, _FS_IOC_SETFLAGS, _FS_TOPDIR_FL = 0x80086601, 0x40086602, 0x00020000  # <linux/fs.h>
@@ -181,28 +169,18 @@ def make_chunk_root(root: str) -> bool:
         os.close(fd)
 
 
-_CREATE = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0)  # what open(path, "wb") passes
-
-
-def write_chunk_file(d: str, tail: list, data, dir_fd: int | None = None) -> None:
-    """Write one chunk's encoded bytes at ``d/<tail...>`` (relative to the folder open as
-    ``dir_fd`` when given): its own folders (``i/j``, ``i/j/0`` …) with one ``mkdir`` each,
-    parents first (``Path.mkdir(parents=True)`` tried the deepest first: 3–5 calls, two
-    failing), then ``open``, ``write`` and ``close`` — the calls only (``open(path, "wb")``
-    added an ``fstat``, an ``ioctl`` and an ``lseek`` per file)."""
+def write_chunk_file(d: str, tail: list, data) -> None:
+    """Write one chunk's encoded bytes at ``d/<tail...>``: its own folders (``i/j``, ``i/j/0`` …)
+    with one ``mkdir`` each, parents first (``Path.mkdir(parents=True)`` tried the deepest
+    first: 3–5 calls, two failing), then ``open``, one ``write``, ``close``."""
     for name in tail:
         try:
-            os.mkdir(d, dir_fd=dir_fd)
+            os.mkdir(d)
         except FileExistsError:  # (a resumed run, or a rewritten chunk)
             pass
         d = os.path.join(d, name)
-    fd = os.open(d, _CREATE, 0o666, dir_fd=dir_fd)
-    try:
-        view = memoryview(data).cast("B")
-        while view.nbytes:
-            view = view[os.write(fd, view):]
-    finally:
-        os.close(fd)
+    with open(d, "wb") as fh:
+        fh.write(data)
 
 
 def block_view(wide: np.ndarray, nb: int, M: int) -> np.ndarray:
@@ -314,9 +292,10 @@ class TerrainStore:
     def _direct_row(self, level: int, i: int, out: np.ndarray | None = None) -> np.ndarray | None:
         """Block row ``i`` decoded straight from its chunk files with the array's blosc codec
         (the inverse of :class:`ChunkWriter`: the same decoded values as zarr's read, without its
-        per-chunk event-loop round trip), or None when any chunk is missing, does not decode to a
-        whole block, or the codecs are not bytes + blosc — the caller then reads through zarr,
-        which names the bad block."""
+        per-chunk event-loop round trip; each file opened relative to the row's folder and read
+        with one call), or None when any chunk is missing, longer than a block's chunk can be,
+        does not decode to a whole block, or the codecs are not bytes + blosc — the caller then
+        reads through zarr, which names the bad block."""
         if self._blosc is None:
             from zarr.codecs import BloscCodec, BytesCodec
 
@@ -328,14 +307,26 @@ class TerrainStore:
         M, nb = self.layout.M, self.layout.blocks(level)
         if out is None or out.shape != (nb, M, M) or out.dtype != np.dtype("<f4") or not out.flags.c_contiguous:
             out = np.empty((nb, M, M), "<f4")
+        cap = out[0].nbytes + 16  # the largest a chunk of a block can be (blosc's 16-byte header, data stored uncompressed)
+        tail = "/0" * (self._heights[level].ndim - 2)
+        try:
+            row = os.open(os.path.join(self.path, "heights", str(level), "c", str(i)), os.O_RDONLY | os.O_DIRECTORY)
+        except OSError:
+            return None
         try:
             for j in range(nb):
-                data = self.chunk_path(level, i, j).read_bytes()
-                if len(data) < 16 or int.from_bytes(data[4:8], "little") != out[j].nbytes:  # blosc header: nbytes
+                fd = os.open(f"{j}{tail}", os.O_RDONLY | getattr(os, "O_CLOEXEC", 0), dir_fd=row)
+                try:
+                    data = os.read(fd, cap + 1)
+                finally:
+                    os.close(fd)
+                if not 16 <= len(data) <= cap or int.from_bytes(data[4:8], "little") != out[j].nbytes:  # blosc header: nbytes
                     return None
                 self._blosc.decode(data, out=out[j].reshape(-1).view(np.uint8))
         except (OSError, RuntimeError, ValueError, TypeError):  # missing, damaged or wrong-sized chunk
             return None
+        finally:
+            os.close(row)
         return out
 
     def get_color(self, level: int, i: int, j: int) -> np.ndarray | None:
