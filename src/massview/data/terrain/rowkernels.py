@@ -30,7 +30,7 @@ from numba.extending import intrinsic
 
 from .kernels import _jit
 
-__all__ = ["block_stats", "row_stats", "horn_row", "tent_row", "local_d2", "propagate_max", "half_lut", "to_half"]
+__all__ = ["block_stats", "row_stats", "horn_row", "tent_row", "local_d2", "propagate_max", "half_lut", "to_half", "from_half", "h2f"]
 
 _HALF = np.float32(0.5)
 _QUART = np.float32(0.25)
@@ -103,6 +103,35 @@ def _f32_bits(typingctx, x):
     def codegen(context, builder, signature, args):
         return builder.bitcast(args[0], ir.IntType(32))
     return types.uint32(types.float32), codegen
+
+
+@intrinsic
+def _h2f_bits(typingctx, x):
+    """float16 bits → float32 by LLVM's ``fpext`` (exact; F16C's ``vcvtph2ps`` where the CPU
+    has it, vectorized)."""
+    if x != types.uint16:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
+    return types.float32(types.uint16), codegen
+
+
+@_jit
+def h2f(bits, lut):
+    """float16 bits (uint16) → float32, exactly: by the hardware where the CPU has F16C, else
+    from ``lut`` (:func:`half_lut`)."""
+    if _F16C:
+        return _h2f_bits(bits)
+    return lut[bits]
+
+
+@_jit
+def from_half(src, lut, dst):
+    """float16 bits (uint16) array → float32, element by element, by :func:`h2f`."""
+    s, d = src.ravel(), dst.ravel()
+    for k in range(s.shape[0]):
+        d[k] = h2f(s[k], lut)
 
 
 @_jit
@@ -268,10 +297,20 @@ def _padded_row(above, m0, m1, below, p):
 @_jit
 def _vtent(g0, g1, g2, lut, v):
     """v[k] = the [1 2 1]/4 tent of lut[g0[k]], lut[g1[k]], lut[g2[k]] (three rows' float16
-    bits, flattened): :func:`tent_row`'s vertical step for every column and channel once (it
-    took the odd columns twice)."""
+    bits, flattened, converted by :func:`h2f`): :func:`tent_row`'s vertical step for every
+    column and channel once (it took the odd columns twice)."""
     for k in range(v.shape[0]):
-        v[k] = _tent3(lut[g0[k]], lut[g1[k]], lut[g2[k]])
+        v[k] = _tent3(h2f(g0[k], lut), h2f(g1[k], lut), h2f(g2[k], lut))
+
+
+@_jit
+def _htent_inner(v, o_r):
+    """:func:`tent_row`'s horizontal step for the output columns 1 .. Wo-2 (no clamping)."""
+    for o in range(1, o_r.shape[0] - 1):
+        x = 2 * o
+        o_r[o, 0] = f2h(_tent3(v[x - 1, 0], v[x, 0], v[x + 1, 0]))
+        o_r[o, 1] = f2h(_tent3(v[x - 1, 1], v[x, 1], v[x + 1, 1]))
+        o_r[o, 2] = f2h(_tent3(v[x - 1, 2], v[x, 2], v[x + 1, 2]))
 
 
 @_jit
@@ -290,10 +329,11 @@ def tent_row(above, m0, m1, below, lut, out):
         g2 = _padded_row(above, m0, m1, below, 2 * r + 2)
         _vtent(g0.reshape(-1), g1.reshape(-1), g2.reshape(-1), lut, v.reshape(-1))  # every column's vertical tent once
         o_r = out[r]
-        for o in range(Wo):
+        for o in (0, Wo - 1):  # the border columns, clamped (edge replication); the rest unclamped
             xl, xc, xr = max(2 * o - 1, 0), 2 * o, min(2 * o + 1, W - 1)
             for ch in range(3):
                 o_r[o, ch] = f2h(_tent3(v[xl, ch], v[xc, ch], v[xr, ch]))
+        _htent_inner(v, o_r)
 
 
 @_jit
