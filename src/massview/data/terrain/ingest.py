@@ -67,6 +67,7 @@ __all__ = ["prepare_terrain", "PrepareResult", "fill_nodata", "compute_metadata"
 
 Progress = Callable[[str, int, int], None]  # (phase, advance, phase_total)
 _FILL_MARGIN = 32
+_FLAG_EVERY = 1.0  # seconds between writes of the pyramid pass's done flags (each a zarr round trip)
 
 
 @dataclass
@@ -269,13 +270,15 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
     needs the row above it), and every coarser level's block row is decimated here, in memory,
     as soon as its two finer rows exist (every other sample of both: what decimating their
     2 × 2 child blocks gives); worker threads compress and write the rows, and a block row is
-    flagged done, in order, only once its chunks are on disk. Rows done in an earlier run are
+    flagged done, in order, only once its chunks are on disk (the flags of the rows finished
+    since the last write are written together, at most every ``_FLAG_EVERY`` seconds, and when
+    the pass ends or is interrupted). Rows done in an earlier run are
     read back (level 0) or re-made (coarser levels) to feed the levels above, not rewritten.
     ``edges`` receives grid rows 1 and M-2 of every level-0 block row (for the shading pass)."""
     M, nlev = lay.M, lay.levels
     build, table = builders  # MetadataBuilder, roettger.TableBuilder: fed every row on the workers
     dones = [g[f"blocks/{lv}/done"] for lv in range(nlev)]
-    flags = [np.asarray(d[...]) for d in dones]
+    flags = [np.array(d[...]) for d in dones]  # (updated as rows finish; written by flush)
     heights0 = g["heights/0"]
     writers = [ChunkWriter(g, f"heights/{lv}") for lv in range(nlev)]
     state = {"filled": int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0}
@@ -308,18 +311,30 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
             if lv + 1 < nlev:
                 waiting[lv] = wide
 
+    unflagged, last = set(), [time.perf_counter()]  # levels with rows on disk not yet flagged done; last flush
+
+    def flush() -> None:  # each such level's done flags in one write, then the filled count of the rows flagged
+        for lv in sorted(unflagged):
+            dones[lv][...] = flags[lv]
+        if 0 in unflagged:
+            g.attrs["nodata"] = {**g.attrs["nodata"], "filled": state["filled"]}
+        unflagged.clear()
+        last[0] = time.perf_counter()
+
     def done(res) -> None:
         lv, i, wrote, nfill = res
         if wrote:
-            dones[lv][i, :] = 1
-        if wrote and lv == 0:
-            state["filled"] += nfill
-            nod = dict(g.attrs["nodata"])
-            nod["filled"] = state["filled"]
-            g.attrs["nodata"] = nod
+            flags[lv][i, :] = 1
+            unflagged.add(lv)
+            state["filled"] += nfill if lv == 0 else 0
+        if time.perf_counter() - last[0] >= _FLAG_EVERY:
+            flush()
         prog(f"level {lv}", lay.blocks(lv), lay.blocks(lv) ** 2)
 
-    run_ordered(workers, tasks(), done)
+    try:
+        run_ordered(workers, tasks(), done)
+    finally:  # (also when interrupted: every row handed to ``done`` is on disk)
+        flush()
     if state["filled"] >= src.rows * src.cols:  # (a fresh run fails in the first strip already; this catches resumed ones)
         _first_valid_row(src, src.rows)
     return state["filled"]

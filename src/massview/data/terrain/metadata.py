@@ -43,22 +43,37 @@ class Metadata:
 
 def _row_stats(row: np.ndarray, zacc: DiamondAccumulator | None = None, i: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(nb, 2) min/max and (nb,) max dropped-sample δ (:func:`meta.vertex_deltas`) of a block
-    row (nb, M, M); with ``zacc`` (level 0) also the z-ranges of its squares, all in one
-    compiled pass per block (:func:`rowkernels.block_stats`)."""
-    from .rowkernels import block_stats
+    row (nb, M, M); with ``zacc`` (level 0) also the z-ranges of its squares, folded in as
+    :meth:`DiamondAccumulator.put_zrange` folds a block's (the same ``np.minimum``/``np.maximum``,
+    once for the row's band); all in one compiled call (:func:`rowkernels.row_stats`) on the
+    blocks in place: a C-contiguous row, or the blocks :func:`store.block_view` cuts from a
+    C-contiguous float32 wide row (anything else is copied first)."""
+    from .rowkernels import row_stats
 
     nb, M = row.shape[0], row.shape[1]
     f = 2**zacc.lay.k if zacc is not None else 0
     n = (M - 1) // f if f else 0
-    mm = np.empty((nb, 2), np.float32)
-    dm = np.empty(nb, np.float32)
-    for j in range(nb):
-        lo, hi = np.empty((n, n), np.float32), np.empty((n, n), np.float32)
-        mn, mx, d = block_stats(np.ascontiguousarray(row[j], np.float32), f, lo, hi)
-        mm[j], dm[j] = (mn, mx), d
-        if zacc is not None:
-            zacc.put_zrange(i, j, lo, hi)
+    mm, dm = np.empty((nb, 2), np.float32), np.empty(nb, np.float32)
+    lo, hi = np.empty((n, nb * n), np.float32), np.empty((n, nb * n), np.float32)
+    row_stats(*_stats_base(row), f, lo, hi, mm, dm)
+    if zacc is not None:
+        J, sl = zacc.lay.J, (slice(i * n, i * n + n), slice(0, nb * n))
+        zacc.zmin[J][sl] = np.minimum(zacc.zmin[J][sl], lo)
+        zacc.zmax[J][sl] = np.maximum(zacc.zmax[J][sl], hi)
     return mm, dm
+
+
+def _stats_base(row: np.ndarray) -> tuple:
+    """(w, nb, M, dr, dc) of :func:`rowkernels.row_stats` for a block row (nb, M, M): the wide
+    row a :func:`store.block_view` of a C-contiguous float32 wide row was cut from (a view of
+    the same memory), else the row's blocks stacked (C-contiguous float32, copied if need be)."""
+    nb, M = row.shape[0], row.shape[1]
+    s0, s1, s2 = row.strides
+    if row.dtype == np.float32 and s2 == 4 and s0 == (M - 1) * 4 and s1 == (nb * (M - 1) + 1) * 4:
+        w = np.lib.stride_tricks.as_strided(row, (M, nb * (M - 1) + 1), (s1, 4), writeable=False)
+        return w, nb, M, 0, M - 1
+    blocks = np.ascontiguousarray(row, np.float32)
+    return blocks.reshape(nb * M, M), nb, M, M, 0
 
 
 class MetadataBuilder:

@@ -9,6 +9,7 @@ kernel with the numpy expression it replaces):
 
 * :func:`block_stats`: min, max and largest dropped-sample δ of a block
   (:func:`meta.vertex_deltas`) and the z-ranges of its patch squares (``DiamondAccumulator``);
+  :func:`row_stats` runs it over a block row's strided blocks in one call;
 * :func:`horn_row` / :func:`tent_row`: level-0 shading (Horn's slopes and the height fraction)
   and the [1 2 1]/4 mip step of :mod:`colors`, writing float16 with numpy's own rounding
   (:func:`f2h`: F16C's conversion where the CPU has it, else :func:`_half_bits`; numba has no
@@ -29,7 +30,7 @@ from numba.extending import intrinsic
 
 from .kernels import _jit
 
-__all__ = ["block_stats", "horn_row", "tent_row", "local_d2", "propagate_max", "half_lut", "to_half"]
+__all__ = ["block_stats", "row_stats", "horn_row", "tent_row", "local_d2", "propagate_max", "half_lut", "to_half", "from_half", "h2f"]
 
 _HALF = np.float32(0.5)
 _QUART = np.float32(0.25)
@@ -104,6 +105,35 @@ def _f32_bits(typingctx, x):
     return types.uint32(types.float32), codegen
 
 
+@intrinsic
+def _h2f_bits(typingctx, x):
+    """float16 bits → float32 by LLVM's ``fpext`` (exact; F16C's ``vcvtph2ps`` where the CPU
+    has it, vectorized)."""
+    if x != types.uint16:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
+    return types.float32(types.uint16), codegen
+
+
+@_jit
+def h2f(bits, lut):
+    """float16 bits (uint16) → float32, exactly: by the hardware where the CPU has F16C, else
+    from ``lut`` (:func:`half_lut`)."""
+    if _F16C:
+        return _h2f_bits(bits)
+    return lut[bits]
+
+
+@_jit
+def from_half(src, lut, dst):
+    """float16 bits (uint16) array → float32, element by element, by :func:`h2f`."""
+    s, d = src.ravel(), dst.ravel()
+    for k in range(s.shape[0]):
+        d[k] = h2f(s[k], lut)
+
+
 @_jit
 def f2h(v):
     """float32 → float16 bits (uint16) with numpy's rounding: by the hardware where the CPU
@@ -128,39 +158,65 @@ def block_stats(b, f, lo, hi):
     of the local square index), horizontal and vertical edge midpoints, as
     :func:`meta.vertex_deltas` — and, when ``f`` > 0, the min/max of every closed f × f square
     into ``lo``/``hi`` ((M-1)/f)²."""
-    M = b.shape[0]
-    mn, mx, dm = b[0, 0], b[0, 0], np.float32(0.0)
+    return _stats_at(b, 0, 0, b.shape[0], f, lo, hi, 0)
+
+
+@_jit
+def _stats_at(w, r0, c0, M, f, lo, hi, q0):
+    """:func:`block_stats` of the M × M block at (r0, c0) of ``w``; its squares go to the
+    columns q0 .. of ``lo``/``hi``. Indices into ``w`` are unsigned (a signed offset keeps
+    numba's negative-index wraparound on every read)."""
+    u = np.uint64
+    r0, c0 = u(r0), u(c0)
+    mn, mx, dm = w[r0, c0], w[r0, c0], np.float32(0.0)
     if f == 0:  # (with z-ranges, the block's min/max are theirs: every sample lies in a square)
         for r in range(M):
             for c in range(M):
-                v = b[r, c]
+                v = w[r0 + u(r), c0 + u(c)]
                 mn = min(mn, v)
                 mx = max(mx, v)
     h = (M - 1) // 2
     for i in range(h + 1):
         for j in range(h + 1):
+            y, x = r0 + u(2 * i), c0 + u(2 * j)
+            y1, y2, x1, x2 = y + u(1), y + u(2), x + u(1), x + u(2)
             if i < h and j < h:
                 if (i + j) % 2 == 0:
-                    diag = (b[2 * i, 2 * j] + b[2 * i + 2, 2 * j + 2]) * _HALF
+                    diag = (w[y, x] + w[y2, x2]) * _HALF
                 else:
-                    diag = (b[2 * i, 2 * j + 2] + b[2 * i + 2, 2 * j]) * _HALF
-                dm = max(dm, abs(b[2 * i + 1, 2 * j + 1] - diag))
+                    diag = (w[y, x2] + w[y2, x]) * _HALF
+                dm = max(dm, abs(w[y1, x1] - diag))
             if j < h:
-                dm = max(dm, abs(b[2 * i, 2 * j + 1] - (b[2 * i, 2 * j] + b[2 * i, 2 * j + 2]) * _HALF))
+                dm = max(dm, abs(w[y, x1] - (w[y, x] + w[y, x2]) * _HALF))
             if i < h:
-                dm = max(dm, abs(b[2 * i + 1, 2 * j] - (b[2 * i, 2 * j] + b[2 * i + 2, 2 * j]) * _HALF))
+                dm = max(dm, abs(w[y1, x] - (w[y, x] + w[y2, x]) * _HALF))
     if f > 0:
         n = (M - 1) // f
         for a in range(n):
             for q in range(n):
-                zl, zh = b[a * f, q * f], b[a * f, q * f]
-                for r in range(a * f, a * f + f + 1):
-                    for c in range(q * f, q * f + f + 1):
-                        zl = min(zl, b[r, c])
-                        zh = max(zh, b[r, c])
-                lo[a, q], hi[a, q] = zl, zh
+                ya, xq = r0 + u(a * f), c0 + u(q * f)
+                zl, zh = w[ya, xq], w[ya, xq]
+                for r in range(f + 1):
+                    for c in range(f + 1):
+                        v = w[ya + u(r), xq + u(c)]
+                        zl = min(zl, v)
+                        zh = max(zh, v)
+                lo[a, q0 + q], hi[a, q0 + q] = zl, zh
                 mn, mx = min(mn, zl), max(mx, zh)
     return mn, mx, dm
+
+
+@_jit
+def row_stats(w, nb, M, dr, dc, f, lo, hi, mm, dm):
+    """:func:`block_stats` of the ``nb`` M × M blocks of a block row, block j at (j·dr, j·dc)
+    of the 2-D array ``w`` (a wide row (M, nb·(M-1)+1): dr = 0, dc = M-1; blocks stacked
+    (nb·M, M): dr = M, dc = 0), read in place: (min, max) into ``mm[j]``, δ into ``dm[j]`` and,
+    when ``f`` > 0, block j's square z-ranges into the columns j·n .. j·n+n-1 of ``lo``/``hi``
+    (n, nb·n), n = (M-1)/f."""
+    n = (M - 1) // f if f > 0 else 0
+    for j in range(nb):
+        mn, mx, d = _stats_at(w, j * dr, j * dc, M, f, lo, hi, j * n)
+        mm[j, 0], mm[j, 1], dm[j] = mn, mx, d
 
 
 @_jit
@@ -241,10 +297,20 @@ def _padded_row(above, m0, m1, below, p):
 @_jit
 def _vtent(g0, g1, g2, lut, v):
     """v[k] = the [1 2 1]/4 tent of lut[g0[k]], lut[g1[k]], lut[g2[k]] (three rows' float16
-    bits, flattened): :func:`tent_row`'s vertical step for every column and channel once (it
-    took the odd columns twice)."""
+    bits, flattened, converted by :func:`h2f`): :func:`tent_row`'s vertical step for every
+    column and channel once (it took the odd columns twice)."""
     for k in range(v.shape[0]):
-        v[k] = _tent3(lut[g0[k]], lut[g1[k]], lut[g2[k]])
+        v[k] = _tent3(h2f(g0[k], lut), h2f(g1[k], lut), h2f(g2[k], lut))
+
+
+@_jit
+def _htent_inner(v, o_r):
+    """:func:`tent_row`'s horizontal step for the output columns 1 .. Wo-2 (no clamping)."""
+    for o in range(1, o_r.shape[0] - 1):
+        x = 2 * o
+        o_r[o, 0] = f2h(_tent3(v[x - 1, 0], v[x, 0], v[x + 1, 0]))
+        o_r[o, 1] = f2h(_tent3(v[x - 1, 1], v[x, 1], v[x + 1, 1]))
+        o_r[o, 2] = f2h(_tent3(v[x - 1, 2], v[x, 2], v[x + 1, 2]))
 
 
 @_jit
@@ -263,10 +329,11 @@ def tent_row(above, m0, m1, below, lut, out):
         g2 = _padded_row(above, m0, m1, below, 2 * r + 2)
         _vtent(g0.reshape(-1), g1.reshape(-1), g2.reshape(-1), lut, v.reshape(-1))  # every column's vertical tent once
         o_r = out[r]
-        for o in range(Wo):
+        for o in (0, Wo - 1):  # the border columns, clamped (edge replication); the rest unclamped
             xl, xc, xr = max(2 * o - 1, 0), 2 * o, min(2 * o + 1, W - 1)
             for ch in range(3):
                 o_r[o, ch] = f2h(_tent3(v[xl, ch], v[xc, ch], v[xr, ch]))
+        _htent_inner(v, o_r)
 
 
 @_jit

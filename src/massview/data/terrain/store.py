@@ -292,9 +292,10 @@ class TerrainStore:
     def _direct_row(self, level: int, i: int, out: np.ndarray | None = None) -> np.ndarray | None:
         """Block row ``i`` decoded straight from its chunk files with the array's blosc codec
         (the inverse of :class:`ChunkWriter`: the same decoded values as zarr's read, without its
-        per-chunk event-loop round trip), or None when any chunk is missing, does not decode to a
-        whole block, or the codecs are not bytes + blosc — the caller then reads through zarr,
-        which names the bad block."""
+        per-chunk event-loop round trip; each file opened relative to the row's folder and read
+        with one call), or None when any chunk is missing, longer than a block's chunk can be,
+        does not decode to a whole block, or the codecs are not bytes + blosc — the caller then
+        reads through zarr, which names the bad block."""
         if self._blosc is None:
             from zarr.codecs import BloscCodec, BytesCodec
 
@@ -306,14 +307,26 @@ class TerrainStore:
         M, nb = self.layout.M, self.layout.blocks(level)
         if out is None or out.shape != (nb, M, M) or out.dtype != np.dtype("<f4") or not out.flags.c_contiguous:
             out = np.empty((nb, M, M), "<f4")
+        cap = out[0].nbytes + 16  # the largest a chunk of a block can be (blosc's 16-byte header, data stored uncompressed)
+        tail = "/0" * (self._heights[level].ndim - 2)
+        try:
+            row = os.open(os.path.join(self.path, "heights", str(level), "c", str(i)), os.O_RDONLY | os.O_DIRECTORY)
+        except OSError:
+            return None
         try:
             for j in range(nb):
-                data = self.chunk_path(level, i, j).read_bytes()
-                if len(data) < 16 or int.from_bytes(data[4:8], "little") != out[j].nbytes:  # blosc header: nbytes
+                fd = os.open(f"{j}{tail}", os.O_RDONLY | getattr(os, "O_CLOEXEC", 0), dir_fd=row)
+                try:
+                    data = os.read(fd, cap + 1)
+                finally:
+                    os.close(fd)
+                if not 16 <= len(data) <= cap or int.from_bytes(data[4:8], "little") != out[j].nbytes:  # blosc header: nbytes
                     return None
                 self._blosc.decode(data, out=out[j].reshape(-1).view(np.uint8))
         except (OSError, RuntimeError, ValueError, TypeError):  # missing, damaged or wrong-sized chunk
             return None
+        finally:
+            os.close(row)
         return out
 
     def get_color(self, level: int, i: int, j: int) -> np.ndarray | None:
