@@ -134,7 +134,7 @@ def _grid_inputs(b, s, f, bi, bj, m):
 @pytest.mark.parametrize("m,f", [(8, 16), (6, 4), (5, 32)])
 @pytest.mark.parametrize("bi,bj", [(0, 0), (3, 2), (1, 6)])
 def test_grid_errors_match_the_per_square_reference(m, f, bi, bj):
-    from massview.data.terrain import kernels
+    from massview.data.terrain import kernels, refkernels
 
     rng = np.random.default_rng(m * 100 + bi * 10 + bj)
     M = 2**m + 1
@@ -142,7 +142,7 @@ def test_grid_errors_match_the_per_square_reference(m, f, bi, bj):
     b[rng.random((M, M)) < 0.05] = np.float32(1e4)  # spikes: the maxima come from single samples
     for l in range(1, m + 1):
         want, got = _grid_inputs(b, 2**l, f, bi, bj, m), _grid_inputs(b, 2**l, f, bi, bj, m)
-        kernels._grid_squares(*want)
+        refkernels._grid_squares(*want)
         kernels.grid_errors(*got)
         assert np.array_equal(got[-2], want[-2]) and np.array_equal(got[-1], want[-1]), f"stride {2**l}"
 
@@ -150,10 +150,10 @@ def test_grid_errors_match_the_per_square_reference(m, f, bi, bj):
 @pytest.mark.parametrize("m,f", [(8, 16), (5, 4)])
 @pytest.mark.parametrize("cm", [True, False])
 def test_both_row_layouts_match_the_per_square_reference(m, f, cm):
-    """kernels._lattice_maxima in either layout (c-major, square-major) at every stride, not
+    """latticekernels._lattice_maxima in either layout (c-major, square-major) at every stride, not
     only the one grid_errors picks, folds to _grid_squares' maxima bit for bit; and
-    kernels._direct_maxima gives the same maxima at every stride."""
-    from massview.data.terrain import kernels
+    latticekernels._direct_maxima gives the same maxima at every stride."""
+    from massview.data.terrain import kernels, latticekernels, refkernels
 
     rng = np.random.default_rng(m * 10 + f + cm)
     M = 2**m + 1
@@ -161,12 +161,12 @@ def test_both_row_layouts_match_the_per_square_reference(m, f, cm):
     b[rng.random((M, M)) < 0.05] = np.float32(-2e4)  # spikes below
     for l in range(1, m + 1):
         want, got = _grid_inputs(b, 2**l, f, 1, 2, m), _grid_inputs(b, 2**l, f, 1, 2, m)
-        kernels._grid_squares(*want)
+        refkernels._grid_squares(*want)
         s, nq, fx, c00, c10, c01, c11, cc, parity, tab, f_, v0, u0, V0, U0 = got[1:-2]
-        m5 = kernels._lattice_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity, cm)
+        m5 = latticekernels._lattice_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity, cm)
         kernels._fold_rows(m5, tab, f_, v0, u0, V0, U0, got[-2], got[-1])
         assert np.array_equal(got[-2], want[-2]) and np.array_equal(got[-1], want[-1]), f"stride {2**l}"
-        direct = kernels._direct_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity)
+        direct = latticekernels._direct_maxima(b, s, nq, fx, c00, c10, c01, c11, cc, parity)
         assert np.array_equal(direct, m5), f"_direct_maxima, stride {2**l}"
 
 
@@ -174,7 +174,7 @@ def test_both_row_layouts_match_the_per_square_reference(m, f, cm):
 def test_grid_level_is_the_python_fold_of_grid_errors(m, f, masked):
     """kernels.grid_level (corners, kernel and eps folds in one call) leaves the accumulators
     as grid_error_args + grid_errors / masked_grid_errors + np.maximum(sl, e + eps) did."""
-    from massview.data.terrain import kernels
+    from massview.data.terrain import kernels, refkernels
     from massview.data.terrain.deviation import _region_table, grid_error_args
 
     rng = np.random.default_rng(m + f + masked)
@@ -192,7 +192,7 @@ def test_grid_level_is_the_python_fold_of_grid_errors(m, f, masked):
         args, n = grid_error_args(b, s, m, f, bi, bj, tab)
         sq, per = np.zeros((n, n), np.float32), np.zeros((4, n, n), np.float32)
         if masked:
-            kernels.masked_grid_errors(b, valid, *args, sq, per)
+            refkernels.masked_grid_errors(b, valid, *args, sq, per)
         else:
             kernels.grid_errors(b, *args, sq, per)
         V0, U0 = args[-2], args[-1]
@@ -207,9 +207,9 @@ def test_grid_level_is_the_python_fold_of_grid_errors(m, f, masked):
 
 @pytest.mark.parametrize("s,off,masked,parity", [(512, 0, False, 0), (512, 256, True, 1), (1024, 768, False, 1), (2048, 512, True, 0)])
 def test_window_errors_match_the_per_sample_masked_loop(s, off, masked, parity):
-    """kernels.window_errors (a row at a time, vectorized) gives _masked_maxima's maxima (the
+    """refkernels.window_errors (a row at a time, vectorized) gives _masked_maxima's maxima (the
     per-sample loop with masks it replaced), folded the same way, bit for bit."""
-    from massview.data.terrain import kernels
+    from massview.data.terrain import kernelbase, refkernels, windowkernels
     from massview.data.terrain.deviation import _region_table
 
     rng = np.random.default_rng(s + off + masked)
@@ -226,10 +226,10 @@ def test_window_errors_match_the_per_sample_masked_loop(s, off, masked, parity):
     tab, f, v0, u0 = _region_table(16), 16, 5, 9
     want = np.zeros((1, 1), np.float32), np.zeros((4, 1, 1), np.float32)
     got = np.zeros((1, 1), np.float32), np.zeros((4, 1, 1), np.float32)
-    k = kernels._corners(*corners, 0, 0)
-    m5 = kernels._masked_maxima(b, valid, 0, 0, fy, fx, parity % 2 == 0, k)
-    kernels._fold(*want, tab, f, v0, u0, v0 // f, u0 // f, 0, 0, *m5)
-    kernels.window_errors(b, valid, fx, fy, *corners, parity, tab, f, v0, u0, *got)
+    k = kernelbase._corners(*corners, 0, 0)
+    m5 = windowkernels._masked_maxima(b, valid, 0, 0, fy, fx, parity % 2 == 0, k)
+    kernelbase._fold(*want, tab, f, v0, u0, v0 // f, u0 // f, 0, 0, *m5)
+    refkernels.window_errors(b, valid, fx, fy, *corners, parity, tab, f, v0, u0, *got)
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
     assert want[1].max() > 0
 
@@ -255,7 +255,7 @@ def test_padded_grid_errors_match_the_masked_per_square_loop(m, f, bi, bj):
     the valid edge masked) folds to masked_grid_errors' maxima bit for bit, for random padding
     extents (hv, wv) at every stride and both parities, including extents within one square
     and exactly on a lattice line."""
-    from massview.data.terrain import kernels
+    from massview.data.terrain import kernels, refkernels
 
     rng = np.random.default_rng(m * 1000 + bi * 10 + bj + f)
     M = 2**m + 1
@@ -271,7 +271,7 @@ def test_padded_grid_errors_match_the_masked_per_square_loop(m, f, bi, bj):
             b_pad[~valid] = rng.normal(size=int((~valid).sum())).astype(np.float32) * 5e4  # padding must not count
             want, got = _grid_inputs(b_pad, s, f, bi, bj, m), _grid_inputs(b_pad, s, f, bi, bj, m)
             start = want[-1].copy()
-            kernels.masked_grid_errors(b_pad, valid, *want[1:])
+            refkernels.masked_grid_errors(b_pad, valid, *want[1:])
             kernels.padded_grid_errors(b_pad, valid, *got[1:])
             assert np.array_equal(got[-2], want[-2]) and np.array_equal(got[-1], want[-1]), f"stride {s}, hv {hv}, wv {wv}"
             checked += not np.array_equal(want[-1], start)
@@ -280,12 +280,12 @@ def test_padded_grid_errors_match_the_masked_per_square_loop(m, f, bi, bj):
 
 def _old_window_fold(b, valid, fx, fy, g, parity, tab, f, v0, u0, eps, SQ, DG):
     """The window level of DeviationAccumulator._add_level before issue 20's eighth round:
-    kernels.window_errors (masked per row) into (1, 1) maxima, then np.maximum folds with eps."""
-    from massview.data.terrain import kernels
+    refkernels.window_errors (masked per row) into (1, 1) maxima, then np.maximum folds with eps."""
+    from massview.data.terrain import refkernels
 
     corners = [np.full((1, 1), v, np.float32) for v in g]
     sq, per = np.zeros((1, 1), np.float32), np.zeros((4, 1, 1), np.float32)
-    kernels.window_errors(b, valid, fx, fy, *corners, parity, tab, f, v0, u0, sq, per)
+    refkernels.window_errors(b, valid, fx, fy, *corners, parity, tab, f, v0, u0, sq, per)
     V0, U0 = v0 // f, u0 // f
     sl = SQ[V0: V0 + 1, U0: U0 + 1]
     np.maximum(sl, sq + eps, out=sl)
@@ -297,12 +297,12 @@ def _old_window_fold(b, valid, fx, fy, g, parity, tab, f, v0, u0, eps, SQ, DG):
 @pytest.mark.parametrize("s", [512, 1024, 2048, 4096])
 @pytest.mark.parametrize("parity", [0, 1])
 def test_window_level_matches_the_masked_row_kernel(s, parity):
-    """kernels.window_level (quarter ranges by binary search, unmasked vectorized rows, the
+    """windowkernels.window_level (quarter ranges by binary search, unmasked vectorized rows, the
     folds compiled) leaves the accumulators as window_errors + the Python np.maximum folds did,
     bit for bit: every block position of a 257² block inside a lattice square of stride s
     (fractions as _add_level computes them), both parities, and valid rectangles [0:hv, 0:wv]
     (random, within one row or column, empty, whole) with large padding values that must not count."""
-    from massview.data.terrain import kernels
+    from massview.data.terrain import windowkernels
     from massview.data.terrain.deviation import _region_table
 
     rng = np.random.default_rng(s + parity)
@@ -328,7 +328,7 @@ def test_window_level_matches_the_masked_row_kernel(s, parity):
             want_sq, want_dg, got_sq, got_dg = SQ0.copy(), DG0.copy(), SQ0.copy(), DG0.copy()
             vv, uu = v0 % 8 * f, u0 % 8 * f  # lattice indices whose patch squares lie inside the 8 × 8 arrays
             _old_window_fold(bp, valid, fx, fy, g, parity, tab, f, vv + v0 % f, uu + u0 % f, eps, want_sq, want_dg)
-            kernels.window_level(bp, hv, wv, fx, fy, *g, parity, tab, f, vv + v0 % f, uu + u0 % f, eps, got_sq, got_dg)
+            windowkernels.window_level(bp, hv, wv, fx, fy, *g, parity, tab, f, vv + v0 % f, uu + u0 % f, eps, got_sq, got_dg)
             assert np.array_equal(got_sq, want_sq) and np.array_equal(got_dg, want_dg), f"pos {pos}, hv {hv}, wv {wv}"
             changed += not (np.array_equal(want_sq, SQ0) and np.array_equal(want_dg, DG0))
     assert changed > 0
@@ -338,11 +338,11 @@ def test_window_level_matches_the_masked_row_kernel(s, parity):
 @pytest.mark.parametrize("s", [2, 4])
 @pytest.mark.parametrize("parity", [0, 1])
 def test_fine_maxima_match_the_per_square_reference(m, s, parity):
-    """kernels._fine_maxima (strides 2 and 4: a square's samples unrolled, its maxima in
+    """finekernels._fine_maxima (strides 2 and 4: a square's samples unrolled, its maxima in
     registers) gives every lattice square's five maxima exactly as _grid_squares computes them
     (with one lattice square per patch, f = 1, its folds are the maxima themselves): whole
     blocks up to 513² (256 squares a row) and the (nv, nu) sub-grids padded blocks pass."""
-    from massview.data.terrain import kernels
+    from massview.data.terrain import finekernels, refkernels
     from massview.data.terrain.deviation import _region_table
 
     rng = np.random.default_rng(m * 10 + s + parity)
@@ -353,9 +353,9 @@ def test_fine_maxima_match_the_per_square_reference(m, s, parity):
     corners = [np.ascontiguousarray(x) for x in (lat[:-1, :-1], lat[:-1, 1:], lat[1:, :-1], lat[1:, 1:], cc)]
     fx = np.arange(s + 1, dtype=np.float32) / s
     sq, per = np.zeros((nq, nq), np.float32), np.zeros((4, nq, nq), np.float32)
-    kernels._grid_squares(b, s, nq, fx, *corners, parity, _region_table(1), 1, 0, 0, 0, 0, sq, per)
+    refkernels._grid_squares(b, s, nq, fx, *corners, parity, _region_table(1), 1, 0, 0, 0, 0, sq, per)
     want = np.concatenate([sq[None], per])
-    assert np.array_equal(kernels._fine_maxima(b, s, *corners, parity), want)
+    assert np.array_equal(finekernels._fine_maxima(b, s, *corners, parity), want)
     for nv, nu in ((nq - 1, nq), (3, nq - 2), (nq, 1), (1, 5)):
         sub = [np.ascontiguousarray(x[:nv, :nu]) for x in corners]
-        assert np.array_equal(kernels._fine_maxima(b, s, *sub, parity), want[:, :nv, :nu]), (nv, nu)
+        assert np.array_equal(finekernels._fine_maxima(b, s, *sub, parity), want[:, :nv, :nu]), (nv, nu)

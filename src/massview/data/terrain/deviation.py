@@ -121,7 +121,8 @@ class DeviationAccumulator:
         centred mesh's four quarter triangles), max-reduced per patch square and per region of
         :func:`_region_table`, then folded in with the float32 rounding margin."""
         if self._kern is None:
-            from .kernels import _valid_extent, grid_level, window_level  # noqa: I001  (numba: loaded on first use)
+            from .kernels import _valid_extent, grid_level  # noqa: I001  (numba: loaded on first use)
+            from .windowkernels import window_level
 
             self._kern = grid_level, window_level, _valid_extent
         grid_level, window_level, valid_extent = self._kern
