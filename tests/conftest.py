@@ -12,8 +12,25 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from massview.data.terrain import ArraySource
+
 SMALL_SCENE = "builtin:objects?n=400"
 SMALL_SIZE = "320x240"
+
+
+class FlakySource(ArraySource):
+    """An in-memory source whose read number ``fail_after + 1`` raises KeyboardInterrupt (an
+    interrupted ``prepare``); ``reads`` counts the reads (a resumed run's re-reads)."""
+
+    def __init__(self, arr, fail_after, name="flaky", **kw):
+        super().__init__(arr, name, **kw)
+        self.reads, self.fail_after = 0, fail_after
+
+    def _raw(self, *a):
+        self.reads += 1
+        if self.reads > self.fail_after:
+            raise KeyboardInterrupt
+        return super()._raw(*a)
 
 
 def clean_env(**extra) -> dict:

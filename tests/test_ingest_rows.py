@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from numba import njit
 
+from conftest import FlakySource
 from massview.data.terrain import ArraySource, TerrainStore, prepare_terrain
 from massview.data.terrain import colors, ingest
 from massview.data.terrain import rowkernels as rk
@@ -157,16 +158,11 @@ def test_h2f_matches_numpy_for_every_float16():
     assert np.array_equal(np.isnan(got), nan) and np.array_equal(got.view(np.uint32)[~nan], want.view(np.uint32)[~nan])
 
 
-class _Interrupting(ArraySource):
-    def __init__(self, arr, fail_after):
-        super().__init__(arr, "flags", transform=(0.0, 30.0, 0.0, 0.0, 0.0, -30.0))
-        self.reads, self.fail_after = 0, fail_after
+_GEO = (0.0, 30.0, 0.0, 0.0, 0.0, -30.0)
 
-    def _raw(self, *a):
-        self.reads += 1
-        if self.reads > self.fail_after:
-            raise KeyboardInterrupt
-        return super()._raw(*a)
+
+def _interrupting(arr, fail_after):
+    return FlakySource(arr, fail_after, "flags", transform=_GEO)
 
 
 def _files(root: Path) -> dict[str, bytes]:
@@ -176,7 +172,7 @@ def _files(root: Path) -> dict[str, bytes]:
 def test_done_flags_written_per_row_or_at_the_end_give_the_same_store(tmp_path, monkeypatch):
     a = SyntheticSource(700, seed=3).read(0, 700, 0, 650)
     a[100:120, 30:90] = np.nan  # filled samples: the nodata count goes with the flags
-    src = lambda: ArraySource(a.copy(), "flags", transform=(0.0, 30.0, 0.0, 0.0, 0.0, -30.0))  # noqa: E731
+    src = lambda: ArraySource(a.copy(), "flags", transform=_GEO)  # noqa: E731
     monkeypatch.setattr(ingest, "_FLAG_EVERY", 0.0)  # after every row
     prepare_terrain(src(), tmp_path / "each.zarr", block=129, K=5, workers=2)
     monkeypatch.setattr(ingest, "_FLAG_EVERY", 1e9)  # only when the pass ends
@@ -188,14 +184,14 @@ def test_done_flags_written_per_row_or_at_the_end_give_the_same_store(tmp_path, 
         monkeypatch.setattr(ingest, "_FLAG_EVERY", every)
         out = tmp_path / f"cut{every:g}.zarr"
         with pytest.raises(KeyboardInterrupt):
-            prepare_terrain(_Interrupting(a.copy(), 3), out, block=129, K=5, workers=2)
+            prepare_terrain(_interrupting(a.copy(), 3), out, block=129, K=5, workers=2)
         import zarr
 
         g = zarr.open_group(str(out), mode="r")
         assert g["blocks/0/done"][...].all(axis=1).tolist() == [True] * 3 + [False] * 5
         assert g["blocks/1/done"][...].all(axis=1).tolist() == [True, False, False, False]
         assert g.attrs["nodata"]["filled"] == int(np.isnan(a).sum())  # (all in strip 0)
-        resumed = _Interrupting(a.copy(), 10**9)
+        resumed = _interrupting(a.copy(), 10**9)
         res = prepare_terrain(resumed, out, block=129, K=5, workers=2)
         assert res.resumed and resumed.reads == 3 and res.filled == int(np.isnan(a).sum())
         TerrainStore(out)

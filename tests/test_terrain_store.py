@@ -8,7 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import run_cli
+from conftest import FlakySource, run_cli
 from massview.core.errors import IngestError, StoreError
 from massview.data.generators import synthetic_heights
 from massview.data.terrain import ArraySource, TerrainStore, open_source, prepare_terrain
@@ -169,18 +169,6 @@ def test_other_formats(tmp_path):
     (tmp_path / "bad.tif").write_bytes(b"not a tiff")
     with pytest.raises(IngestError, match="cannot open"):
         open_source(tmp_path / "bad.tif")
-
-
-class FlakySource(ArraySource):
-    def __init__(self, arr, fail_after):
-        super().__init__(arr, "flaky")
-        self.reads, self.fail_after = 0, fail_after
-
-    def _raw(self, *a):
-        self.reads += 1
-        if self.reads > self.fail_after:
-            raise KeyboardInterrupt
-        return super()._raw(*a)
 
 
 def test_interrupted_prepare_resumes_and_only_then_opens(tmp_path):
