@@ -91,6 +91,25 @@ def test_horn_row_matches_numpy(edges):
     assert got.dtype == np.float16 and np.array_equal(got.view(np.uint16), want.view(np.uint16))
 
 
+@pytest.mark.parametrize("edges", [(True, True), (False, True), (True, False), (False, False)])
+@pytest.mark.parametrize("nb", [1, 3])
+def test_horn_blocks_matches_numpy(edges, nb):
+    """shade0_blocks reads the block row's blocks (shared borders) in place of its wide rows:
+    the same bits as the numpy code on the wide rows (the prepare's shading pass, round 10)."""
+    from massview.data.terrain.store import block_view
+
+    rng = np.random.default_rng(7 + nb)
+    M, W = 33, nb * 32 + 1
+    rows = [_terrain(rng, (M, W)) for _ in range(3)]
+    prev, cur, nxt = rows[0] if edges[0] else None, rows[1], rows[2] if edges[1] else None
+    dx, dy, zlo, zhi = 30.0, 27.5, float(cur.min()) - 3.1, float(cur.max()) + 7.3
+    want = _numpy_shade0(prev, cur, nxt, dx, dy, zlo, max(zhi - zlo, 1e-6))
+    blocks = np.ascontiguousarray(block_view(cur, nb, M))
+    above, below = prev[M - 2] if prev is not None else None, nxt[1] if nxt is not None else None
+    got = colors.shade0_blocks(above, blocks, below, dx, dy, zlo, max(zhi - zlo, 1e-6))
+    assert got.dtype == np.float16 and np.array_equal(got.view(np.uint16), want.view(np.uint16))
+
+
 @pytest.mark.parametrize("i,last", [(1, False), (1, True), (0, False), (0, True)])
 def test_tent_row_matches_numpy(i, last):
     rng = np.random.default_rng(4)

@@ -29,7 +29,7 @@ import numpy as np
 
 from .store import block_view, wide_row
 
-__all__ = ["shade_block", "write_shading", "horn_slopes", "tent_decimate"]
+__all__ = ["shade_block", "write_shading", "horn_slopes", "tent_decimate", "shade0_blocks"]
 
 # elevation fraction → RGB (lowland green, upland ochre, rock grey, snow)
 _STOPS = np.array([0.0, 0.18, 0.42, 0.7, 0.88, 1.0])
@@ -90,6 +90,29 @@ def _shade0(above: np.ndarray | None, cur: np.ndarray, below: np.ndarray | None,
     return out
 
 
+def shade0_blocks(above: np.ndarray | None, blocks: np.ndarray, below: np.ndarray | None, dx: float, dy: float, zlo: float,
+                  rng: float, out: np.ndarray | None = None) -> np.ndarray:
+    """:func:`_shade0` of the wide rows the block row ``blocks`` (nb, M, M) float32,
+    C-contiguous, spans — what it gives for ``wide_row(blocks)`` — read from the blocks
+    (:func:`rowkernels.horn_blocks`: no wide copy of the row)."""
+    from .rowkernels import horn_blocks
+
+    nb, M = blocks.shape[0], blocks.shape[1]
+    W = nb * (M - 1) + 1
+    above = above if above is not None else _block_grid_row(blocks, 0)
+    below = below if below is not None else _block_grid_row(blocks, M - 1)
+    out = np.empty((M, W, 3), np.float16) if out is None else out
+    horn_blocks(np.ascontiguousarray(above, np.float32), blocks, np.ascontiguousarray(below, np.float32),
+                np.float32(8 * dx), np.float32(8 * dy), np.float32(zlo), np.float32(rng), out.view(np.uint16))
+    return out
+
+
+def _block_grid_row(blocks: np.ndarray, r: int) -> np.ndarray:
+    """Grid row ``r`` of a block row (nb, M, M) as a wide row (nb·(M-1)+1,)."""
+    nb, M = blocks.shape[0], blocks.shape[1]
+    return np.concatenate([blocks[:, r, :M - 1].reshape(-1), blocks[nb - 1, r, M - 1:]])
+
+
 def tent_wide(rows: dict, i: int, out: np.ndarray | None = None) -> np.ndarray:
     """Block row i of level l (M, (W-1)/2+1, 3) float16 from the float16 wide rows 2i-1 .. 2i+2
     of level l-1 (``rows``: a dict, entries beyond the border absent): :func:`tent_decimate`
@@ -114,6 +137,14 @@ def _shade0_row(above, cur, below, dx: float, dy: float, zlo: float, rng: float,
     out = _shade0(above, cur, below, dx, dy, zlo, rng, out)
     M = cur.shape[0]
     dst.write(i, 0, block_view(out, (cur.shape[1] - 1) // (M - 1), M))
+    return out
+
+
+def _shade0_blocks_row(above, blocks, below, dx: float, dy: float, zlo: float, rng: float, dst, i: int, out=None) -> np.ndarray:
+    """:func:`_shade0_row` of a block row given as its blocks (:func:`shade0_blocks`)."""
+    out = shade0_blocks(above, blocks, below, dx, dy, zlo, rng, out)
+    M = blocks.shape[1]
+    dst.write(i, 0, block_view(out, blocks.shape[0], M))
     return out
 
 
@@ -166,7 +197,7 @@ class _ShadingPass:
         self.held: list[dict] = [{} for _ in range(nlev)]  # level → {row: [its buffer, readers not yet finished]}
         self.made = [0] * nlev  # block rows submitted per level (in order)
         M, nb0 = self.lay.M, self.lay.blocks(0)
-        self.pool = BufferPool(int(keep_rows * (nb0 * M * M * 4 + M * self._wide(0) * 10)))  # a level-0 task's buffers
+        self.pool = BufferPool(int(keep_rows * (nb0 * M * M * 4 + M * self._wide(0) * 6)))  # a level-0 task's buffers
 
     def _wide(self, lv: int) -> int:
         return self.lay.blocks(lv) * (self.lay.M - 1) + 1
@@ -180,15 +211,14 @@ class _ShadingPass:
 
     def level0_own(self, k: int):  # reads its own row (``edges``)
         M, nb0, edges = self.lay.M, self.lay.blocks(0), self.edges
-        buf, wide = self.pool.take((nb0, M, M), np.float32), self.pool.take((M, self._wide(0)), np.float32)
-        blocks = self.store.get_block_row(0, k, out=buf)
+        buf = self.pool.take((nb0, M, M), np.float32)
+        blocks = np.ascontiguousarray(self.store.get_block_row(0, k, out=buf), np.float32)
         if self.hook is not None:
             self.hook(k, blocks)
         above, below = edges[k - 1][1] if k > 0 else None, edges[k + 1][0] if k + 1 < nb0 else None
         out = self.pool.take((M, self._wide(0), 3), np.float16)
-        res = _shade0_row(above, wide_row(blocks, wide), below, *self.shade, self.writers[0], k, out)
+        res = _shade0_blocks_row(above, blocks, below, *self.shade, self.writers[0], k, out)
         self.pool.give(buf)
-        self.pool.give(wide)
         return 0, k, res
 
     def coarser(self, lv: int, i: int, inputs: dict):

@@ -61,7 +61,7 @@ from .layout import TerrainLayout
 from .metadata import Metadata, MetadataBuilder, compute_metadata, write_colors, write_metadata
 from .sources import RasterSource
 from .store import ChunkWriter, TerrainStore, block_view, create_store, wide_row
-from .workers import resolve_workers, run_ordered
+from .workers import BufferPool, resolve_workers, run_ordered
 
 __all__ = ["prepare_terrain", "PrepareResult", "fill_nodata", "compute_metadata", "write_metadata", "Metadata"]
 
@@ -116,12 +116,14 @@ def fill_nodata(a: np.ndarray, max_iter: int = 256) -> int:
     return n
 
 
-def _read_strip(src: RasterSource, lay: TerrainLayout, bi: int, prev_row: np.ndarray | None) -> tuple[np.ndarray, int]:
-    """Rows bi·(M-1) .. +M of the padded grid, filled and padded (M × S float32), and how
-    many nodata samples of the rows new to this strip were filled."""
+def _read_strip(src: RasterSource, lay: TerrainLayout, bi: int, prev_row: np.ndarray | None,
+                out: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """Rows bi·(M-1) .. +M of the padded grid, filled and padded (M × S float32, into ``out``
+    when given: C-contiguous, its contents overwritten), and how many nodata samples of the
+    rows new to this strip were filled."""
     M, cols = lay.M, src.cols
     r0 = bi * (M - 1)
-    strip = np.empty((M, lay.S), np.float32)
+    strip = np.empty((M, lay.S), np.float32) if out is None else out
     filled = 0
     if r0 < src.rows and _read_strip_finite(src, strip, r0, prev_row):
         pass
@@ -156,8 +158,10 @@ def _read_strip_finite(src: RasterSource, strip: np.ndarray, r0: int, prev_row: 
     dst = strip[:nv] if whole else np.empty((nv, cols), np.float32)
     if reader is None or not reader(r0, dst):
         return False
+    from .rowkernels import all_finite
+
     first_new = 0 if prev_row is None else 1
-    if not np.isfinite(dst[first_new:]).all():
+    if not all_finite(dst[first_new:].reshape(-1).view(np.uint32)):  # (np.isfinite(...).all(), without its temporary)
         return False
     if not whole:
         strip[:nv, :cols] = dst
@@ -282,6 +286,25 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
     heights0 = g["heights/0"]
     writers = [ChunkWriter(g, f"heights/{lv}") for lv in range(nlev)]
     state = {"filled": int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0}
+    # The wide rows (a level-0 strip, 17 MB at 16385²; each coarser row half its level-below's)
+    # come from a pool and go back once nothing reads them any more: a fresh row is a new
+    # mapping whose every page the kernel zeroes when first written (return_freed_memory).
+    # ``users[(lv, i)]`` = [row, readers left]: its task, and the decimation into level lv+1.
+    # The top level's row is not booked (never given back): the Röttger table keeps it.
+    pool = BufferPool(int((workers + 2) * M * lay.S * 4 * 1.5))
+    users: dict = {}
+
+    def release(key) -> None:
+        entry = users.get(key)
+        if entry is not None:
+            entry[1] -= 1
+            if entry[1] == 0:
+                pool.give(users.pop(key)[0])
+
+    def book(lv: int, i: int, wide: np.ndarray) -> np.ndarray:
+        if lv + 1 < nlev:
+            users[(lv, i)] = [wide, 2]
+        return wide
 
     def write(lv: int, i: int, wide: np.ndarray, keep: bool, nfill: int):
         if lv == 0:
@@ -295,18 +318,25 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
 
     def tasks():
         prev_row, waiting = None, {}  # waiting: level → its even wide row, until the odd one comes
+        h = (M + 1) // 2  # rows 0, 2 .. M-1 of block row 2i: the first h rows of row i a level up
         for bi in range(lay.blocks(0)):
             if flags[0][bi].all():  # done in an earlier run: read it back for the levels above
-                strip = wide_row(np.asarray(heights0[bi]))
+                strip = book(0, bi, wide_row(np.asarray(heights0[bi]), pool.take((M, lay.S), np.float32)))
                 yield lambda bi=bi, strip=strip: write(0, bi, strip, False, 0)
             else:
-                strip, nfill = _read_strip(src, lay, bi, prev_row)
+                strip, nfill = _read_strip(src, lay, bi, prev_row, pool.take((M, lay.S), np.float32))
+                book(0, bi, strip)
                 yield lambda bi=bi, strip=strip, nfill=nfill: write(0, bi, strip, True, nfill)
             prev_row = strip[-1].copy()
             lv, i, wide = 0, bi, strip
             while lv + 1 < nlev and i % 2 == 1:
-                wide = np.concatenate([waiting.pop(lv)[0::2, ::2], wide[2::2, ::2]])  # rows 0..M-1 of 2i, 2..M-1 of 2i+1
-                lv, i = lv + 1, i // 2
+                even = waiting.pop(lv)
+                up = pool.take((M, lay.blocks(lv + 1) * (M - 1) + 1), np.float32)
+                np.copyto(up[:h], even[0::2, ::2])  # rows 0..M-1 of 2i, 2..M-1 of 2i+1, every other sample
+                np.copyto(up[h:], wide[2::2, ::2])
+                release((lv, i - 1))
+                release((lv, i))
+                lv, i, wide = lv + 1, i // 2, book(lv + 1, i // 2, up)
                 yield lambda lv=lv, i=i, wide=wide, keep=not flags[lv][i].all(): write(lv, i, wide, keep, 0)
             if lv + 1 < nlev:
                 waiting[lv] = wide
@@ -323,6 +353,7 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
 
     def done(res) -> None:
         lv, i, wrote, nfill = res
+        release((lv, i))
         if wrote:
             flags[lv][i, :] = 1
             unflagged.add(lv)

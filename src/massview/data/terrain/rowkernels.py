@@ -10,10 +10,12 @@ kernel with the numpy expression it replaces):
 * :func:`block_stats`: min, max and largest dropped-sample δ of a block
   (:func:`meta.vertex_deltas`) and the z-ranges of its patch squares (``DiamondAccumulator``);
   :func:`row_stats` runs it over a block row's strided blocks in one call;
-* :func:`horn_row` / :func:`tent_row`: level-0 shading (Horn's slopes and the height fraction)
+* :func:`horn_row` / :func:`tent_row`: level-0 shading (:func:`horn_blocks`: the same, reading
+  a block row's blocks in place of its wide rows) (Horn's slopes and the height fraction)
   and the [1 2 1]/4 mip step of :mod:`colors`, writing float16 with numpy's own rounding
   (:func:`f2h`: F16C's conversion where the CPU has it, else :func:`_half_bits`; numba has no
   float16 type on the CPU);
+* :func:`all_finite`: the strip check of the prepare's fast read path;
 * :func:`local_d2`: Röttger's local roughness (:func:`roettger.local_d2`);
 * :func:`propagate_max`: Röttger's propagation of a depth into the next coarser one
   (:func:`roettger.propagate_into`, without its eight band-sized temporaries).
@@ -30,7 +32,7 @@ from numba.extending import intrinsic
 
 from .kernels import _jit
 
-__all__ = ["block_stats", "row_stats", "horn_row", "tent_row", "local_d2", "propagate_max", "half_lut", "to_half", "from_half", "h2f"]
+__all__ = ["block_stats", "row_stats", "horn_row", "horn_blocks", "tent_row", "all_finite", "local_d2", "propagate_max", "half_lut", "to_half", "from_half", "h2f"]
 
 _HALF = np.float32(0.5)
 _QUART = np.float32(0.25)
@@ -258,6 +260,16 @@ def _horn_inner(up, mid, dn, dx8, dy8, zlo, rng, o, planes):
 
 
 @_jit
+def _horn_line(up, mid, dn, W, dx8, dy8, zlo, rng, o, planes):
+    """One output row ``o`` (W, 3) of :func:`horn_row` from its three input rows."""
+    _horn_px(up, mid, dn, 0, W, dx8, dy8, zlo, rng, o)
+    if W > 2:
+        _horn_inner(up, mid, dn, dx8, dy8, zlo, rng, o[1: W - 1], planes)
+    if W > 1:
+        _horn_px(up, mid, dn, W - 1, W, dx8, dy8, zlo, rng, o)
+
+
+@_jit
 def horn_row(above, cur, below, dx8, dy8, zlo, rng, out):
     """Level-0 shading of the wide rows ``cur`` (M, W) float32 with the global rows just above
     and below (W,): ``out`` (M, W, 3) uint16 = float16 bits of Horn's ∂h/∂x (east), ∂h/∂y
@@ -267,13 +279,37 @@ def horn_row(above, cur, below, dx8, dy8, zlo, rng, out):
     for r in range(M):
         up = above if r == 0 else cur[r - 1]
         dn = below if r == M - 1 else cur[r + 1]
-        mid = cur[r]
-        o = out[r]
-        _horn_px(up, mid, dn, 0, W, dx8, dy8, zlo, rng, o)
-        if W > 2:
-            _horn_inner(up, mid, dn, dx8, dy8, zlo, rng, o[1: W - 1], planes)
-        if W > 1:
-            _horn_px(up, mid, dn, W - 1, W, dx8, dy8, zlo, rng, o)
+        _horn_line(up, cur[r], dn, W, dx8, dy8, zlo, rng, out[r], planes)
+
+
+@_jit
+def _gather_row(blocks, r, dst):
+    """Grid row ``r`` of a block row (nb, M, M) as one wide row ``dst`` (nb·(M-1)+1,): what
+    :func:`store.wide_row` makes of it, one row at a time (blocks share their border column)."""
+    nb, M = blocks.shape[0], blocks.shape[1]
+    for j in range(nb):
+        c0 = j * (M - 1)
+        src = blocks[j, r]
+        for c in range(M):
+            dst[c0 + c] = src[c]
+
+
+@_jit
+def horn_blocks(above, blocks, below, dx8, dy8, zlo, rng, out):
+    """:func:`horn_row` of the wide rows a block row ``blocks`` (nb, M, M) float32 spans,
+    read from the blocks: each grid row is gathered into one of three small wide rows (in
+    cache), so the block row is never copied whole. The same values, the same operations."""
+    nb, M = blocks.shape[0], blocks.shape[1]
+    W = nb * (M - 1) + 1
+    planes = np.empty((3, max(W - 2, 1)), np.uint16)
+    rows = np.empty((3, W), np.float32)  # grid rows r-1, r, r+1 at r % 3 (rotating)
+    _gather_row(blocks, 0, rows[0])
+    for r in range(M):
+        if r + 1 < M:
+            _gather_row(blocks, r + 1, rows[(r + 1) % 3])
+        up = above if r == 0 else rows[(r - 1) % 3]
+        dn = below if r == M - 1 else rows[(r + 1) % 3]
+        _horn_line(up, rows[r % 3], dn, W, dx8, dy8, zlo, rng, out[r], planes)
 
 
 @_jit
@@ -334,6 +370,17 @@ def tent_row(above, m0, m1, below, lut, out):
             for ch in range(3):
                 o_r[o, ch] = f2h(_tent3(v[xl, ch], v[xc, ch], v[xr, ch]))
         _htent_inner(v, o_r)
+
+
+@_jit
+def all_finite(bits):
+    """Whether every float32 of ``bits`` (their uint32 bit patterns, 1-D) is finite: none has
+    the exponent field all ones (±inf, NaN). One pass, no temporary (``np.isfinite(a).all()``
+    made a bool array of a strip's size); the exponent fields' maximum vectorizes."""
+    top = np.uint32(0)
+    for k in range(bits.shape[0]):
+        top = max(top, bits[k] & np.uint32(0x7F800000))
+    return top != np.uint32(0x7F800000)
 
 
 @_jit
