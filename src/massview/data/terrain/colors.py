@@ -185,7 +185,7 @@ class _ShadingPass:
     wide-row buffers, reused through a :class:`workers.BufferPool`: a row's buffer goes back
     once every coarser row that reads it is finished, a level-0 task's height rows once it is."""
 
-    def __init__(self, store, g, zlo: float, zhi: float, row_hook, edges: dict | None, keep_rows: float = 1.0):
+    def __init__(self, store, g, zlo: float, zhi: float, row_hook, edges: dict | None, keep_rows: float = 3.0):
         from .store import ChunkWriter
         from .workers import BufferPool
 
@@ -197,7 +197,10 @@ class _ShadingPass:
         self.held: list[dict] = [{} for _ in range(nlev)]  # level → {row: [its buffer, readers not yet finished]}
         self.made = [0] * nlev  # block rows submitted per level (in order)
         M, nb0 = self.lay.M, self.lay.blocks(0)
-        self.pool = BufferPool(int(keep_rows * (nb0 * M * M * 4 + M * self._wide(0) * 6)))  # a level-0 task's buffers
+        # ``keep_rows`` level-0 tasks' buffers (decoded blocks, float16 row) wait for reuse: with one, the
+        # coarser rows' and the second worker's buffers were mostly freed and made anew (1.8 GB of fresh,
+        # kernel-zeroed pages at 16385²; with three 0.4 GB, the first of each shape, for the same peak RSS)
+        self.pool = BufferPool(int(keep_rows * (nb0 * M * M * 4 + M * self._wide(0) * 6)))
 
     def _wide(self, lv: int) -> int:
         return self.lay.blocks(lv) * (self.lay.M - 1) + 1

@@ -207,14 +207,15 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     from .roettger import DEFAULT_C_MIN, TableBuilder  # T2's per-node table (Röttger d2)
 
     build, table, stages, edges = MetadataBuilder(lay, workers), TableBuilder(lay, DEFAULT_C_MIN), {}, {}
-    try:
-        with _stage(stages, "pyramid, metadata, local d2"):
-            filled = _level0(g, src, lay, block, resumed, prog, workers, (build, table), edges)
-    except IngestError:
-        if not resumed:  # created by this run, nothing of value in it: leave no store behind
-            shutil.rmtree(out, ignore_errors=True)
-        raise
-    meta = _shading_and_tables(g, out, lay, build, table, stages, prog, workers, ortho, vertical_scale, edges)
+    with _old_objects_frozen():
+        try:
+            with _stage(stages, "pyramid, metadata, local d2"):
+                filled = _level0(g, src, lay, block, resumed, prog, workers, (build, table), edges)
+        except IngestError:
+            if not resumed:  # created by this run, nothing of value in it: leave no store behind
+                shutil.rmtree(out, ignore_errors=True)
+            raise
+        meta = _shading_and_tables(g, out, lay, build, table, stages, prog, workers, ortho, vertical_scale, edges)
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
@@ -226,6 +227,25 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
         res.warnings.append(f"{src.name} has no georeference: assumed 1 m sample spacing; pass --spacing DX[,DY] (and --crs) "
                             "if the samples are further apart")
     return res
+
+
+@contextmanager
+def _old_objects_frozen():
+    """Every object alive on entry (numba's, zarr's, the modules': ~10⁵–10⁶) moved out of the
+    cyclic garbage collector's reach (``gc.freeze``) until exit, also on error: the prepare
+    makes many small objects (tasks, futures, chunk keys), and each full collection they
+    trigger walked all the old ones too. Unchanged where the caller has frozen objects itself
+    or turned the collector off."""
+    import gc
+
+    mine = gc.isenabled() and gc.get_freeze_count() == 0
+    if mine:
+        gc.freeze()
+    try:
+        yield
+    finally:
+        if mine:
+            gc.unfreeze()
 
 
 @contextmanager
@@ -286,12 +306,12 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
     heights0 = g["heights/0"]
     writers = [ChunkWriter(g, f"heights/{lv}") for lv in range(nlev)]
     state = {"filled": int(g.attrs.get("nodata", {}).get("filled", 0)) if resumed else 0}
-    # The wide rows (a level-0 strip, 17 MB at 16385²; each coarser row half its level-below's)
-    # come from a pool and go back once nothing reads them any more: a fresh row is a new
-    # mapping whose every page the kernel zeroes when first written (return_freed_memory).
-    # ``users[(lv, i)]`` = [row, readers left]: its task, and the decimation into level lv+1.
-    # The top level's row is not booked (never given back): the Röttger table keeps it.
-    pool = BufferPool(int((workers + 2) * M * lay.S * 4 * 1.5))
+    # The level-0 strips (17 MB at 16385²) come from a pool and go back once nothing reads them
+    # any more: a fresh strip is a new mapping whose every page the kernel zeroes when first
+    # written (return_freed_memory). ``users[(0, i)]`` = [strip, readers left]: its task, and
+    # the decimation into level 1 (a one-level store has none: its strip, the top row, is kept
+    # by the Röttger table and never given back).
+    pool = BufferPool(2 * M * lay.S * 4)  # (two strips wait at most: one more than the old peak held)
     users: dict = {}
 
     def release(key) -> None:
@@ -302,7 +322,7 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
                 pool.give(users.pop(key)[0])
 
     def book(lv: int, i: int, wide: np.ndarray) -> np.ndarray:
-        if lv + 1 < nlev:
+        if lv == 0 and nlev > 1:  # (not coarser rows: one would wait in the pool for the next of its level, raising the peak)
             users[(lv, i)] = [wide, 2]
         return wide
 
@@ -331,7 +351,7 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
             lv, i, wide = 0, bi, strip
             while lv + 1 < nlev and i % 2 == 1:
                 even = waiting.pop(lv)
-                up = pool.take((M, lay.blocks(lv + 1) * (M - 1) + 1), np.float32)
+                up = np.empty((M, lay.blocks(lv + 1) * (M - 1) + 1), np.float32)
                 np.copyto(up[:h], even[0::2, ::2])  # rows 0..M-1 of 2i, 2..M-1 of 2i+1, every other sample
                 np.copyto(up[h:], wide[2::2, ::2])
                 release((lv, i - 1))
