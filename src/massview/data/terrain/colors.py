@@ -27,7 +27,9 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["shade_block", "write_shading", "horn_slopes", "tent_decimate", "shade0_blocks", "tent_blocks", "block_grid_row"]
+from .store import block_view, wide_row
+
+__all__ = ["shade_block", "write_shading", "horn_slopes", "tent_decimate", "shade0_blocks"]
 
 # elevation fraction → RGB (lowland green, upland ochre, rock grey, snow)
 _STOPS = np.array([0.0, 0.18, 0.42, 0.7, 0.88, 1.0])
@@ -91,44 +93,24 @@ def _shade0(above: np.ndarray | None, cur: np.ndarray, below: np.ndarray | None,
 def shade0_blocks(above: np.ndarray | None, blocks: np.ndarray, below: np.ndarray | None, dx: float, dy: float, zlo: float,
                   rng: float, out: np.ndarray | None = None) -> np.ndarray:
     """:func:`_shade0` of the wide rows the block row ``blocks`` (nb, M, M) float32,
-    C-contiguous, spans, as blocks: float16 (nb, M, M, 3) = ``block_view`` of what
-    :func:`_shade0` gives for ``wide_row(blocks)``, made without either wide row
-    (:func:`rowkernels.horn_blocks`); into ``out`` (C-contiguous) when given."""
+    C-contiguous, spans — what it gives for ``wide_row(blocks)`` — read from the blocks
+    (:func:`rowkernels.horn_blocks`: no wide copy of the row)."""
     from .rowkernels import horn_blocks
 
     nb, M = blocks.shape[0], blocks.shape[1]
-    above = above if above is not None else block_grid_row(blocks, 0)
-    below = below if below is not None else block_grid_row(blocks, M - 1)
-    out = np.empty((nb, M, M, 3), np.float16) if out is None else out
+    W = nb * (M - 1) + 1
+    above = above if above is not None else _block_grid_row(blocks, 0)
+    below = below if below is not None else _block_grid_row(blocks, M - 1)
+    out = np.empty((M, W, 3), np.float16) if out is None else out
     horn_blocks(np.ascontiguousarray(above, np.float32), blocks, np.ascontiguousarray(below, np.float32),
                 np.float32(8 * dx), np.float32(8 * dy), np.float32(zlo), np.float32(rng), out.view(np.uint16))
     return out
 
 
-def block_grid_row(blocks: np.ndarray, r: int) -> np.ndarray:
-    """Grid row ``r`` of a block row (nb, M, M, ...) as a wide row (nb·(M-1)+1, ...) (a copy)."""
+def _block_grid_row(blocks: np.ndarray, r: int) -> np.ndarray:
+    """Grid row ``r`` of a block row (nb, M, M) as a wide row (nb·(M-1)+1,)."""
     nb, M = blocks.shape[0], blocks.shape[1]
-    return np.concatenate([blocks[:, r, :M - 1].reshape((-1,) + blocks.shape[3:]), blocks[nb - 1, r, M - 1:]])
-
-
-def tent_blocks(rows: dict, i: int, out: np.ndarray | None = None) -> np.ndarray:
-    """:func:`tent_wide` with every row as blocks: ``rows`` {row: float16 (nb, M, M, 3)} of
-    level l-1; returns block row i of level l as float16 (nb/2 or 1, M, M, 3) — ``block_view``
-    of what tent_wide gives for the same rows wide — made without a wide row
-    (:func:`rowkernels.tent_blocks`); into ``out`` (C-contiguous) when given."""
-    from .rowkernels import half_lut
-    from .rowkernels import tent_blocks as kernel
-
-    if not _LUT:
-        _LUT.append(half_lut())
-    a, m0, m1, b = (rows.get(k) for k in (2 * i - 1, 2 * i, 2 * i + 1, 2 * i + 2))
-    M = m0.shape[1]
-    above = block_grid_row(a, M - 2)[None] if a is not None else block_grid_row(m0, 0)[None]
-    below = np.stack([block_grid_row(b, 0), block_grid_row(b, 1)]) if b is not None else np.stack([block_grid_row(m1, M - 1)] * 2)
-    out = np.empty((max(m0.shape[0] // 2, 1), M, M, 3), np.float16) if out is None else out
-    kernel(above.view(np.uint16), np.ascontiguousarray(m0).view(np.uint16), np.ascontiguousarray(m1).view(np.uint16),
-           below.view(np.uint16), _LUT[0], out.view(np.uint16))
-    return out
+    return np.concatenate([blocks[:, r, :M - 1].reshape(-1), blocks[nb - 1, r, M - 1:]])
 
 
 def tent_wide(rows: dict, i: int, out: np.ndarray | None = None) -> np.ndarray:
@@ -149,19 +131,29 @@ def tent_wide(rows: dict, i: int, out: np.ndarray | None = None) -> np.ndarray:
     return out
 
 
-def _shade0_blocks_row(above, blocks, below, dx: float, dy: float, zlo: float, rng: float, dst, i: int, out=None) -> np.ndarray:
-    """Level-0 shading of block row i given as its blocks (:func:`shade0_blocks`, into ``out``
-    when given); writes ``dst[i]`` (the blocks as they are: no copies), returns them."""
-    out = shade0_blocks(above, blocks, below, dx, dy, zlo, rng, out)
-    dst.write(i, 0, out)
+def _shade0_row(above, cur, below, dx: float, dy: float, zlo: float, rng: float, dst, i: int, out=None) -> np.ndarray:
+    """Level-0 shading of block row i (:func:`_shade0`, into ``out`` when given); writes
+    ``dst[i]``, returns the row."""
+    out = _shade0(above, cur, below, dx, dy, zlo, rng, out)
+    M = cur.shape[0]
+    dst.write(i, 0, block_view(out, (cur.shape[1] - 1) // (M - 1), M))
     return out
 
 
-def _tent_blocks_row(rows: dict, i: int, dst, out=None) -> np.ndarray:
-    """Level-l block row i as blocks (:func:`tent_blocks`, into ``out`` when given); writes
-    ``dst[i]``, returns them."""
-    out = tent_blocks(rows, i, out)
-    dst.write(i, 0, out)
+def _shade0_blocks_row(above, blocks, below, dx: float, dy: float, zlo: float, rng: float, dst, i: int, out=None) -> np.ndarray:
+    """:func:`_shade0_row` of a block row given as its blocks (:func:`shade0_blocks`)."""
+    out = shade0_blocks(above, blocks, below, dx, dy, zlo, rng, out)
+    M = blocks.shape[1]
+    dst.write(i, 0, block_view(out, blocks.shape[0], M))
+    return out
+
+
+def _tent_row(rows: dict, i: int, dst, out=None) -> np.ndarray:
+    """Level-l block row i (:func:`tent_wide`, into ``out`` when given); writes ``dst[i]``,
+    returns the row."""
+    out = tent_wide(rows, i, out)
+    M = out.shape[0]
+    dst.write(i, 0, block_view(out, (out.shape[1] - 1) // (M - 1), M))
     return out
 
 
@@ -190,11 +182,8 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
 class _ShadingPass:
     """The tasks of :func:`write_shading` (``first``: level 0, in order; ``then``: the coarser
     rows a finished row completes the inputs of; both called on the submitting thread) and the
-    row buffers, reused through a :class:`workers.BufferPool`: a row's buffer goes back once
-    every coarser row that reads it is finished, a level-0 task's height rows once it is. Every
-    row, heights and shading, is kept as its blocks (nb, M, M[, 3]), the layout the store's
-    chunks have: the kernels gather and cut the wide rows they work on a grid row at a time
-    (issue 20, round 10: no wide copy of a row, no per-block copy before encoding)."""
+    wide-row buffers, reused through a :class:`workers.BufferPool`: a row's buffer goes back
+    once every coarser row that reads it is finished, a level-0 task's height rows once it is."""
 
     def __init__(self, store, g, zlo: float, zhi: float, row_hook, edges: dict | None, keep_rows: float = 3.0):
         from .store import ChunkWriter
@@ -204,24 +193,24 @@ class _ShadingPass:
         self.shade = store.spacing + (zlo, max(zhi - zlo, 1e-6))  # dx, dy, zlo, rng
         nlev = self.lay.levels
         self.writers = [ChunkWriter(g, f"shade/{lv}") for lv in range(nlev)]
-        self.rows: list[dict] = [{} for _ in range(nlev)]  # level → {row: float16 row as blocks}, until its readers are submitted
+        self.rows: list[dict] = [{} for _ in range(nlev)]  # level → {row: float16 wide row}, until its readers are submitted
         self.held: list[dict] = [{} for _ in range(nlev)]  # level → {row: [its buffer, readers not yet finished]}
         self.made = [0] * nlev  # block rows submitted per level (in order)
         M, nb0 = self.lay.M, self.lay.blocks(0)
         # ``keep_rows`` level-0 tasks' buffers (decoded blocks, float16 row) wait for reuse: with one, the
         # coarser rows' and the second worker's buffers were mostly freed and made anew (1.8 GB of fresh,
         # kernel-zeroed pages at 16385²; with three 0.4 GB, the first of each shape, for the same peak RSS)
-        self.pool = BufferPool(int(keep_rows * nb0 * M * M * 10))
+        self.pool = BufferPool(int(keep_rows * (nb0 * M * M * 4 + M * self._wide(0) * 6)))
 
-    def _shape(self, lv: int) -> tuple:
-        """A shading row of level ``lv`` as blocks (float16)."""
-        return (self.lay.blocks(lv), self.lay.M, self.lay.M, 3)
+    def _wide(self, lv: int) -> int:
+        return self.lay.blocks(lv) * (self.lay.M - 1) + 1
 
-    def level0(self, k: int, above, blocks, below):
+    def level0(self, k: int, above, cur, below):
+        M = self.lay.M
         if self.hook is not None:
-            self.hook(k, blocks)
-        out = self.pool.take(self._shape(0), np.float16)
-        return 0, k, _shade0_blocks_row(above, blocks, below, *self.shade, self.writers[0], k, out)
+            self.hook(k, block_view(cur, self.lay.blocks(0), M))
+        out = self.pool.take((M, self._wide(0), 3), np.float16)
+        return 0, k, _shade0_row(above, cur, below, *self.shade, self.writers[0], k, out)
 
     def level0_own(self, k: int):  # reads its own row (``edges``)
         M, nb0, edges = self.lay.M, self.lay.blocks(0), self.edges
@@ -230,14 +219,14 @@ class _ShadingPass:
         if self.hook is not None:
             self.hook(k, blocks)
         above, below = edges[k - 1][1] if k > 0 else None, edges[k + 1][0] if k + 1 < nb0 else None
-        out = self.pool.take(self._shape(0), np.float16)
+        out = self.pool.take((M, self._wide(0), 3), np.float16)
         res = _shade0_blocks_row(above, blocks, below, *self.shade, self.writers[0], k, out)
         self.pool.give(buf)
         return 0, k, res
 
     def coarser(self, lv: int, i: int, inputs: dict):
-        out = self.pool.take(self._shape(lv), np.float16)
-        return lv, i, _tent_blocks_row(inputs, i, self.writers[lv], out)
+        out = self.pool.take((self.lay.M, self._wide(lv), 3), np.float16)
+        return lv, i, _tent_row(inputs, i, self.writers[lv], out)
 
     def _inputs(self, lv: int, i: int) -> range:
         """The level lv-1 rows that block row i of level lv reads."""
@@ -288,10 +277,9 @@ class _ShadingPass:
         grid = {}
         for i in range(nb0 + 1):
             if i < nb0:
-                grid[i] = np.ascontiguousarray(self.store.get_block_row(0, i), np.float32)
+                grid[i] = wide_row(self.store.get_block_row(0, i))
             if i >= 1:
                 k, p, n = i - 1, grid.get(i - 2), grid.get(i)
-                above = block_grid_row(p, M - 2) if p is not None else None
-                below = block_grid_row(n, 1) if n is not None else None
+                above, below = p[M - 2].copy() if p is not None else None, n[1].copy() if n is not None else None
                 yield lambda k=k, a=above, c=grid[k], b=below: self.level0(k, a, c, b)
                 grid.pop(k - 1, None)

@@ -10,9 +10,8 @@ kernel with the numpy expression it replaces):
 * :func:`block_stats`: min, max and largest dropped-sample δ of a block
   (:func:`meta.vertex_deltas`) and the z-ranges of its patch squares (``DiamondAccumulator``);
   :func:`row_stats` runs it over a block row's strided blocks in one call;
-* :func:`horn_row` / :func:`tent_row`: level-0 shading (:func:`horn_blocks`,
-  :func:`tent_blocks`: the same, reading and writing a block row's blocks in place of its
-  wide rows) (Horn's slopes and the height fraction)
+* :func:`horn_row` / :func:`tent_row`: level-0 shading (:func:`horn_blocks`: the same, reading
+  a block row's blocks in place of its wide rows) (Horn's slopes and the height fraction)
   and the [1 2 1]/4 mip step of :mod:`colors`, writing float16 with numpy's own rounding
   (:func:`f2h`: F16C's conversion where the CPU has it, else :func:`_half_bits`; numba has no
   float16 type on the CPU);
@@ -33,7 +32,7 @@ from numba.extending import intrinsic
 
 from .kernels import _jit
 
-__all__ = ["block_stats", "row_stats", "horn_row", "horn_blocks", "tent_row", "tent_blocks", "all_finite", "local_d2", "propagate_max", "half_lut", "to_half", "from_half", "h2f"]
+__all__ = ["block_stats", "row_stats", "horn_row", "horn_blocks", "tent_row", "all_finite", "local_d2", "propagate_max", "half_lut", "to_half", "from_half", "h2f"]
 
 _HALF = np.float32(0.5)
 _QUART = np.float32(0.25)
@@ -296,38 +295,21 @@ def _gather_row(blocks, r, dst):
 
 
 @_jit
-def _scatter_row(src, r, blocks):
-    """A wide row ``src`` (nb·(M-1)+1, 3) into row ``r`` of every block of ``blocks``
-    (nb, M, M, 3): what :func:`store.block_view` cuts from it (the shared border column into
-    both blocks), contiguous."""
-    nb, M = blocks.shape[0], blocks.shape[1]
-    for j in range(nb):
-        c0 = j * (M - 1)
-        dst = blocks[j, r]
-        for c in range(M):
-            dst[c, 0], dst[c, 1], dst[c, 2] = src[c0 + c, 0], src[c0 + c, 1], src[c0 + c, 2]
-
-
-@_jit
 def horn_blocks(above, blocks, below, dx8, dy8, zlo, rng, out):
-    """:func:`horn_row` of the wide rows a block row ``blocks`` (nb, M, M) float32 spans, read
-    from the blocks and written as blocks: ``out`` (nb, M, M, 3) uint16, block j = the columns
-    j·(M-1) .. j·(M-1)+M-1 of horn_row's output. Each grid row is gathered into one of three
-    small wide rows and each output row made in a small wide row (both in cache), so no whole
-    row is copied to or from the wide layout. The same values, the same operations."""
+    """:func:`horn_row` of the wide rows a block row ``blocks`` (nb, M, M) float32 spans,
+    read from the blocks: each grid row is gathered into one of three small wide rows (in
+    cache), so the block row is never copied whole. The same values, the same operations."""
     nb, M = blocks.shape[0], blocks.shape[1]
     W = nb * (M - 1) + 1
     planes = np.empty((3, max(W - 2, 1)), np.uint16)
     rows = np.empty((3, W), np.float32)  # grid rows r-1, r, r+1 at r % 3 (rotating)
-    o = np.empty((W, 3), np.uint16)
     _gather_row(blocks, 0, rows[0])
     for r in range(M):
         if r + 1 < M:
             _gather_row(blocks, r + 1, rows[(r + 1) % 3])
         up = above if r == 0 else rows[(r - 1) % 3]
         dn = below if r == M - 1 else rows[(r + 1) % 3]
-        _horn_line(up, rows[r % 3], dn, W, dx8, dy8, zlo, rng, o, planes)
-        _scatter_row(o, r, out)
+        _horn_line(up, rows[r % 3], dn, W, dx8, dy8, zlo, rng, out[r], planes)
 
 
 @_jit
@@ -399,60 +381,6 @@ def all_finite(bits):
     for k in range(bits.shape[0]):
         top = max(top, bits[k] & np.uint32(0x7F800000))
     return top != np.uint32(0x7F800000)
-
-
-@_jit
-def _padded_row_into(above, m0, m1, below, p, dst):
-    """Row ``p`` of :func:`tent_row`'s padded rows (:func:`_padded_row`) with ``m0``/``m1`` as
-    blocks (nb, M, M, 3), into the wide row ``dst`` (W, 3)."""
-    M = m0.shape[1]
-    if p == 0:
-        dst[:] = above[0]
-    elif p <= M - 1:
-        _gather_row3(m0, p - 1, dst)
-    elif p <= 2 * (M - 1):
-        _gather_row3(m1, p - M, dst)
-    else:
-        dst[:] = below[p - 2 * M + 1]
-
-
-@_jit
-def _gather_row3(blocks, r, dst):
-    """:func:`_gather_row` of blocks (nb, M, M, 3) into ``dst`` (nb·(M-1)+1, 3)."""
-    nb, M = blocks.shape[0], blocks.shape[1]
-    for j in range(nb):
-        c0 = j * (M - 1)
-        src = blocks[j, r]
-        for c in range(M):
-            dst[c0 + c, 0], dst[c0 + c, 1], dst[c0 + c, 2] = src[c, 0], src[c, 1], src[c, 2]
-
-
-@_jit
-def tent_blocks(above, m0, m1, below, lut, out):
-    """:func:`tent_row` with its block rows as blocks: ``m0``/``m1`` (nb, M, M, 3) uint16
-    (block rows 2i and 2i+1 of level l-1), ``above`` (1, W, 3) and ``below`` (2, W, 3) wide
-    as there; ``out`` (nb/2 or 1, M, M, 3) uint16, the blocks of tent_row's output row. Each
-    padded row is gathered into a small wide row (the last of one output row is the first of
-    the next: kept), each output row made in a small wide row and cut into the blocks."""
-    M = m0.shape[1]
-    W = m0.shape[0] * (M - 1) + 1
-    Wo = (W - 1) // 2 + 1
-    v = np.empty((W, 3), np.float32)
-    g = np.empty((3, W, 3), np.uint16)  # padded rows 2r, 2r+1, 2r+2
-    o_r = np.empty((Wo, 3), np.uint16)
-    _padded_row_into(above, m0, m1, below, 0, g[0])
-    for r in range(M):
-        if r > 0:
-            g[0] = g[2]
-        _padded_row_into(above, m0, m1, below, 2 * r + 1, g[1])
-        _padded_row_into(above, m0, m1, below, 2 * r + 2, g[2])
-        _vtent(g[0].reshape(-1), g[1].reshape(-1), g[2].reshape(-1), lut, v.reshape(-1))
-        for o in (0, Wo - 1):  # the border columns, clamped, as tent_row
-            xl, xc, xr = max(2 * o - 1, 0), 2 * o, min(2 * o + 1, W - 1)
-            for ch in range(3):
-                o_r[o, ch] = f2h(_tent3(v[xl, ch], v[xc, ch], v[xr, ch]))
-        _htent_inner(v, o_r)
-        _scatter_row(o_r, r, out)
 
 
 @_jit
