@@ -199,7 +199,7 @@ class _ShadingPass:
         M, nb0 = self.lay.M, self.lay.blocks(0)
         # ``keep_rows`` level-0 tasks' buffers (decoded blocks, float16 row) wait for reuse: with one, the
         # coarser rows' and the second worker's buffers were mostly freed and made anew (1.8 GB of fresh,
-        # kernel-zeroed pages at 16385²; with three 0.4 GB, the first of each shape, for the same peak RSS)
+        # kernel-zeroed pages at 16385²; with three ~0.5 GB, mostly the first of each shape; same peak RSS)
         self.pool = BufferPool(int(keep_rows * (nb0 * M * M * 4 + M * self._wide(0) * 6)))
 
     def _wide(self, lv: int) -> int:

@@ -311,7 +311,7 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
     # written (return_freed_memory). ``users[(0, i)]`` = [strip, readers left]: its task, and
     # the decimation into level 1 (a one-level store has none: its strip, the top row, is kept
     # by the Röttger table and never given back).
-    pool = BufferPool(2 * M * lay.S * 4)  # (two strips wait at most: one more than the old peak held)
+    pool = BufferPool(2 * M * lay.S * 4)  # (at most two free strips wait in it)
     users: dict = {}
 
     def release(key) -> None:
@@ -338,7 +338,6 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
 
     def tasks():
         prev_row, waiting = None, {}  # waiting: level → its even wide row, until the odd one comes
-        h = (M + 1) // 2  # rows 0, 2 .. M-1 of block row 2i: the first h rows of row i a level up
         for bi in range(lay.blocks(0)):
             if flags[0][bi].all():  # done in an earlier run: read it back for the levels above
                 strip = book(0, bi, wide_row(np.asarray(heights0[bi]), pool.take((M, lay.S), np.float32)))
@@ -350,10 +349,7 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
             prev_row = strip[-1].copy()
             lv, i, wide = 0, bi, strip
             while lv + 1 < nlev and i % 2 == 1:
-                even = waiting.pop(lv)
-                up = np.empty((M, lay.blocks(lv + 1) * (M - 1) + 1), np.float32)
-                np.copyto(up[:h], even[0::2, ::2])  # rows 0..M-1 of 2i, 2..M-1 of 2i+1, every other sample
-                np.copyto(up[h:], wide[2::2, ::2])
+                up = np.concatenate([waiting.pop(lv)[0::2, ::2], wide[2::2, ::2]])  # rows 0..M-1 of 2i, 2..M-1 of 2i+1
                 release((lv, i - 1))
                 release((lv, i))
                 lv, i, wide = lv + 1, i // 2, book(lv + 1, i // 2, up)
