@@ -234,24 +234,49 @@ def compute_table(store: TerrainStore, C_min: float = DEFAULT_C_MIN,
     return out
 
 
-def write_table(target, d2, C_min: float) -> None:
+def write_table(target, d2, C_min: float, workers: int | None = None) -> None:
     """Write the table into the store ``target`` (a path, or the open zarr group of a prepare
     in progress), arrays first, the attribute last. ``d2``: the list of :func:`compute_table`
-    or the (depth, array) pairs of :func:`iter_table` (written as they come)."""
+    or the (depth, array) pairs of :func:`iter_table` / :meth:`TableBuilder.depths` (written as
+    they come). Each array is created through zarr, then its chunk rows are encoded and
+    written by ``workers`` threads (None/0: every core) with :class:`store.ArrayChunkWriter`
+    — the files ``arr[...] = a`` writes — while this thread makes the next depth (the
+    propagation of :meth:`TableBuilder.depths` runs in the generator); a depth's array is
+    dropped once its rows are written."""
     import zarr
-    from zarr.codecs import BloscCodec
+
+    from .store import array_chunk_writer
+    from .workers import resolve_workers, run_ordered
 
     g = zarr.open_group(str(target), mode="r+") if isinstance(target, (str, Path)) else target
     g.attrs["roettger"] = None  # "no table" until every array is written
     pairs = enumerate(d2) if isinstance(d2, list) else d2
-    depths = 0
-    for t, a in pairs:
-        ch = (min(a.shape[0], 256), min(a.shape[1], 256))
-        arr = g.create_array(f"roettger/d2/{t}", shape=a.shape, chunks=ch, dtype="float32", overwrite=True,
-                             compressors=BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=4))
-        arr[...] = a
-        depths += 1
-    g.attrs["roettger"] = {"version": VERSION, "C_min": float(C_min), "K": k_factor(C_min), "depths": depths}
+    depths = [0]
+
+    def tasks():
+        for t, a in pairs:
+            arr = _create_depth(g, t, a.shape)
+            w = array_chunk_writer(arr)
+            depths[0] += 1
+            if w is None or a.dtype != w.dtype:  # (not a local store: through zarr)
+                yield lambda arr=arr, a=a: arr.__setitem__(Ellipsis, a)
+                continue
+            rows, cols = w.grid
+            for i in range(rows):
+                yield lambda w=w, a=a, i=i, cols=cols: w.write(a, ((i, j) for j in range(cols)))
+            del a
+
+    run_ordered(resolve_workers(workers), tasks())
+    g.attrs["roettger"] = {"version": VERSION, "C_min": float(C_min), "K": k_factor(C_min), "depths": depths[0]}
+
+
+def _create_depth(g, t: int, shape: tuple):
+    """The (empty) array ``roettger/d2/<t>``: float32, chunks ≤ 256², blosc zstd 3 + shuffle."""
+    from zarr.codecs import BloscCodec
+
+    ch = (min(shape[0], 256), min(shape[1], 256))
+    return g.create_array(f"roettger/d2/{t}", shape=shape, chunks=ch, dtype="float32", overwrite=True,
+                          compressors=BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=4))
 
 
 def prepare_roettger(path, C_min: float = DEFAULT_C_MIN, progress=None) -> dict:
