@@ -157,3 +157,32 @@ def test_metadata_arrays_are_the_ones_zarr_writes(tmp_path, flat):
     n_chunks = sum("/c/" in k and "done" not in k for k in trees[1])
     assert n_arrays == 2 * store.layout.levels + 2 * store.layout.J + 2 * (store.layout.J + 1)
     assert (n_chunks == 0) if flat else (n_arrays // 2 < n_chunks <= n_arrays)
+
+
+def test_table_beside_the_shading_pass_or_alone_gives_the_same_store(tmp_path, monkeypatch):
+    from massview.data.terrain import ingest
+
+    h = np.random.default_rng(4).standard_normal((700, 650)).astype(np.float32).cumsum(axis=0)
+    trees = []
+    for limit in (ingest._TABLE_BESIDE_SHADING, 0):  # beside (the tests' small tables), then alone
+        monkeypatch.setattr(ingest, "_TABLE_BESIDE_SHADING", limit)
+        res = prepare_terrain(ArraySource(h, "dem"), tmp_path / f"s{limit}.zarr", block=129, color=None, workers=2)
+        assert ("Röttger table" in res.stages) == (limit == 0)
+        trees.append(tree(tmp_path / f"s{limit}.zarr"))
+    assert trees[0] == trees[1]
+    assert sum(k.startswith("roettger/d2/") and "/c/" in k for k in trees[0]) > 0
+
+
+def test_table_writer_raises_its_error_on_join(tmp_path):
+    from massview.data.terrain.roettger import TableWriter
+
+    g = zarr.open_group(str(tmp_path / "s"), mode="w", zarr_format=3)
+
+    def failing():
+        yield 0, np.zeros((1, 1), np.float32)
+        raise RuntimeError("propagation failed")
+
+    w = TableWriter(g, failing(), 4.0, workers=2)
+    with pytest.raises(RuntimeError, match="propagation failed"):
+        w.join()
+    assert zarr.open_group(str(tmp_path / "s"), mode="r").attrs["roettger"] is None  # "no table"

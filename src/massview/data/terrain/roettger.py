@@ -29,7 +29,8 @@ from ...core.errors import StoreError
 from .store import TerrainStore
 
 __all__ = ["C_RANGE", "k_factor", "local_d2", "propagate_into", "DEFAULT_C_MIN", "compute_table", "write_table",
-           "prepare_roettger", "RoettgerTable", "has_table", "table_from_grid", "iter_table", "TableBuilder"]
+           "prepare_roettger", "RoettgerTable", "has_table", "table_from_grid", "iter_table", "TableBuilder",
+           "TableWriter"]
 
 DEFAULT_C_MIN = 4.0
 C_RANGE = (2.0, 64.0)  # the C for which the level-difference proof holds (lod/roettger.py)
@@ -194,6 +195,11 @@ class TableBuilder:
         self.top = None
         self._lock = threading.Lock()
 
+    @property
+    def nbytes(self) -> int:
+        """The bytes of the depths not yet handed out by :meth:`depths`."""
+        return sum(a.nbytes for a in self.d2 if a is not None)
+
     def strip(self, level: int, g0: int, wide: np.ndarray) -> None:
         """The wide rows of one block row of ``level`` (its first grid row ``g0``)."""
         n = self.lay.n
@@ -268,6 +274,31 @@ def write_table(target, d2, C_min: float, workers: int | None = None) -> None:
 
     run_ordered(resolve_workers(workers), tasks())
     g.attrs["roettger"] = {"version": VERSION, "C_min": float(C_min), "K": k_factor(C_min), "depths": depths[0]}
+
+
+class TableWriter:
+    """:func:`write_table` on a thread of its own, so that a prepare's shading pass runs beside
+    it (the table's chunks are mostly zstd encoding, which leaves the shading pass's idle core
+    time used); :meth:`join` waits for it and raises its error, if any. The resume contract is
+    :func:`write_table`'s: the attribute is written last, once every array is on disk."""
+
+    def __init__(self, target, d2, C_min: float, workers: int | None = None):
+        import threading
+
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(target, d2, C_min, workers), name="roettger-table")
+        self._thread.start()
+
+    def _run(self, target, d2, C_min: float, workers: int | None) -> None:
+        try:
+            write_table(target, d2, C_min, workers)
+        except BaseException as e:  # noqa: BLE001 - raised by join, on the caller's thread
+            self._error = e
+
+    def join(self) -> None:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
 
 
 def _create_depth(g, t: int, shape: tuple):
