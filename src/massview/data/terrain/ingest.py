@@ -68,6 +68,7 @@ __all__ = ["prepare_terrain", "PrepareResult", "fill_nodata", "compute_metadata"
 Progress = Callable[[str, int, int], None]  # (phase, advance, phase_total)
 _FILL_MARGIN = 32
 _FLAG_EVERY = 1.0  # seconds between writes of the pyramid pass's done flags (each a zarr round trip)
+_TABLE_BESIDE_SHADING = 128 << 20  # a Röttger table up to this size (16385²: 85 MiB) is written beside the shading pass
 
 
 @dataclass
@@ -266,19 +267,28 @@ def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder
     """Phases 3–5 after the pyramid pass: the Röttger table, the shading pyramid (its level-0
     pass also computes the exact errors over lattice squares larger than a block, which need
     the coarse lattice of the finished pyramid), the orthophoto colour and the metadata arrays."""
-    from .roettger import DEFAULT_C_MIN, write_table
+    from .roettger import DEFAULT_C_MIN, TableWriter, write_table
 
-    with _stage(stages, "Röttger table"):  # first: frees its arrays (341 MiB at 32769²) before the shading pass
-        write_table(g, table.depths(prog), DEFAULT_C_MIN)
-        table.top = None
+    beside = None  # a small table is written beside the shading pass; a large one first, alone, which frees
+    if table.nbytes <= _TABLE_BESIDE_SHADING:  # its arrays (341 MiB at 32769²) before the shading pass
+        beside = TableWriter(g, table.depths(prog), DEFAULT_C_MIN, workers)
+    else:
+        with _stage(stages, "Röttger table"):
+            write_table(g, table.depths(prog), DEFAULT_C_MIN, workers)
+            table.top = None
     store = TerrainStore(out, require_complete=False)
     zlo, zhi = build.zlo_zhi
     hook = None
-    with _stage(stages, "shading, window errors"):
-        if lay.J > lay.m:
-            build.set_coarse(coarse_lattice(store))
-            hook = lambda i, row: build.errors(i, row, "window")  # noqa: E731
-        write_shading(store, g, zlo, zhi, prog, workers, row_hook=hook, edges=edges)
+    with _stage(stages, "shading, window errors" if beside is None else "shading, window errors, Röttger table"):
+        try:
+            if lay.J > lay.m:
+                build.set_coarse(coarse_lattice(store))
+                hook = lambda i, row: build.errors(i, row, "window")  # noqa: E731
+            write_shading(store, g, zlo, zhi, prog, workers, row_hook=hook, edges=edges)
+        finally:
+            if beside is not None:
+                beside.join()
+                table.top = None
     with _stage(stages, "colour, metadata"):
         meta = build.finish()
         if ortho is not None:

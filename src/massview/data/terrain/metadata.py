@@ -177,12 +177,29 @@ def _ortho_block(ortho, lay: TerrainLayout, lv: int, i: int, j: int) -> np.ndarr
 
 
 def write_metadata(g, lay: TerrainLayout, meta: Metadata) -> None:
+    """The metadata arrays (``blocks/<l>/minmax``, ``blocks/<l>/error``, ``lod/…``: one chunk
+    each, zarr's default zstd) into the store's group ``g``: each created through zarr, its
+    chunk encoded and written directly (:class:`store.ArrayChunkWriter`, the file
+    ``arr[...] = a`` writes, without zarr's event-loop round trip; on two worker threads it
+    was no faster, zarr's creation being serial in its event loop)."""
+    items = []
     for lv in range(lay.levels):
-        for name, arr in ((f"blocks/{lv}/minmax", meta.minmax[lv]), (f"blocks/{lv}/error", meta.block_error[lv])):
-            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True)[...] = arr
+        items += [(f"blocks/{lv}/minmax", meta.minmax[lv]), (f"blocks/{lv}/error", meta.block_error[lv])]
     for j in range(lay.J):
-        g.create_array(f"lod/square_error/{j}", shape=meta.sq[j].shape, dtype="float32", chunks=meta.sq[j].shape, overwrite=True)[...] = meta.sq[j]
-        g.create_array(f"lod/edge_error/{j}", shape=meta.dg[j].shape, dtype="float32", chunks=meta.dg[j].shape, overwrite=True)[...] = meta.dg[j]
+        items += [(f"lod/square_error/{j}", meta.sq[j]), (f"lod/edge_error/{j}", meta.dg[j])]
     for j in range(lay.J + 1):
-        for name, arr in ((f"lod/zmin/{j}", meta.zmin[j]), (f"lod/zmax/{j}", meta.zmax[j])):
-            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True)[...] = arr
+        items += [(f"lod/zmin/{j}", meta.zmin[j]), (f"lod/zmax/{j}", meta.zmax[j])]
+    for name, a in items:
+        _write_whole(g, name, a)
+
+
+def _write_whole(g, name: str, a: np.ndarray) -> None:
+    """``a`` as the float32 array ``name`` of one chunk (replacing any old one)."""
+    from .store import array_chunk_writer
+
+    arr = g.create_array(name, shape=a.shape, dtype="float32", chunks=a.shape, overwrite=True)
+    w = array_chunk_writer(arr)
+    if w is None or a.dtype != w.dtype:
+        arr[...] = a
+    else:
+        w.write(a, [(0,) * a.ndim])

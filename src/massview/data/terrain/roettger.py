@@ -29,7 +29,8 @@ from ...core.errors import StoreError
 from .store import TerrainStore
 
 __all__ = ["C_RANGE", "k_factor", "local_d2", "propagate_into", "DEFAULT_C_MIN", "compute_table", "write_table",
-           "prepare_roettger", "RoettgerTable", "has_table", "table_from_grid", "iter_table", "TableBuilder"]
+           "prepare_roettger", "RoettgerTable", "has_table", "table_from_grid", "iter_table", "TableBuilder",
+           "TableWriter"]
 
 DEFAULT_C_MIN = 4.0
 C_RANGE = (2.0, 64.0)  # the C for which the level-difference proof holds (lod/roettger.py)
@@ -194,6 +195,11 @@ class TableBuilder:
         self.top = None
         self._lock = threading.Lock()
 
+    @property
+    def nbytes(self) -> int:
+        """The bytes of the depths not yet handed out by :meth:`depths`."""
+        return sum(a.nbytes for a in self.d2 if a is not None)
+
     def strip(self, level: int, g0: int, wide: np.ndarray) -> None:
         """The wide rows of one block row of ``level`` (its first grid row ``g0``)."""
         n = self.lay.n
@@ -234,24 +240,74 @@ def compute_table(store: TerrainStore, C_min: float = DEFAULT_C_MIN,
     return out
 
 
-def write_table(target, d2, C_min: float) -> None:
+def write_table(target, d2, C_min: float, workers: int | None = None) -> None:
     """Write the table into the store ``target`` (a path, or the open zarr group of a prepare
     in progress), arrays first, the attribute last. ``d2``: the list of :func:`compute_table`
-    or the (depth, array) pairs of :func:`iter_table` (written as they come)."""
+    or the (depth, array) pairs of :func:`iter_table` / :meth:`TableBuilder.depths` (written as
+    they come). Each array is created through zarr, then its chunk rows are encoded and
+    written by ``workers`` threads (None/0: every core) with :class:`store.ArrayChunkWriter`
+    — the files ``arr[...] = a`` writes — while this thread makes the next depth (the
+    propagation of :meth:`TableBuilder.depths` runs in the generator); a depth's array is
+    dropped once its rows are written."""
     import zarr
-    from zarr.codecs import BloscCodec
+
+    from .store import array_chunk_writer
+    from .workers import resolve_workers, run_ordered
 
     g = zarr.open_group(str(target), mode="r+") if isinstance(target, (str, Path)) else target
     g.attrs["roettger"] = None  # "no table" until every array is written
     pairs = enumerate(d2) if isinstance(d2, list) else d2
-    depths = 0
-    for t, a in pairs:
-        ch = (min(a.shape[0], 256), min(a.shape[1], 256))
-        arr = g.create_array(f"roettger/d2/{t}", shape=a.shape, chunks=ch, dtype="float32", overwrite=True,
-                             compressors=BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=4))
-        arr[...] = a
-        depths += 1
-    g.attrs["roettger"] = {"version": VERSION, "C_min": float(C_min), "K": k_factor(C_min), "depths": depths}
+    depths = [0]
+
+    def tasks():
+        for t, a in pairs:
+            arr = _create_depth(g, t, a.shape)
+            w = array_chunk_writer(arr)
+            depths[0] += 1
+            if w is None or a.dtype != w.dtype:  # (not a local store: through zarr)
+                yield lambda arr=arr, a=a: arr.__setitem__(Ellipsis, a)
+                continue
+            rows, cols = w.grid
+            for i in range(rows):
+                yield lambda w=w, a=a, i=i, cols=cols: w.write(a, ((i, j) for j in range(cols)))
+            del a
+
+    run_ordered(resolve_workers(workers), tasks())
+    g.attrs["roettger"] = {"version": VERSION, "C_min": float(C_min), "K": k_factor(C_min), "depths": depths[0]}
+
+
+class TableWriter:
+    """:func:`write_table` on a thread of its own, so that a prepare's shading pass runs beside
+    it (the table's chunks are mostly zstd encoding, which leaves the shading pass's idle core
+    time used); :meth:`join` waits for it and raises its error, if any. The resume contract is
+    :func:`write_table`'s: the attribute is written last, once every array is on disk."""
+
+    def __init__(self, target, d2, C_min: float, workers: int | None = None):
+        import threading
+
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(target, d2, C_min, workers), name="roettger-table")
+        self._thread.start()
+
+    def _run(self, target, d2, C_min: float, workers: int | None) -> None:
+        try:
+            write_table(target, d2, C_min, workers)
+        except BaseException as e:  # noqa: BLE001 - raised by join, on the caller's thread
+            self._error = e
+
+    def join(self) -> None:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+
+
+def _create_depth(g, t: int, shape: tuple):
+    """The (empty) array ``roettger/d2/<t>``: float32, chunks ≤ 256², blosc zstd 3 + shuffle."""
+    from zarr.codecs import BloscCodec
+
+    ch = (min(shape[0], 256), min(shape[1], 256))
+    return g.create_array(f"roettger/d2/{t}", shape=shape, chunks=ch, dtype="float32", overwrite=True,
+                          compressors=BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=4))
 
 
 def prepare_roettger(path, C_min: float = DEFAULT_C_MIN, progress=None) -> dict:

@@ -38,7 +38,8 @@ import numpy as np
 from ...core.errors import BlockNotFoundError, CorruptBlockError, StoreError
 from .layout import TerrainLayout
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "create_shade_arrays", "dir_size", "ChunkWriter", "make_chunk_root", "write_chunk_file", "block_view", "wide_row"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "create_shade_arrays", "dir_size", "ChunkWriter", "make_chunk_root", "write_chunk_file", "block_view", "wide_row",
+           "ArrayChunkWriter", "array_chunk_writer"]
 
 FORMAT = "massview-terrain"
 FORMAT_VERSION = 2
@@ -368,3 +369,100 @@ class TerrainStore:
         zmin = [np.asarray(g[f"lod/zmin/{j}"][...]) for j in range(J + 1)]
         zmax = [np.asarray(g[f"lod/zmax/{j}"][...]) for j in range(J + 1)]
         return sq, dg, zmin, zmax
+
+
+class ArrayChunkWriter:
+    """Whole-array writes of one zarr v3 array's chunks, encoded and written on the calling
+    thread (any thread: each call writes its own chunk files), for arrays that zarr's async
+    pipeline would otherwise write one event-loop round trip and one thread hop per codec
+    and chunk at a time (the Röttger table, the metadata arrays).
+
+    The files are exactly those ``arr[...] = a`` writes (tests/test_direct_chunks.py): each
+    chunk is copied into a C-ordered buffer of the chunk shape, initialised to the fill value
+    where the array ends inside it (zarr's partial edge chunks); a chunk that zarr's own
+    ``NDBuffer.all_equal`` finds equal to the fill value (bit for bit at a fill of 0.0, so
+    −0.0 is data; NaN equal to a NaN fill) is not written and any old file of it removed,
+    unless the array's ``write_empty_chunks`` says otherwise; the rest are encoded with the
+    array's own codec object (little-endian bytes, then its blosc or zstd compressor) and
+    written under its chunk key. Use :func:`array_chunk_writer`, which returns None where this
+    does not apply."""
+
+    def __init__(self, arr, encode):
+        from zarr.core.buffer import default_buffer_prototype
+
+        meta = arr.metadata
+        self.shape, self.chunks = tuple(meta.shape), tuple(meta.chunk_grid.chunk_shape)
+        self.dtype = np.dtype(arr.dtype)
+        self.fill = meta.fill_value
+        self.skip_fill = not arr._async_array.config.write_empty_chunks
+        self.encode = encode
+        self.root = os.path.join(str(arr.store.root), *arr.path.split("/"))
+        self.key = meta.encode_chunk_key
+        self._nd = default_buffer_prototype().nd_buffer.from_numpy_array
+        self._dirs: set = set()
+
+    @property
+    def grid(self) -> tuple:
+        """The number of chunks along each axis."""
+        return tuple(-(-n // c) for n, c in zip(self.shape, self.chunks))
+
+    def write(self, a: np.ndarray, coords) -> None:
+        """The chunks at ``coords`` (an iterable of chunk index tuples) of the whole array ``a``
+        (the array's shape and dtype)."""
+        if a.shape != self.shape or a.dtype != self.dtype:
+            raise StoreError(f"{self.root}: direct chunk write of a {a.dtype} {a.shape} array into a {self.dtype} {self.shape} one")
+        for c in coords:
+            self._write_chunk(a, tuple(c))
+
+    def _write_chunk(self, a: np.ndarray, c: tuple) -> None:
+        part = a[tuple(slice(i * s, min((i + 1) * s, n)) for i, s, n in zip(c, self.chunks, self.shape))]
+        if part.shape == self.chunks:
+            buf = np.ascontiguousarray(part)
+        else:  # an edge chunk: the fill value beyond the array's end, as zarr pads it
+            buf = np.full(self.chunks, self.fill, self.dtype)
+            buf[tuple(slice(0, k) for k in part.shape)] = part
+        path = os.path.join(self.root, *self.key(c).split("/"))
+        if self.skip_fill and self._nd(buf.reshape(-1)[:1]).all_equal(self.fill) and self._nd(buf).all_equal(self.fill):
+            try:  # (the first element decides almost every chunk; the whole chunk only where it is the fill value)
+                os.unlink(path)
+            except FileNotFoundError:
+                pass
+            return
+        data = np.ascontiguousarray(buf, self.dtype.newbyteorder("<")).reshape(-1).view(np.uint8)
+        if self.encode is not None:
+            data = self.encode(data)
+        d = os.path.dirname(path)
+        if d not in self._dirs:
+            os.makedirs(d, exist_ok=True)
+            self._dirs.add(d)
+        with open(path, "wb") as fh:
+            fh.write(data)
+
+
+def array_chunk_writer(arr) -> ArrayChunkWriter | None:
+    """An :class:`ArrayChunkWriter` for the zarr array ``arr``, or None (write through zarr)
+    unless it is a zarr v3 array in a local store with a regular chunk grid, the default
+    ``c/…`` chunk keys, codecs ``bytes`` (little-endian) + at most one blosc or zstd
+    compressor, and a fill value."""
+    from zarr.codecs import BloscCodec, BytesCodec, ZstdCodec
+    from zarr.core.chunk_grids import RegularChunkGrid
+    from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
+    from zarr.storage import LocalStore
+
+    meta = getattr(arr, "metadata", None)
+    if getattr(meta, "zarr_format", None) != 3 or not isinstance(arr.store, LocalStore) or meta.fill_value is None:
+        return None
+    if not isinstance(meta.chunk_grid, RegularChunkGrid) or not isinstance(meta.chunk_key_encoding, DefaultChunkKeyEncoding):
+        return None
+    codecs = meta.codecs
+    if not (1 <= len(codecs) <= 2 and isinstance(codecs[0], BytesCodec)) or np.dtype(arr.dtype).byteorder == ">":
+        return None
+    if codecs[0].endian is not None and codecs[0].endian.value != "little":
+        return None
+    if len(codecs) == 1:
+        return ArrayChunkWriter(arr, None)
+    if isinstance(codecs[1], BloscCodec):
+        return ArrayChunkWriter(arr, codecs[1]._blosc_codec.encode)
+    if isinstance(codecs[1], ZstdCodec):
+        return ArrayChunkWriter(arr, codecs[1]._zstd_codec.encode)
+    return None
