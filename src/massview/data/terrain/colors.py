@@ -95,22 +95,16 @@ def shade0_blocks(above: np.ndarray | None, blocks: np.ndarray, below: np.ndarra
     """:func:`_shade0` of the wide rows the block row ``blocks`` (nb, M, M) float32,
     C-contiguous, spans — what it gives for ``wide_row(blocks)`` — read from the blocks
     (:func:`rowkernels.horn_blocks`: no wide copy of the row)."""
-    from .rowkernels import horn_blocks
+    from .rowkernels import _gather_row, horn_blocks
 
     nb, M = blocks.shape[0], blocks.shape[1]
     W = nb * (M - 1) + 1
-    above = above if above is not None else _block_grid_row(blocks, 0)
-    below = below if below is not None else _block_grid_row(blocks, M - 1)
+    above = above if above is not None else _gather_row(blocks, 0, np.empty(W, np.float32))  # the row's own first
+    below = below if below is not None else _gather_row(blocks, M - 1, np.empty(W, np.float32))  # and last, at the edges
     out = np.empty((M, W, 3), np.float16) if out is None else out
     horn_blocks(np.ascontiguousarray(above, np.float32), blocks, np.ascontiguousarray(below, np.float32),
                 np.float32(8 * dx), np.float32(8 * dy), np.float32(zlo), np.float32(rng), out.view(np.uint16))
     return out
-
-
-def _block_grid_row(blocks: np.ndarray, r: int) -> np.ndarray:
-    """Grid row ``r`` of a block row (nb, M, M) as a wide row (nb·(M-1)+1,)."""
-    nb, M = blocks.shape[0], blocks.shape[1]
-    return np.concatenate([blocks[:, r, :M - 1].reshape(-1), blocks[nb - 1, r, M - 1:]])
 
 
 def tent_wide(rows: dict, i: int, out: np.ndarray | None = None) -> np.ndarray:

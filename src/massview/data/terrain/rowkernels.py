@@ -285,13 +285,14 @@ def horn_row(above, cur, below, dx8, dy8, zlo, rng, out):
 @_jit
 def _gather_row(blocks, r, dst):
     """Grid row ``r`` of a block row (nb, M, M) as one wide row ``dst`` (nb·(M-1)+1,): what
-    :func:`store.wide_row` makes of it, one row at a time (blocks share their border column)."""
+    :func:`store.wide_row` makes of it, one row at a time (blocks share their border column); returns ``dst``."""
     nb, M = blocks.shape[0], blocks.shape[1]
     for j in range(nb):
         c0 = j * (M - 1)
         src = blocks[j, r]
         for c in range(M):
             dst[c0 + c] = src[c]
+    return dst
 
 
 @_jit

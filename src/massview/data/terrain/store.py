@@ -399,7 +399,8 @@ class ArrayChunkWriter:
         self.root = os.path.join(str(arr.store.root), *arr.path.split("/"))
         self.key = meta.encode_chunk_key
         self._nd = default_buffer_prototype().nd_buffer.from_numpy_array
-        self._dirs: set = set()
+        self._root_made = False
+        self._lock = threading.Lock()
 
     @property
     def grid(self) -> tuple:
@@ -421,22 +422,22 @@ class ArrayChunkWriter:
         else:  # an edge chunk: the fill value beyond the array's end, as zarr pads it
             buf = np.full(self.chunks, self.fill, self.dtype)
             buf[tuple(slice(0, k) for k in part.shape)] = part
-        path = os.path.join(self.root, *self.key(c).split("/"))
+        parts = self.key(c).split("/")  # "c/i/j/…" (or one name, "c.i.j", with a "." separator)
         if self.skip_fill and self._nd(buf.reshape(-1)[:1]).all_equal(self.fill) and self._nd(buf).all_equal(self.fill):
             try:  # (the first element decides almost every chunk; the whole chunk only where it is the fill value)
-                os.unlink(path)
+                os.unlink(os.path.join(self.root, *parts))
             except FileNotFoundError:
                 pass
             return
         data = np.ascontiguousarray(buf, self.dtype.newbyteorder("<")).reshape(-1).view(np.uint8)
         if self.encode is not None:
             data = self.encode(data)
-        d = os.path.dirname(path)
-        if d not in self._dirs:
-            os.makedirs(d, exist_ok=True)
-            self._dirs.add(d)
-        with open(path, "wb") as fh:
-            fh.write(data)
+        if len(parts) > 1 and not self._root_made:  # the chunk folder "c" once, as ChunkWriter makes it
+            with self._lock:
+                if not self._root_made:
+                    make_chunk_root(os.path.join(self.root, parts[0]))
+                    self._root_made = True
+        write_chunk_file(os.path.join(self.root, *parts[:2]), parts[2:], data)
 
 
 def array_chunk_writer(arr) -> ArrayChunkWriter | None:
