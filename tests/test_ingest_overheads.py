@@ -7,7 +7,8 @@
   tests/test_ingest_parallel.py and between read paths in tests/test_ingest_fastpaths.py);
 * ``rowkernels.all_finite`` is ``np.isfinite(a).all()``;
 * ``prepare`` freezes the objects alive before it (``gc.freeze``) only while it runs, also
-  when it fails, and leaves a caller's own freeze alone.
+  when it fails, and leaves a caller's own freeze alone;
+* (eleventh round) numba's first kernel load does not import scipy.linalg.
 """
 
 from __future__ import annotations
@@ -98,3 +99,22 @@ def test_prepare_freezes_the_old_objects_only_while_it_runs(tmp_path):
         assert gc.get_freeze_count() > n // 2  # not unfrozen (frozen objects freed meanwhile leave the count)
     finally:
         gc.unfreeze()
+
+
+def test_kernels_load_without_scipy_linalg_which_imports_afterwards():
+    """numba's first kernel load does not import scipy.linalg (data/jit.py hides its BLAS
+    probe, 0.2–0.35 s of every prepare's start); scipy.linalg still imports afterwards, whole."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np\n"
+            "from massview.data.terrain import rowkernels\n"
+            "from massview.data import skykernel, lodkernel\n"
+            "assert rowkernels.all_finite(np.zeros(4, np.uint32))\n"
+            "assert 'scipy.linalg' not in sys.modules, 'scipy.linalg imported by the kernels'\n"
+            "import scipy.linalg, scipy.linalg.cython_blas\n"
+            "assert scipy.linalg.cython_blas is not None and 'scipy.linalg.cython_blas' in sys.modules\n"
+            "print(float(scipy.linalg.det(np.eye(2) * 2)))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["4.0"]

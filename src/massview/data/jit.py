@@ -1,11 +1,35 @@
-"""numba's ``njit`` as the data layer's compiled kernels use it: cached on disk, GIL released,
+"""numba as the data layer imports it (every kernel module imports ``njit`` from here), and its
+``njit`` as the compiled kernels use it: cached on disk, GIL released,
 no bounds checks, numpy's error model (division by zero gives inf/NaN, not an exception)."""
 
 from __future__ import annotations
 
+import sys
+
 from numba import njit
 
-__all__ = ["cached_jit"]
+__all__ = ["cached_jit", "njit"]
+
+
+def _arraymath_without_scipy_blas() -> None:
+    """Import ``numba.np.arraymath`` (what numba's first compile or cache load imports) with
+    ``scipy.linalg.cython_blas`` hidden. At import it probes for scipy's BLAS, which imports all
+    of ``scipy.linalg`` (0.2–0.35 s measured here, and scipy's OpenBLAS starts its threads), only
+    to pick how ``np.correlate``/``np.convolve`` take inner products inside compiled code; our
+    kernels call neither (they then use numba's own loop). Nothing is hidden where scipy.linalg
+    or numba's arraymath is already imported, and ``scipy.linalg`` imports as before afterwards."""
+    if "numba.np.arraymath" in sys.modules or "scipy.linalg" in sys.modules:
+        return
+    key = "scipy.linalg.cython_blas"
+    sys.modules[key] = None  # (an import of it raises ImportError while this is here)
+    try:
+        import numba.np.arraymath  # noqa: F401
+    finally:
+        if key in sys.modules and sys.modules[key] is None:
+            del sys.modules[key]
+
+
+_arraymath_without_scipy_blas()
 
 
 def cached_jit(fn):
