@@ -12,21 +12,29 @@ __all__ = ["cached_jit", "njit"]
 
 
 def _arraymath_without_scipy_blas() -> None:
-    """Import ``numba.np.arraymath`` (what numba's first compile or cache load imports) with
-    ``scipy.linalg.cython_blas`` hidden. At import it probes for scipy's BLAS, which imports all
-    of ``scipy.linalg`` (0.2–0.35 s measured here, and scipy's OpenBLAS starts its threads), only
-    to pick how ``np.correlate``/``np.convolve`` take inner products inside compiled code; our
-    kernels call neither (they then use numba's own loop). Nothing is hidden where scipy.linalg
-    or numba's arraymath is already imported, and ``scipy.linalg`` imports as before afterwards."""
-    if "numba.np.arraymath" in sys.modules or "scipy.linalg" in sys.modules:
+    """Import ``numba.np.arraymath`` (what numba's first compile or cache load imports) with its
+    BLAS probe answering "none". The probe (``numba.np.linalg.ensure_blas``) imports all of
+    ``scipy.linalg`` (0.2–0.35 s measured here, and scipy's OpenBLAS starts its threads) only to
+    pick how ``np.correlate``/``np.convolve`` take inner products inside compiled code; our
+    kernels call neither (they would use numba's own loop). The probe is numba's module
+    attribute, put back right after, so no other thread's imports are touched, and ``np.dot``
+    and ``np.linalg`` in compiled code still find scipy's BLAS. Nothing changes where numba's
+    arraymath is already imported."""
+    if "numba.np.arraymath" in sys.modules:
         return
-    key = "scipy.linalg.cython_blas"
-    sys.modules[key] = None  # (an import of it raises ImportError while this is here)
+    import numba.np.linalg as linalg
+
+    probe = linalg.ensure_blas
+
+    def no_blas():
+        raise ImportError("massview: BLAS probe skipped at import")
+
+    linalg.ensure_blas = no_blas
     try:
-        import numba.np.arraymath  # noqa: F401
+        import numba.np.arraymath as arraymath
     finally:
-        if key in sys.modules and sys.modules[key] is None:
-            del sys.modules[key]
+        linalg.ensure_blas = probe
+    arraymath.ensure_blas = probe  # (arraymath imported the name)
 
 
 _arraymath_without_scipy_blas()
