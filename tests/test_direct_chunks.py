@@ -14,7 +14,7 @@ from zarr.codecs import BloscCodec
 
 from massview.data.terrain import ArraySource, TerrainStore, prepare_terrain
 from massview.data.terrain.metadata import compute_metadata, write_metadata
-from massview.data.terrain.roettger import VERSION, k_factor, write_table
+from massview.data.terrain.roettger import TABLE_CODEC, VERSION, k_factor, write_table
 from massview.data.terrain.store import array_chunk_writer
 
 
@@ -97,7 +97,7 @@ def write_table_through_zarr(g, d2, C_min):
     for t, a in enumerate(d2):
         ch = (min(a.shape[0], 256), min(a.shape[1], 256))
         g.create_array(f"roettger/d2/{t}", shape=a.shape, chunks=ch, dtype="float32", overwrite=True,
-                       compressors=BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", typesize=4))[...] = a
+                       compressors=BloscCodec(**TABLE_CODEC))[...] = a
     g.attrs["roettger"] = {"version": VERSION, "C_min": float(C_min), "K": k_factor(C_min), "depths": len(d2)}
 
 
