@@ -1,4 +1,8 @@
-"""Bad input gets a clear message naming the parameter, no traceback, a non-zero exit."""
+"""Bad input gets a clear message naming the parameter, no traceback, a non-zero exit (and the
+exit itself: cli.main's last exit handler)."""
+
+import os
+import sys
 
 import pytest
 
@@ -20,3 +24,22 @@ def test_bad_input_is_reported_plainly(args, needle, tmp_path):
     assert proc.returncode != 0
     assert needle in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_exit_skips_the_final_collection_after_every_other_exit_handler(tmp_path):
+    """cli.main registers its gc.freeze first, so it runs after the exit handlers registered
+    later (numba's, zarr's, the peak-RSS writer) and before those registered before main; the
+    process still exits with the command's status and its files written."""
+    import subprocess
+
+    code = ("import atexit, gc, sys\n"
+            "atexit.register(lambda: print('frozen at exit:', gc.get_freeze_count() > 0))\n"
+            "from massview.app.cli import main\n"
+            "rc = main(['generate', 'terrain', '--size', '65', '--format', 'npy', '--quiet', sys.argv[1]])\n"
+            "print('frozen before exit:', gc.get_freeze_count() > 0)\n"
+            "sys.exit(rc)\n")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "d.npy")], capture_output=True, text=True,
+                         env={**os.environ, "MASSVIEW_PEAK_RSS_FILE": str(tmp_path / "rss")})
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines()[-2:] == ["frozen before exit: False", "frozen at exit: True"]
+    assert (tmp_path / "d.npy").exists() and int((tmp_path / "rss").read_text()) > 0

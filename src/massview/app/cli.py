@@ -14,6 +14,7 @@ print as one message, no traceback, and exit non-zero.
 from __future__ import annotations
 
 import argparse
+import atexit
 import os
 import sys
 from pathlib import Path
@@ -265,7 +266,6 @@ def cmd_bench(args) -> int:
 
 def _report_peak_rss() -> None:
     """With MASSVIEW_PEAK_RSS_FILE set, write this process's peak RSS (bytes) there at exit."""
-    import atexit
     import os
 
     path = os.environ.get("MASSVIEW_PEAK_RSS_FILE")
@@ -282,8 +282,26 @@ def _report_peak_rss() -> None:
     atexit.register(write)
 
 
+def _no_final_collection() -> None:
+    """At exit, after every other exit handler (registered first, so it runs last): collect the
+    young generations, then move every object still alive out of the collector's reach
+    (``gc.freeze``). The interpreter's own collections at shutdown then skip the ~10⁶ objects
+    numba, zarr and the modules leave (0.4–0.6 s of every command's exit measured here, against
+    0.1 s); cyclic garbage of the old generation is left to the process's end, unfinalized, as
+    objects alive at exit are. Files are closed by their own ``with`` blocks, not by that."""
+    import gc
+
+    gc.collect(1)
+    gc.freeze()
+
+
+_EXIT_HANDLER: list = []  # (registered once per process, by the first main)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if not _EXIT_HANDLER:
+        _EXIT_HANDLER.append(atexit.register(_no_final_collection))
     _report_peak_rss()
     reuse_freed_memory()  # per-frame images reuse freed pages (issue 20)
     if argv[:1] == ["__job"] and len(argv) == 2:  # a rank of a job started by massview.api.render
