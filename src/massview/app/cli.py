@@ -19,11 +19,10 @@ import os
 import sys
 from pathlib import Path
 
-from ..core.config import RenderConfig, parse_size, parse_sun
+from ..core.config import COMPOSITOR_NAMES, RenderConfig, parse_size, parse_sun
 from ..core.errors import ConfigError, MassviewError
 from ..core.paths import BUILTIN_PATHS
 from ..parallel.codec import CODEC_CHOICES
-from ..parallel.composite import COMPOSITORS
 from ..parallel.runtime import reuse_freed_memory
 from . import upgrade_cmds
 from .dmmr_cmds import add_dmmr_args
@@ -60,7 +59,7 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--decomposition", default="sort-last", metavar="MODE",
                    help=f"one of {', '.join(DECOMPOSITIONS)} (default sort-last; terrain: sort-last = sort-last:kpatch; scene: sort-last = sort-last:visible); "
                         "'horizontal' = side-by-side columns, 'vertical' = stacked rows")
-    p.add_argument("--compositor", default="binary-swap", choices=COMPOSITORS, help="sort-last depth compositing (default binary-swap)")
+    p.add_argument("--compositor", default="binary-swap", choices=COMPOSITOR_NAMES, help="sort-last depth compositing (default binary-swap)")
     p.add_argument("--radix-k", type=int, default=None, help="k for radix-k (default 4)")
     p.add_argument("--codec", default=None, choices=CODEC_CHOICES,
                    help="sub-image codec (default auto: on one node runs without byte compression and final regions as raw rows; "
@@ -108,7 +107,9 @@ def _add_roettger_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-fan-delta", dest="fan_delta", action="store_false", help="T2: resend every visible fan each frame (no change-only messages)")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The whole command line; given ``argv``, the ``bench`` subcommands (whose modules import
+    the renderer, MPI and the scene systems: ~0.1 s) only when ``argv`` starts with ``bench``."""
     ap = argparse.ArgumentParser(prog="massview", description="Parallel out-of-core rendering of massive terrains and models.")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
     r = sub.add_parser("render", help="render a camera path on N ranks")
@@ -174,10 +175,11 @@ def build_parser() -> argparse.ArgumentParser:
     ver.add_argument("--quiet", "-q", action="store_true")
     b = sub.add_parser("bench", help="benchmarks (figures as ratios against a baseline measured in the same run)")
     bsub = b.add_subparsers(dest="bench", required=True, metavar="WHAT")
-    from .bench import BENCHES
+    if argv is None or argv[:1] == ["bench"]:
+        from .bench import BENCHES
 
-    for name, mod in BENCHES.items():
-        mod.add_arguments(bsub.add_parser(name, help=(mod.__doc__ or name).strip().splitlines()[0]))
+        for name, mod in BENCHES.items():
+            mod.add_arguments(bsub.add_parser(name, help=(mod.__doc__ or name).strip().splitlines()[0]))
     upgrade_cmds.add_parsers(sub)
     return ap
 
@@ -312,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
         from ..systems.reliefboards_job import run_job as run_m2_job
 
         return run_m2_job(argv[1])
-    args = build_parser().parse_args(argv)
+    args = build_parser(argv).parse_args(argv)
     try:
         if args.command == "render" and args.system == "reliefboards":
             from .reliefboards_cmds import cmd_render as _reliefboards

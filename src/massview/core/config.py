@@ -28,6 +28,7 @@ def parse_size(spec: str) -> tuple[int, int]:
 
 
 CODEC_NAMES = ("auto", "none", "lz4", "blosc2")  # massview.parallel.codec.CODEC_CHOICES (checked by tests/test_codec_composite.py)
+COMPOSITOR_NAMES = ("direct-send", "binary-swap", "radix-k")  # massview.parallel.composite.COMPOSITORS (kept here so that the CLI's parser need not import mpi4py)
 
 
 @dataclass(frozen=True)

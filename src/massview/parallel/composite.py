@@ -43,6 +43,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from ..core.camera import Viewport
+from ..core.config import COMPOSITOR_NAMES
 from ..core.errors import ConfigError
 from ..core.image import BACKGROUND_RGBA, Image
 from ..core.stats import FrameStats
@@ -51,7 +52,7 @@ from .exchange import Outbox, receive, receive_into, wait_all
 
 __all__ = ["COMPOSITORS", "PIECES", "combine", "split_rows", "radix_factors", "composite", "final_regions", "deliver"]
 
-COMPOSITORS = ("direct-send", "binary-swap", "radix-k")
+COMPOSITORS = COMPOSITOR_NAMES  # (defined in core.config, which the CLI's parser imports without MPI)
 
 # Where a rank's compositing time goes, recorded as ``piece.<name>`` in FrameStats.times_ms on
 # top of the stages encode / transfer / composite (``bench composite`` prints them): encode
