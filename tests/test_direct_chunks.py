@@ -159,6 +159,32 @@ def test_metadata_arrays_are_the_ones_zarr_writes(tmp_path, flat):
     assert (n_chunks == 0) if flat else (n_arrays // 2 < n_chunks <= n_arrays)
 
 
+@pytest.mark.parametrize("order", ["data, then flat", "flat, then data"])
+def test_metadata_rewritten_over_old_arrays_is_what_zarr_leaves(tmp_path, order):
+    """write_metadata over arrays already there (``massview upgrade``, a resumed prepare): the
+    files zarr's create_array(overwrite=True) + arr[...] = a leave, old chunks gone where the
+    new array is all fill value; and a parent group written by write_metadata itself."""
+    import dataclasses
+
+    h = np.random.default_rng(5).standard_normal((300, 200)).astype(np.float32).cumsum(axis=0)
+    prepare_terrain(ArraySource(h, "dem"), tmp_path / "s.zarr", block=129, color=None)
+    store = TerrainStore(tmp_path / "s.zarr")
+    data = compute_metadata(store, lambda *a: None)
+    flat = dataclasses.replace(data, **{f: [np.zeros_like(a) for a in getattr(data, f)]
+                                        for f in ("minmax", "block_error", "sq", "dg", "zmin", "zmax")})
+    metas = (data, flat) if order.startswith("data") else (flat, data)
+    trees = []
+    for way in ("zarr", "direct"):
+        g = zarr.open_group(str(tmp_path / way), mode="w", zarr_format=3)
+        for lv in range(store.layout.levels):
+            g.create_array(f"blocks/{lv}/done", shape=(1, 1), dtype="uint8")
+        for meta in metas:
+            (write_metadata_through_zarr if way == "zarr" else write_metadata)(g, store.layout, meta)
+        trees.append(tree(tmp_path / way))
+    assert trees[0] == trees[1]
+    assert ("lod/zarr.json" in trees[1]) and any(k.startswith("lod/zmin/0/c/") for k in trees[1]) == (metas[1] is data)
+
+
 def test_table_beside_the_shading_pass_or_alone_gives_the_same_store(tmp_path, monkeypatch):
     from massview.data.terrain import ingest
 
