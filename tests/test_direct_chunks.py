@@ -159,6 +159,33 @@ def test_metadata_arrays_are_the_ones_zarr_writes(tmp_path, flat):
     assert (n_chunks == 0) if flat else (n_arrays // 2 < n_chunks <= n_arrays)
 
 
+@pytest.mark.parametrize("color", [False, True])
+def test_store_arrays_are_the_ones_zarr_creates(tmp_path, monkeypatch, color):
+    """create_store's arrays (the first of each family through zarr, the rest from its zarr.json)
+    and create_shade_arrays over a store's old shading (``massview upgrade``): the files zarr's
+    own create_array calls leave, old chunks removed."""
+    from massview.data.terrain import store as st
+    from massview.data.terrain.layout import TerrainLayout
+
+    lay = TerrainLayout(700, 600, 129, 17)
+    trees = []
+    for way in ("zarr", "direct"):
+        if way == "zarr":
+            monkeypatch.setattr(st._ArraysLike, "create", lambda self, name, family, **kw: self.g.create_array(name, **kw))
+        else:
+            monkeypatch.undo()
+        g, resumed = st.create_store(tmp_path / way, lay, {"source": "x", "spacing": [1.0, 1.0]}, color)
+        assert not resumed
+        old = tmp_path / way / "shade" / "1" / "c" / "0" / "0" / "0" / "0"
+        old.parent.mkdir(parents=True)
+        old.write_bytes(b"old chunk")
+        st.create_shade_arrays(g, lay)
+        trees.append(tree(tmp_path / way))
+    assert trees[0] == trees[1]
+    assert sum(k.endswith("zarr.json") for k in trees[1]) == 1 + 3 + color + lay.levels * (4 + color)  # groups: root, heights, shade, blocks (color); per level: heights, shade, blocks/<l>, its done (color)
+    assert not any("/c/" in k for k in trees[1])
+
+
 @pytest.mark.parametrize("order", ["data, then flat", "flat, then data"])
 def test_metadata_rewritten_over_old_arrays_is_what_zarr_leaves(tmp_path, order):
     """write_metadata over arrays already there (``massview upgrade``, a resumed prepare): the

@@ -219,49 +219,25 @@ def _template(w, name: str):
     """(``w``, the folder of the group ``name`` is relative to, the document of ``name``'s parent
     group) when that group document is one zarr makes for a new group (no attributes), else
     False (every array then through zarr)."""
-    import json
     import os
 
-    try:
-        with open(os.path.join(os.path.dirname(w.root), "zarr.json"), "rb") as fh:
-            group_doc = fh.read()
-        plain = json.loads(group_doc).get("attributes") == {} and "/" in name
-    except (OSError, ValueError):
-        return False
-    return (w, w.root[: len(w.root) - len(name)].rstrip("/"), group_doc) if plain else False
+    from .store import plain_group_doc
+
+    doc = plain_group_doc(os.path.dirname(w.root))
+    return (w, w.root[: len(w.root) - len(name)].rstrip("/"), doc) if doc is not None and "/" in name else False
 
 
 def _like(w, base: str, group_doc: bytes, name: str, shape: tuple):
     """The array ``name`` under the group folder ``base``, like the one the chunk writer ``w``
-    writes (an array in ``base`` too) but of ``shape``, in one chunk: its ``zarr.json`` is
-    ``w``'s with the shape and the chunk shape changed, re-encoded as zarr encodes it
-    (``json.dumps``, ``allow_nan``, indent 2); any old array there is removed first (what
-    ``overwrite=True`` does) and missing parent groups get ``group_doc``, the document zarr gave
-    ``w``'s parent group. Returns the chunk writer of the new array."""
+    writes (an array in ``base`` too) but of ``shape``, in one chunk (:func:`store.array_like`);
+    returns the chunk writer of the new array."""
     import copy
-    import json
-    import os
-    import shutil
     import threading
 
-    with open(os.path.join(w.root, "zarr.json"), "rb") as fh:
-        doc = json.loads(fh.read())
-    doc["shape"] = list(shape)
-    doc["chunk_grid"]["configuration"]["chunk_shape"] = list(shape)
-    d, parts = base, name.split("/")
-    for p in parts[:-1]:
-        d = os.path.join(d, p)
-        if not os.path.exists(os.path.join(d, "zarr.json")):
-            os.makedirs(d, exist_ok=True)
-            with open(os.path.join(d, "zarr.json"), "wb") as fh:
-                fh.write(group_doc)
-    root = os.path.join(d, parts[-1])
-    shutil.rmtree(root, ignore_errors=True)
-    os.makedirs(root)
-    with open(os.path.join(root, "zarr.json"), "wb") as fh:
-        fh.write(json.dumps(doc, allow_nan=True, indent=2).encode())
+    from .store import array_like
+
     out = copy.copy(w)
+    out.root = array_like(w.root, base, name, shape, shape, group_doc)
     out.shape = out.chunks = tuple(shape)
-    out.root = root
     out._root_made, out._lock = False, threading.Lock()
     return out

@@ -80,25 +80,98 @@ def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, ov
     g = zarr.open_group(str(path), mode="w", zarr_format=3)
     g.attrs.update({"format": FORMAT, "format_version": FORMAT_VERSION, "complete": False, **layout.to_json(),
                     "levels": layout.levels, "padded": layout.S, **attrs})
-    M = layout.M
+    M, new = layout.M, _ArraysLike(g)
     for lv in range(layout.levels):
         nb = layout.blocks(lv)
-        g.create_array(f"heights/{lv}", shape=(nb, nb, M, M), chunks=(1, 1, M, M), dtype="float32",
-                       compressors=_compressor(), fill_value=np.nan)
+        new.create(f"heights/{lv}", "heights", shape=(nb, nb, M, M), chunks=(1, 1, M, M), dtype="float32",
+                   compressors=_compressor(), fill_value=np.nan)
         if color:
-            g.create_array(f"color/{lv}", shape=(nb, nb, M, M, 3), chunks=(1, 1, M, M, 3), dtype="uint8",
-                           compressors=_compressor(1), fill_value=0)
-        g.create_array(f"blocks/{lv}/done", shape=(nb, nb), chunks=(nb, nb), dtype="uint8", fill_value=0)
-    create_shade_arrays(g, layout)
+            new.create(f"color/{lv}", "color", shape=(nb, nb, M, M, 3), chunks=(1, 1, M, M, 3), dtype="uint8",
+                       compressors=_compressor(1), fill_value=0)
+        new.create(f"blocks/{lv}/done", "done", shape=(nb, nb), chunks=(nb, nb), dtype="uint8", fill_value=0)
+    create_shade_arrays(g, layout, new)
     return g, False
 
 
-def create_shade_arrays(g, layout: TerrainLayout) -> None:
-    M = layout.M
+def create_shade_arrays(g, layout: TerrainLayout, new: _ArraysLike | None = None) -> None:
+    M, new = layout.M, new or _ArraysLike(g)
     for lv in range(layout.levels):
         nb = layout.blocks(lv)
-        g.create_array(f"shade/{lv}", shape=(nb, nb, M, M, 3), chunks=(1, 1, M, M, 3), dtype="float16",
-                       compressors=_compressor(2), fill_value=0, overwrite=True)
+        new.create(f"shade/{lv}", "shade", shape=(nb, nb, M, M, 3), chunks=(1, 1, M, M, 3), dtype="float16",
+                   compressors=_compressor(2), fill_value=0, overwrite=True)
+
+
+class _ArraysLike:
+    """``group.create_array`` for a family of arrays that differ only in shape and chunk shape
+    (a store's ``heights/<l>``, ``shade/<l>``, ``blocks/<l>/done`` …): the first of each family
+    through zarr, the others as copies of its ``zarr.json`` (:func:`array_like`), without zarr's
+    ~5 ms event-loop round trip per array. Where the group is not in a local folder, all through
+    zarr. (An existing array is replaced, whatever ``overwrite`` says: callers create fresh stores
+    or pass ``overwrite=True``.)"""
+
+    def __init__(self, g):
+        from zarr.storage import LocalStore
+
+        self.g = g
+        self.base = None
+        if isinstance(g.store, LocalStore):
+            root = str(g.store.root)
+            self.base = os.path.join(root, *g.path.split("/")) if g.path else root
+        self.first: dict = {}  # family → (its first array's folder, the zarr.json of that array's parent group, or None)
+
+    def create(self, name: str, family: str, *, shape: tuple, chunks: tuple, **kw) -> None:
+        t = self.first.get(family)
+        if t is None or self.base is None:
+            self.g.create_array(name, shape=shape, chunks=chunks, **kw)
+            if self.base is not None:
+                folder = os.path.join(self.base, *name.split("/"))
+                self.first[family] = (folder, plain_group_doc(os.path.dirname(folder)))
+            return
+        array_like(t[0], self.base, name, shape, chunks, t[1])
+
+
+def plain_group_doc(folder: str) -> bytes | None:
+    """The ``zarr.json`` of the group at ``folder`` when it is the document zarr writes for a new
+    group (no attributes), else None."""
+    import json
+
+    try:
+        with open(os.path.join(folder, "zarr.json"), "rb") as fh:
+            doc = fh.read()
+        return doc if json.loads(doc).get("attributes") == {} and json.loads(doc).get("node_type") == "group" else None
+    except (OSError, ValueError):
+        return None
+
+
+def array_like(template: str, base: str, name: str, shape: tuple, chunks: tuple, group_doc: bytes | None) -> str:
+    """Create the zarr v3 array ``name`` under the group folder ``base`` as the array at the
+    folder ``template`` with ``shape`` and ``chunks`` instead of its own: its ``zarr.json`` is the
+    template's with those two changed, encoded as zarr encodes it (``json.dumps``, ``allow_nan``,
+    indent 2), so the file is the one ``create_array`` writes (tests/test_direct_chunks.py). Any
+    old array there is removed first (as ``overwrite=True`` does); missing parent groups get
+    ``group_doc`` (zarr's document for a new group; None: a missing parent is an error).
+    Returns the new array's folder."""
+    import json
+
+    with open(os.path.join(template, "zarr.json"), "rb") as fh:
+        doc = json.loads(fh.read())
+    doc["shape"] = list(shape)
+    doc["chunk_grid"]["configuration"]["chunk_shape"] = list(chunks)
+    d, parts = base, name.split("/")
+    for p in parts[:-1]:
+        d = os.path.join(d, p)
+        if not os.path.exists(os.path.join(d, "zarr.json")):
+            if group_doc is None:
+                raise StoreError(f"{d}: no zarr group there to create {name} in")
+            os.makedirs(d, exist_ok=True)
+            with open(os.path.join(d, "zarr.json"), "wb") as fh:
+                fh.write(group_doc)
+    root = os.path.join(d, parts[-1])
+    shutil.rmtree(root, ignore_errors=True)
+    os.makedirs(root)
+    with open(os.path.join(root, "zarr.json"), "wb") as fh:
+        fh.write(json.dumps(doc, allow_nan=True, indent=2).encode())
+    return root
 
 
 class ChunkWriter:
