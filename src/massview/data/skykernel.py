@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 from .jit import njit  # (numba, imported the data layer's way)
 
 __all__ = ["paint"]

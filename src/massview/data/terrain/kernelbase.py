@@ -6,6 +6,7 @@ contract all of them keep is in :mod:`kernels`' docstring."""
 from __future__ import annotations
 
 import numpy as np
+
 from ..jit import njit  # (numba, imported the data layer's way)
 
 

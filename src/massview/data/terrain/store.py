@@ -52,7 +52,7 @@ def _compressor(typesize: int = 4):
     4.4× to 2.5× faster per CPU-second (4097² synthetic store). Level 5 against level 9, on
     one core over 21 level-0 blocks of the 16385² synthetic store: encoding heights 1264 vs 942
     MB/s, shading 839 vs 647 MB/s, decoding ~1.1× faster; the whole store ~2.5 % larger
-    (heights 808 vs 794 MB, shading 1562 vs 1517 MB). Levels 1–4 were no faster than 5."""
+    (heights 808 vs 794 MiB, shading 1562 vs 1517 MiB). Levels 1–4 were no faster than 5."""
     from zarr.codecs import BloscCodec
 
     return BloscCodec(cname="lz4", clevel=5, shuffle="shuffle" if typesize > 1 else "noshuffle", typesize=typesize)
