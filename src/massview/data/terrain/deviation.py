@@ -95,10 +95,12 @@ class DeviationAccumulator:
     def _lattice(self, l: int) -> np.ndarray:
         return self.coarse[:: 2 ** (l - self.lay.m), :: 2 ** (l - self.lay.m)]
 
-    def add_block(self, bi: int, bj: int, b: np.ndarray, part: str = "all") -> None:
+    def add_block(self, bi: int, bj: int, b: np.ndarray, part: str = "all", zabs: float | None = None) -> None:
         """Fold in level-0 block (bi, bj): float32 (M, M) heights. ``part``: "all" levels, or
         only the "grid" levels (lattice spacing ≤ the block span: the block alone decides them)
-        or the "window" ones (lattice squares larger than a block: they need ``coarse``)."""
+        or the "window" ones (lattice squares larger than a block: they need ``coarse``).
+        ``zabs``: the block's largest |height| where the caller has it (its min/max), else
+        computed here."""
         lay, J, m = self.lay, self._J, self._m
         b = np.ascontiguousarray(b, np.float32)
         valid = None
@@ -108,7 +110,8 @@ class DeviationAccumulator:
             valid = np.ascontiguousarray((r[:, None] < lay.rows) & (c[None, :] < lay.cols))
             if valid.all():
                 valid = None
-        zabs = max(float(b.max()), -float(b.min()))  # = float(np.abs(b).max()), without the block-sized temporary
+        if zabs is None:
+            zabs = max(float(b.max()), -float(b.min()))  # = float(np.abs(b).max()), without the block-sized temporary
         self._eps = np.float32(8 * np.finfo(np.float32).eps * zabs)  # float32 rounding of z
         for j in range(J):
             if part == "all" or (part == "grid") == (J - j <= m):

@@ -106,10 +106,16 @@ class MetadataBuilder:
             self.errors(i, row, part)
 
     def errors(self, i: int, row: np.ndarray, part: str) -> None:
+        """The ``part`` of the exact errors of level-0 block row ``i``; its min/max must be in
+        ``minmax[0][i]`` already (:meth:`row` puts it there first; the shading pass's rows were
+        all through :meth:`row` in the pyramid pass), which gives each block's largest |height|
+        without two more passes over it."""
+        mm = self.minmax[0][i]
+        zabs = np.maximum(mm[:, 1], -mm[:, 0]).tolist()
         dev = self.devs.get()
         try:
             for j in range(row.shape[0]):
-                dev.add_block(i, j, row[j], part)
+                dev.add_block(i, j, row[j], part, zabs[j])
         finally:
             self.devs.put(dev)
 
