@@ -190,6 +190,31 @@ def test_interrupted_prepare_resumes_and_only_then_opens(tmp_path):
     run_cli("verify", tmp_path / "r.zarr", "-q")
 
 
+def test_prepare_stopped_while_creating_the_arrays_starts_anew(tmp_path, monkeypatch):
+    """A run stopped after the store's attributes but before all its arrays existed (the first
+    ~0.1 s of a prepare) left nothing to resume: the next run makes the store anew, instead of
+    failing on a missing array."""
+    from massview.data.terrain import store as tstore
+
+    a = synthetic_heights(0, 600, 0, 500, 600, 9)
+    create, made = tstore._ArraysLike.create, []
+
+    def stop_at_the_fifth(self, name, family, **kw):
+        made.append(name)
+        if len(made) == 5:
+            raise KeyboardInterrupt
+        return create(self, name, family, **kw)
+
+    monkeypatch.setattr(tstore._ArraysLike, "create", stop_at_the_fifth)
+    with pytest.raises(KeyboardInterrupt):
+        prepare_terrain(ArraySource(a, "dem"), tmp_path / "p.zarr", block=129)
+    monkeypatch.undo()
+    res = prepare_terrain(ArraySource(a, "dem"), tmp_path / "p.zarr", block=129)
+    assert not res.resumed
+    ref = prepare_terrain(ArraySource(a, "dem"), tmp_path / "ref.zarr", block=129)
+    assert ref.seconds > 0 and np.array_equal(finest(TerrainStore(tmp_path / "p.zarr")), finest(TerrainStore(tmp_path / "ref.zarr")))
+
+
 def test_verify_names_a_damaged_or_missing_block(tmp_path):
     a = synthetic_heights(0, 300, 0, 300, 300, 6)
     s = prepare(a, tmp_path, "v.zarr")

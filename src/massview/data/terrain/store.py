@@ -74,8 +74,10 @@ def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, ov
         same = all(old.get(k) == v for k, v in layout.to_json().items()) and old.get("source") == attrs.get("source")
         if old.get("complete") and not overwrite:
             raise StoreError(f"{path} is already a complete store; pass --overwrite to rebuild it")
-        if same and not overwrite:
-            return g, True  # resume
+        arrays = [f"{a}/{lv}" for lv in range(layout.levels) for a in ("heights", "shade", *(("color",) if color else ()))]
+        arrays += [f"blocks/{lv}/done" for lv in range(layout.levels)]
+        if same and not overwrite and all((path / a / "zarr.json").is_file() for a in arrays):
+            return g, True  # resume (a run stopped while creating the arrays left nothing to resume: made anew)
         shutil.rmtree(path)
     g = zarr.open_group(str(path), mode="w", zarr_format=3)
     g.attrs.update({"format": FORMAT, "format_version": FORMAT_VERSION, "complete": False, **layout.to_json(),
