@@ -184,12 +184,14 @@ def _ortho_block(ortho, lay: TerrainLayout, lv: int, i: int, j: int) -> np.ndarr
 
 def write_metadata(g, lay: TerrainLayout, meta: Metadata) -> None:
     """The metadata arrays (``blocks/<l>/minmax``, ``blocks/<l>/error``, ``lod/…``: one chunk
-    each, zarr's default zstd) into the store's group ``g``, replacing any old ones: the first
-    created through zarr, the others (same dtype, codecs and fill value; only the shape differs)
-    from its ``zarr.json`` (:func:`_like`), and every chunk encoded and written directly
-    (:class:`store.ArrayChunkWriter`): the files ``create_array`` + ``arr[...] = a`` write
-    (tests/test_direct_chunks.py), without zarr's ~5 ms event-loop round trip for each of the
-    ~60 arrays (0.3 s at the end of every prepare)."""
+    each, zarr's default zstd) into the store's group ``g``, replacing any old ones: created as
+    one family (:class:`store._ArraysLike`: the first through zarr, the others from its
+    ``zarr.json``), every chunk encoded and written directly (:class:`store.ArrayChunkWriter`):
+    the files ``create_array`` + ``arr[...] = a`` write (tests/test_direct_chunks.py), without
+    zarr's ~5 ms event-loop round trip for each of the ~60 arrays (0.3 s at the end of every
+    prepare)."""
+    from .store import _ArraysLike, array_chunk_writer
+
     items = []
     for lv in range(lay.levels):
         items += [(f"blocks/{lv}/minmax", meta.minmax[lv]), (f"blocks/{lv}/error", meta.block_error[lv])]
@@ -197,53 +199,16 @@ def write_metadata(g, lay: TerrainLayout, meta: Metadata) -> None:
         items += [(f"lod/square_error/{j}", meta.sq[j]), (f"lod/edge_error/{j}", meta.dg[j])]
     for j in range(lay.J + 1):
         items += [(f"lod/zmin/{j}", meta.zmin[j]), (f"lod/zmax/{j}", meta.zmax[j])]
-    template = None  # (the first array's chunk writer, its group's folder, its parent group's document), or False
+    new, first = _ArraysLike(g), None  # first: the chunk writer of the first array that has one
     for name, a in items:
-        if template and a.dtype == np.float32 and a.ndim and min(a.shape) > 0:
-            _like(*template, name, a.shape).write(a, [(0,) * a.ndim])
-            continue
-        w = _write_whole(g, name, a)
-        if template is None and w is not None:
-            template = _template(w, name)
-
-
-def _write_whole(g, name: str, a: np.ndarray):
-    """``a`` as the float32 array ``name`` of one chunk (replacing any old one), through zarr's
-    ``create_array``; returns the chunk writer that wrote its chunk, or None (zarr wrote it)."""
-    from .store import array_chunk_writer
-
-    arr = g.create_array(name, shape=a.shape, dtype="float32", chunks=a.shape, overwrite=True)
-    w = array_chunk_writer(arr)
-    if w is None or a.dtype != w.dtype or not w.root.endswith("/" + name):
-        arr[...] = a
-        return None
-    w.write(a, [(0,) * a.ndim])
-    return w
-
-
-def _template(w, name: str):
-    """(``w``, the folder of the group ``name`` is relative to, the document of ``name``'s parent
-    group) when that group document is one zarr makes for a new group (no attributes), else
-    False (every array then through zarr)."""
-    import os
-
-    from .store import plain_group_doc
-
-    doc = plain_group_doc(os.path.dirname(w.root))
-    return (w, w.root[: len(w.root) - len(name)].rstrip("/"), doc) if doc is not None and "/" in name else False
-
-
-def _like(w, base: str, group_doc: bytes, name: str, shape: tuple):
-    """The array ``name`` under the group folder ``base``, like the one the chunk writer ``w``
-    writes (an array in ``base`` too) but of ``shape``, in one chunk (:func:`store.array_like`);
-    returns the chunk writer of the new array."""
-    import copy
-    import threading
-
-    from .store import array_like
-
-    out = copy.copy(w)
-    out.root = array_like(w.root, base, name, shape, shape, group_doc)
-    out.shape = out.chunks = tuple(shape)
-    out._root_made, out._lock = False, threading.Lock()
-    return out
+        arr = new.create(name, "metadata", shape=a.shape, chunks=a.shape, dtype="float32", overwrite=True)
+        if arr is None and first is not None:  # made from the first's zarr.json
+            w = first.like(new.folder(name), a.shape, a.shape)
+        else:
+            arr = g[name] if arr is None else arr
+            w = array_chunk_writer(arr)
+            first = first or w
+        if w is None or a.dtype != w.dtype:
+            (g[name] if arr is None else arr)[...] = a
+        else:
+            w.write(a, [(0,) * a.ndim])

@@ -28,6 +28,7 @@ store is refused with a message naming ``massview upgrade STORE``, which rewrite
 
 from __future__ import annotations
 
+import copy
 import os
 import shutil
 import threading
@@ -105,11 +106,13 @@ def create_shade_arrays(g, layout: TerrainLayout, new: _ArraysLike | None = None
 
 class _ArraysLike:
     """``group.create_array`` for a family of arrays that differ only in shape and chunk shape
-    (a store's ``heights/<l>``, ``shade/<l>``, ``blocks/<l>/done`` …): the first of each family
-    through zarr, the others as copies of its ``zarr.json`` (:func:`array_like`), without zarr's
-    ~5 ms event-loop round trip per array. Where the group is not in a local folder, all through
-    zarr. (An existing array is replaced, whatever ``overwrite`` says: callers create fresh stores
-    or pass ``overwrite=True``.)"""
+    (a store's ``heights/<l>``, ``shade/<l>``, ``blocks/<l>/done``, its metadata arrays …): the
+    first of each family through zarr, the others as copies of its ``zarr.json``
+    (:func:`array_like`), without zarr's ~5 ms event-loop round trip per array. All through zarr
+    where the group is not in a local folder, and for a family whose first array's parent group
+    is not a plain new group (zarr's document for it is what missing parents get). (An existing
+    array is replaced, whatever ``overwrite`` says: callers create fresh stores or pass
+    ``overwrite=True``.)"""
 
     def __init__(self, g):
         from zarr.storage import LocalStore
@@ -119,17 +122,25 @@ class _ArraysLike:
         if isinstance(g.store, LocalStore):
             root = str(g.store.root)
             self.base = os.path.join(root, *g.path.split("/")) if g.path else root
-        self.first: dict = {}  # family → (its first array's folder, the zarr.json of that array's parent group, or None)
+        self.first: dict = {}  # family → (its first array's folder, the zarr.json of that array's parent group)
 
-    def create(self, name: str, family: str, *, shape: tuple, chunks: tuple, **kw) -> None:
+    def folder(self, name: str) -> str:
+        """The folder of the array ``name`` (a local group only)."""
+        return os.path.join(self.base, *name.split("/"))
+
+    def create(self, name: str, family: str, *, shape: tuple, chunks: tuple, **kw):
+        """Create the array; returns it where zarr made it, None where it was copied (its folder
+        is :meth:`folder`)."""
         t = self.first.get(family)
-        if t is None or self.base is None:
-            self.g.create_array(name, shape=shape, chunks=chunks, **kw)
+        if t is None:
+            arr = self.g.create_array(name, shape=shape, chunks=chunks, **kw)
             if self.base is not None:
-                folder = os.path.join(self.base, *name.split("/"))
-                self.first[family] = (folder, plain_group_doc(os.path.dirname(folder)))
-            return
+                group_doc = plain_group_doc(os.path.dirname(self.folder(name)))
+                if group_doc is not None:
+                    self.first[family] = (self.folder(name), group_doc)
+            return arr
         array_like(t[0], self.base, name, shape, chunks, t[1])
+        return None
 
 
 def plain_group_doc(folder: str) -> bytes | None:
@@ -140,19 +151,19 @@ def plain_group_doc(folder: str) -> bytes | None:
     try:
         with open(os.path.join(folder, "zarr.json"), "rb") as fh:
             doc = fh.read()
-        return doc if json.loads(doc).get("attributes") == {} and json.loads(doc).get("node_type") == "group" else None
+        parsed = json.loads(doc)
     except (OSError, ValueError):
         return None
+    return doc if parsed.get("attributes") == {} and parsed.get("node_type") == "group" else None
 
 
-def array_like(template: str, base: str, name: str, shape: tuple, chunks: tuple, group_doc: bytes | None) -> str:
+def array_like(template: str, base: str, name: str, shape: tuple, chunks: tuple, group_doc: bytes) -> str:
     """Create the zarr v3 array ``name`` under the group folder ``base`` as the array at the
     folder ``template`` with ``shape`` and ``chunks`` instead of its own: its ``zarr.json`` is the
     template's with those two changed, encoded as zarr encodes it (``json.dumps``, ``allow_nan``,
     indent 2), so the file is the one ``create_array`` writes (tests/test_direct_chunks.py). Any
     old array there is removed first (as ``overwrite=True`` does); missing parent groups get
-    ``group_doc`` (zarr's document for a new group; None: a missing parent is an error).
-    Returns the new array's folder."""
+    ``group_doc`` (zarr's document for a new group). Returns the new array's folder."""
     import json
 
     with open(os.path.join(template, "zarr.json"), "rb") as fh:
@@ -163,8 +174,6 @@ def array_like(template: str, base: str, name: str, shape: tuple, chunks: tuple,
     for p in parts[:-1]:
         d = os.path.join(d, p)
         if not os.path.exists(os.path.join(d, "zarr.json")):
-            if group_doc is None:
-                raise StoreError(f"{d}: no zarr group there to create {name} in")
             os.makedirs(d, exist_ok=True)
             with open(os.path.join(d, "zarr.json"), "wb") as fh:
                 fh.write(group_doc)
@@ -479,6 +488,14 @@ class ArrayChunkWriter:
         self._nd = default_buffer_prototype().nd_buffer.from_numpy_array
         self._root_made = False
         self._lock = threading.Lock()
+
+    def like(self, root: str, shape: tuple, chunks: tuple) -> ArrayChunkWriter:
+        """The writer of the array at folder ``root`` made from this one's by :func:`array_like`
+        (same dtype, fill value, codecs and chunk keys; ``shape`` and ``chunks`` its own)."""
+        out = copy.copy(self)
+        out.shape, out.chunks, out.root = tuple(shape), tuple(chunks), root
+        out._root_made, out._lock = False, threading.Lock()
+        return out
 
     @property
     def grid(self) -> tuple:
