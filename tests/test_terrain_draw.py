@@ -189,3 +189,58 @@ def test_shading_path_follows_triangles_per_pixel(small_store):
         assert got[0].shape == (120, 160, 4)
     finally:
         sysm.close()
+
+
+def test_distinct_rows_is_np_unique():
+    """terrain._distinct_rows (rows as one int64 of base-radix digits) gives np.unique(axis=0,
+    return_inverse=True)'s rows, in its order, and its inverse; radixes whose keys could
+    overflow int64 fall back to np.unique."""
+    from massview.render.terrain import _distinct_rows
+
+    rng = np.random.default_rng(5)
+    for radix, n, c in ((2, 1000, 6), (17, 5000, 6), (129, 20000, 6), (1025, 3000, 6), (2049, 3000, 6), (7, 1, 3), (9, 0, 6)):
+        rows = rng.integers(0, min(radix, 4), (n, c)) * (radix - 1) // 3 if n else np.zeros((0, c), np.int64)
+        want, winv = np.unique(rows, axis=0, return_inverse=True)
+        got, ginv = _distinct_rows(rows, radix)
+        assert np.array_equal(got, want) and np.array_equal(ginv, winv.ravel()), radix
+        assert np.array_equal(got[ginv], rows)
+
+
+def test_pattern_and_merged_ids_in_sorted_order(small_store):
+    """A fresh renderer numbers the index patterns of its first front, and the whole-block
+    patterns new in one draw, in the rows' lexicographic order (what np.unique(axis=0) gave
+    before the int64 keys and the dict of row bytes replaced it), so the index buffer's layout
+    is the same as before; each whole-block command draws its block's own patches."""
+    sysm = TerrainSystem(small_store, loading="complete")
+    try:
+        lo, hi = sysm.bounds
+        cam = load_path("flyover", lo, hi).camera(0.5, 320, 240)
+        sysm.prepare_frame(self_comm(), cam, RenderConfig(width=320, height=240, tau=0.05, loading="complete"), FrameStats(0, 0))
+        _, _, terrain, _ = sysm.renderers()
+        f = sysm.front
+        terrain._patterns.clear(), terrain._pattern_data.clear(), terrain._merged.clear(), terrain._merged_data.clear()
+        terrain._commands(f, cam.position)
+        pats = list(terrain._patterns)  # insertion order = id
+        assert len(pats) > 2 and pats == sorted(pats)
+        # two whole blocks with different patch sets, the one with the larger key in the lower slot
+        M, tpp = terrain.pool.M, terrain.tris_per_patch
+        full = 2 * (M - 1) ** 2 // tpp
+        pids = np.tile(np.arange(len(pats)), full)[:full].astype(np.int64)
+        base = np.arange(full, dtype=np.int64) * 7 % (M * M)
+        other = pids.copy()
+        other[0] = (other[0] + 1) % len(pats)
+        ka, kb = (np.sort(p * M * M + base) for p in (pids, other))
+        hi_p, lo_p = (pids, other) if tuple(ka) > tuple(kb) else (other, pids)
+        slots = np.repeat(np.array([3, 8], np.int64), full)
+        terrain._merged.clear(), terrain._merged_data.clear()
+        cmds = terrain._block_commands(slots, np.concatenate([hi_p, lo_p]), np.concatenate([base, base]), full)
+        merged = [tuple(np.frombuffer(b, np.int64).tolist()) for b in terrain._merged]
+        assert len(merged) == 2 and merged == sorted(merged)
+        ibo = np.concatenate(terrain._pattern_data + terrain._merged_data)
+        for c, p in zip(cmds, (hi_p, lo_p)):
+            key = np.sort(p * M * M + base)
+            want = (np.stack([terrain._pattern_data[q] for q in key // (M * M)]).astype(np.int64) + (key % (M * M))[:, None]).ravel()
+            assert c[0] == len(want) and np.array_equal(ibo[c[2]:c[2] + c[0]], want)
+        assert cmds[:, 4].tolist() == [3, 8]
+    finally:
+        sysm.close()

@@ -47,6 +47,26 @@ __all__ = ["DEFERRED_ABOVE", "VERTEX_BYTES", "pack_block", "pack_payload", "laye
 
 
 
+def _distinct_rows(rows: np.ndarray, radix: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(rows, axis=0, return_inverse=True)`` for an (n, c) integer array whose
+    entries lie in [0, radix): each row is read as one int64 of c base-``radix`` digits (same
+    order), falling back to ``np.unique`` where that number could overflow."""
+    n, c = rows.shape
+    if n == 0 or radix ** c >= 2 ** 62:
+        uniq, inv = np.unique(rows, axis=0, return_inverse=True)
+        return uniq, inv.ravel()
+    key = rows[:, 0].astype(np.int64)
+    for j in range(1, c):
+        key = key * radix + rows[:, j]
+    ukey = np.unique(key)
+    inv = np.searchsorted(ukey, key)
+    uniq = np.empty((len(ukey), c), np.int64)
+    rest = ukey
+    for j in range(c - 1, -1, -1):
+        rest, uniq[:, j] = np.divmod(rest, radix)
+    return uniq, inv
+
+
 def _facing_up(tri: np.ndarray) -> np.ndarray:
     """(n, 3, 2) triangles in (col, row) samples, each ordered counter-clockwise seen from
     above in world axes (x = col·dx, y = −row·dy): front-facing (GL's default, CCW) wherever
@@ -166,8 +186,12 @@ class TerrainRenderer:
         return pos
 
     def _pattern_ids(self, offs: np.ndarray) -> np.ndarray:
-        """Index-pattern id per row of (n, 6) vertex offsets (block samples, from the anchor)."""
-        uniq, inv = np.unique(offs, axis=0, return_inverse=True)
+        """Index-pattern id per row of (n, 6) vertex offsets (block samples, from the anchor).
+        The rows are told apart by one int64 key (the offsets as base-M digits, in [0, M)), so
+        the distinct rows come out in the same (lexicographic) order as ``np.unique(axis=0)``
+        gives, at a fraction of its cost: it sorts rows as structured records, 0.1 s for the
+        131 072 patches of a full-resolution 4097² front (what a GPU draw waited on)."""
+        uniq, inv = _distinct_rows(offs, self.pool.M)
         ids = np.empty(len(uniq), np.int64)
         changed = False
         for i, row in enumerate(map(tuple, uniq.tolist())):
@@ -323,26 +347,24 @@ class TerrainRenderer:
         order = np.argsort(slots, kind="stable")
         keys = np.sort((pids[order] * M * M + base[order]).reshape(-1, full), axis=1)
         bslots = slots[order][::full]
-        uniq, inv = np.unique(keys, axis=0, return_inverse=True)
-        if len(self._merged) + len(uniq) > 64:  # bound the index buffer: start over
+        rows = [k.tobytes() for k in keys]  # a dict of the rows' bytes, not np.unique(axis=0): see _pattern_ids
+        distinct = dict.fromkeys(rows)
+        if len(self._merged) + len(distinct) > 64:  # bound the index buffer: start over
             self._merged.clear()
             self._merged_data.clear()
-        mids, changed = np.empty(len(uniq), np.int64), False
-        for i, k in enumerate(uniq):
-            mid = self._merged.get(k.tobytes())
-            if mid is None:
-                pat, anchor = np.divmod(k, M * M)
+        new = [b for b in distinct if b not in self._merged]
+        if new:  # ids in the rows' lexicographic order, as np.unique(axis=0) gave them
+            arr = np.frombuffer(b"".join(new), keys.dtype).reshape(len(new), full)
+            for i in np.lexsort(arr.T[::-1]):
+                pat, anchor = np.divmod(arr[i], M * M)
                 idx = (np.stack([self._pattern_data[q] for q in pat]).astype(np.int64) + anchor[:, None]).astype(np.uint32)
-                mid = self._merged[k.tobytes()] = len(self._merged_data)
+                self._merged[new[i]] = len(self._merged_data)
                 self._merged_data.append(idx.ravel())
-                changed = True
-            mids[i] = mid
-        if changed:
             self._rebuild()
         cmds = np.empty((len(bslots), 5), np.uint32)
         cmds[:, 0] = full * per
         cmds[:, 1] = 1
-        cmds[:, 2] = self._merged_first[mids[inv.ravel()]]
+        cmds[:, 2] = self._merged_first[np.fromiter((self._merged[b] for b in rows), np.int64, len(rows))]
         cmds[:, 3] = bslots * M * M
         cmds[:, 4] = bslots
         return cmds
