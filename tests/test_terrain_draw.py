@@ -244,3 +244,34 @@ def test_pattern_and_merged_ids_in_sorted_order(small_store):
         assert cmds[:, 4].tolist() == [3, 8]
     finally:
         sysm.close()
+
+
+def test_draw_bench_runs_with_gpu_column(small_store):
+    """`massview bench terrain --draw` on a small store: every path of both cases in the table,
+    with the GPU column ("—" on Mesa's software rasterizer, whose timer queries wrap)."""
+    proc = run_cli("bench", "terrain", small_store, "--draw", "--draw-reps", 1, "--no-vtk", "--size", "160x120")
+    out = proc.stdout
+    assert "GPU ms" in out and "plain mesh" in out and "demo LOD" in out and "full" in out
+    assert "draw commands" in out and "readback" in out
+
+
+def test_time_records_gpu_time_with_a_query():
+    """bench terrain's _time appends (wall, CPU, thread CPU, GPU) with a timer query, GPU None
+    without one; _gpu_timer gives none on llvmpipe."""
+    from massview.app.bench.terrain_draw import _gpu_timer, _time
+    from massview.render.framebuffer import Framebuffer
+
+    ctx = create_context()
+    fb = Framebuffer(ctx, 64, 48)
+    try:
+        q = ctx.query(time=True)
+        reps, tris = [], []
+        _time(fb, ctx, lambda: 7, reps, tris, q)
+        _time(fb, ctx, lambda: 8, reps, tris)
+        assert tris == [7, 8] and len(reps[0]) == 4 and reps[0][3] is not None and reps[0][3] >= 0 and reps[1][3] is None
+        assert all(v >= 0 for v in reps[0][:3])
+        if "llvmpipe" in renderer_string(ctx):
+            assert _gpu_timer(ctx) is None
+    finally:
+        fb.release()
+        ctx.release()

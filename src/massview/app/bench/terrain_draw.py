@@ -29,7 +29,10 @@ time of a draw of sub-pixel triangles is close to this), Mtri/s = triangles ÷ m
 time and triangles ÷ median main-thread time, and ratios to the plain mesh and to VTK
 measured in the same run. On a loaded machine the wall figures mostly measure the wait for
 a core; the CPU figures much less so. Readback (colour + depth of the
-whole image) is timed separately.
+whole image) is timed separately. On a GPU, "GPU ms" is the median GL timer query around each
+draw's commands: what the GPU spent, apart from the CPU's part of the wall time (on an H200
+the K-patch draw's GPU time was a fraction of its wall time before its command building was
+made cheap; README "On an NVIDIA GPU"). Mesa's software rasterizers show "—" there.
 """
 
 from __future__ import annotations
@@ -63,14 +66,36 @@ def _cases(sysm, size):
     return [("full resolution", full, 1e-9), ("demo LOD", demo, 1.0)]
 
 
-def _time(fb, ctx, fn, reps_out: list, tris_out: list) -> None:
+def _time(fb, ctx, fn, reps_out: list, tris_out: list, query=None) -> None:
+    """One timed draw: (wall, process CPU, calling-thread CPU, GPU) seconds appended to
+    ``reps_out``; GPU time is a GL timer query around the draw's commands (None without
+    ``query``)."""
     fb.begin()
     ctx.finish()
     t0, c0, m0 = time.perf_counter(), time.process_time(), time.thread_time()
-    tris = fn()
+    if query is None:
+        tris = fn()
+    else:
+        with query:
+            tris = fn()
     ctx.finish()
-    reps_out.append((time.perf_counter() - t0, time.process_time() - c0, time.thread_time() - m0))
+    wall, cpu, main = time.perf_counter() - t0, time.process_time() - c0, time.thread_time() - m0
+    reps_out.append((wall, cpu, main, query.elapsed / 1e9 if query is not None else None))
     tris_out.append(tris)
+
+
+def _ms(v: float) -> str:
+    return f"{v:.1f}" if v < 100 else f"{v:.0f}"
+
+
+def _gpu_timer(ctx):
+    """A GL timer query where its figures mean something: not on Mesa's software rasterizers,
+    whose time-elapsed queries here returned values modulo 2³² ns (4294.97 ms) for
+    seconds-long draws; None there."""
+    r = ctx.info.get("GL_RENDERER", "").lower()
+    if "llvmpipe" in r or "softpipe" in r or "swrast" in r:
+        return None
+    return ctx.query(time=True)
 
 
 def _vtk(mesh: Path, cam: Camera, reps: int, console) -> dict | None:
@@ -150,21 +175,23 @@ def _case(sysm, st, heights, color, name, cam, tau, reps, mesh: Path | None, con
     times: dict[str, list] = {k: [] for k in paths}
     counts: dict[str, list] = {k: [] for k in paths}
     draws = {}
+    query = _gpu_timer(ctx)
     for k, fn in paths.items():  # warm-up (shader variants, buffer residency, merged patterns)
-        _time(fb, ctx, fn, [], [])
+        _time(fb, ctx, fn, [], [], query)
         draws[k] = terrain.draws
         if k == "K-patch":
             auto = "deferred" if terrain.used_deferred else "forward"
     for _ in range(reps):
         for k, fn in paths.items():
-            _time(fb, ctx, fn, times[k], counts[k])
+            _time(fb, ctx, fn, times[k], counts[k], query)
     terrain.deferred, terrain.merge = deferred, merge
     rb = []
     for _ in range(reps):
         t0 = time.perf_counter()
         fb.read(cam.viewport)
         rb.append(time.perf_counter() - t0)
-    rows = [(name, k, counts[k][0], *(np.median([t[i] for t in v]) * 1e3 for i in range(3))) for k, v in times.items()]
+    rows = [(name, k, counts[k][0], *(np.median([t[i] for t in v]) * 1e3 for i in range(3)),
+             np.median([t[3] for t in v]) * 1e3 if query is not None else None) for k, v in times.items()]
     plain.release()
     fb.release()
     console.print(f"{name}: {cam.width}x{cam.height}, τ = {tau:g}, {len(front)} patches (per level {levels.tolist()}), "
@@ -189,7 +216,7 @@ def run_draw(args, console, table_cls) -> None:
     sysm = TerrainSystem(args.store, loading="complete", gpu_bytes=budget, cache_bytes=budget)
     tmp = tempfile.TemporaryDirectory()
     t = table_cls(title=f"draw throughput, one rank, one GL context ({args.draw_reps} draws per path, median; CPU = all threads)")
-    for c in ("case", "path", "triangles", "wall ms", "CPU ms", "main-thread ms", "Mtri/s", "÷ plain mesh", "÷ VTK",
+    for c in ("case", "path", "triangles", "wall ms", "CPU ms", "main-thread ms", "GPU ms", "Mtri/s", "÷ plain mesh", "÷ VTK",
               "main-thread Mtri/s", "÷ plain", "÷ VTK "):
         t.add_column(c, justify="right")
     results = []
@@ -206,13 +233,13 @@ def run_draw(args, console, table_cls) -> None:
             res = _vtk(mesh, cam, args.draw_reps, console) if mesh is not None else None
             if res is not None:
                 rows.append((rows[0][0], f"VTK ({res['renderer']})", res["triangles"],
-                             *(np.median(res[k]) * 1e3 for k in ("wall_s", "cpu_s", "main_s"))))
+                             *(np.median(res[k]) * 1e3 for k in ("wall_s", "cpu_s", "main_s")), None))
             rate = {r[1]: r[2] / r[3] / 1e3 for r in rows}
             mrate = {r[1]: r[2] / r[5] / 1e3 for r in rows}
             vtk = next((k for k in rate if k.startswith("VTK")), None)
-            for case, path, tris, wall, cpu, main in rows:
+            for case, path, tris, wall, cpu, main, gpu in rows:
                 r, m = rate[path], mrate[path]
-                t.add_row(case, path, f"{tris / 1e6:.2f} M", f"{wall:.0f}", f"{cpu:.0f}", f"{main:.0f}", f"{r:.2f}",
+                t.add_row(case, path, f"{tris / 1e6:.2f} M", _ms(wall), _ms(cpu), _ms(main), _ms(gpu) if gpu is not None else "—", f"{r:.2f}",
                           f"{r / rate['plain mesh']:.2f}", f"{r / rate[vtk]:.2f}" if vtk else "—",
                           f"{m:.2f}", f"{m / mrate['plain mesh']:.2f}", f"{m / mrate[vtk]:.2f}" if vtk else "—")
     finally:
