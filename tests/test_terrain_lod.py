@@ -178,3 +178,33 @@ def test_complete_loading_with_budgets_too_small_says_so(tmp_path, terrain_store
                    "--cache-mb", 1, "--gpu-mb", 2, "--tau", 0.5, "--out", tmp_path, "-q", check=False, timeout=120)
     assert proc.returncode != 0
     assert "do not fit the budgets (--cache-mb 1, --gpu-mb 2)" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_lookup_blocks_is_the_per_patch_grid_value():
+    """lookup_blocks (one gather over the levels' grids flattened end to end; a plain gather for
+    one level) == grids[level][bi, bj] patch by patch, for several levels, one level, none."""
+    from massview.lod.kpatch import lookup_blocks
+
+    rng = np.random.default_rng(2)
+    grids = [rng.integers(-1, 500, (2 ** (4 - lv), 2 ** (4 - lv))) for lv in range(5)]
+    lv = rng.integers(0, 5, 3000)
+    bi = np.array([rng.integers(0, grids[v].shape[0]) for v in lv])
+    bj = np.array([rng.integers(0, grids[v].shape[1]) for v in lv])
+    want = np.array([grids[v][i, j] for v, i, j in zip(lv, bi, bj)])
+    assert np.array_equal(lookup_blocks(grids, lv, bi, bj), want)
+    one = lv == 2
+    assert np.array_equal(lookup_blocks(grids, lv[one], bi[one], bj[one]), want[one])
+    assert np.array_equal(lookup_blocks(grids, lv.astype(np.int8), bi, bj), want)
+    assert len(lookup_blocks(grids, lv[:0], bi[:0], bj[:0])) == 0
+    flags = [g > 200 for g in grids]
+    assert np.array_equal(lookup_blocks(flags, lv, bi, bj), want > 200)
+
+
+def test_stable_order_is_a_stable_argsort():
+    from massview.render.terrain import _stable_order
+
+    rng = np.random.default_rng(4)
+    for hi in (7, 300, 65535, 65536, 10 ** 6):
+        s = rng.integers(0, hi + 1, 20000).astype(np.int64)
+        assert np.array_equal(_stable_order(s), np.argsort(s, kind="stable")), hi
+    assert len(_stable_order(np.zeros(0, np.int64))) == 0

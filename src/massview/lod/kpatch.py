@@ -244,11 +244,14 @@ class Front:
 def lookup_blocks(grids: list[np.ndarray], level: np.ndarray, bi: np.ndarray, bj: np.ndarray) -> np.ndarray:
     """``grids[level[n]][bi[n], bj[n]]`` for every n: per-block values kept as one (nb, nb)
     grid per pyramid level (residency flags, GL slots ...)."""
-    out = np.empty(len(level), grids[0].dtype if grids else bool)
-    for lv in np.unique(level):
-        sel = level == lv
-        out[sel] = grids[lv][bi[sel], bj[sel]]
-    return out
+    if not grids or len(level) == 0:
+        return np.empty(len(level), grids[0].dtype if grids else bool)
+    if len(grids) == 1 or level.min() == level.max():  # one level: one gather
+        return grids[int(level[0])][bi, bj]
+    flat = np.concatenate([g.ravel() for g in grids])  # every level's grid, flattened end to end
+    offset = np.cumsum([0] + [g.size for g in grids[:-1]])
+    cols = np.array([g.shape[1] for g in grids])
+    return flat[offset[level] + bi * cols[level] + bj]
 
 
 def select_front(h: PatchHierarchy, camera: Camera, tau: float = 1.0, resident=None, request: Request | None = None,
