@@ -90,8 +90,8 @@ def _ms(v: float) -> str:
 
 def _gpu_timer(ctx):
     """A GL timer query where its figures mean something: not on Mesa's software rasterizers,
-    whose time-elapsed queries here returned values modulo 2³² ns (4294.97 ms) for
-    seconds-long draws; None there."""
+    whose time-elapsed queries here returned 0 for some draws and 4294.97 ms (2³² ns) for
+    others; None there."""
     r = ctx.info.get("GL_RENDERER", "").lower()
     if "llvmpipe" in r or "softpipe" in r or "swrast" in r:
         return None
