@@ -67,7 +67,6 @@ class PlainMeshRenderer:
         prog["u_M"].value = cols  # one grid row = one "block" row
         prog["u_scale"].value = (float(spacing[0]), float(spacing[1]), float(vscale))
         prog["u_light"].value = tuple(_LIGHT)
-        prog["u_extent"].value = (float(cols - 1), float(rows - 1))
         self.vao = ctx.vertex_array(self.prog, [(self.vbo, "f 2f2 4f1", "in_h", "in_n", "in_color"), (self.inst, "4i/i", "in_slot")],
                                     index_buffer=self.ibo, index_element_size=4)
 

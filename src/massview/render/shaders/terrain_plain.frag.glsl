@@ -1,14 +1,13 @@
 #version 330
-// Lit terrain colour; samples beyond the input extent (padding) are discarded.
+// Lit terrain colour. No discard: the mesh is the grid it was given, so no fragment lies beyond
+// it (the discard of samples past the grid's own extent never fired), and a discard turns off
+// the early depth test: at full resolution (~25 triangles a pixel) every fragment is shaded.
 uniform vec3 u_light;
 uniform vec4 u_tint;
-uniform vec2 u_extent;  // last valid col, last valid row (finest samples)
 in vec3 v_normal;
 in vec4 v_color;
-in vec2 v_grid;
 out vec4 f_color;
 void main() {
-    if (v_grid.x > u_extent.x || v_grid.y > u_extent.y) discard;
     vec3 n = normalize(v_normal);
     float d = max(dot(n, u_light), 0.0);
     vec3 c = v_color.rgb * (0.45 + 0.7 * d);
