@@ -23,19 +23,12 @@ import math
 
 import numpy as np
 
-from .jit import njit  # (numba, imported the data layer's way)
+from .jit import cached_jit
 
 __all__ = ["paint"]
 
 
-def _jit(fn):
-    try:
-        return njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")(fn)
-    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
-        return njit(nogil=True, boundscheck=False, error_model="numpy")(fn)
-
-
-@_jit
+@cached_jit
 def paint(color, depth, a_row, a_col, n_row, n_col, r22, hor, zen):
     """Paint ``color`` ((h, w, 4) uint8, in place) with the sky at the pixels where ``depth``
     ((h, w) float32) is ≥ 1; the terms are :func:`massview.render.colormaps.paint_sky`'s.
