@@ -13,7 +13,6 @@ in vec4 in_color;
 in ivec4 in_slot;       // origin col, origin row, step, slot index
 out vec3 v_normal;
 out vec4 v_color;
-out vec2 v_grid;
 void main() {
     int local = gl_VertexID - in_slot.w * u_M * u_M;
     int r = local / u_M;
@@ -24,5 +23,4 @@ void main() {
     gl_Position = u_mvp * vec4(p, 1.0);
     v_normal = vec3(in_n, sqrt(max(1.0 - dot(in_n, in_n), 0.0)));
     v_color = in_color;
-    v_grid = vec2(float(gx), float(gy));
 }
