@@ -5,13 +5,17 @@ never a dependency) and checks the surface sizes the bracketing assumes."""
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import json
+import os
 import shutil
+import stat
 
 import numpy as np
 import pytest
 
-from massview.app.bench.paraview import auto_steps, bracket_steps, interpolate_ms, run_pvbatch, surface_triangles
+from massview.app.bench.paraview import auto_steps, bracket_steps, interpolate_ms, run_pvbatch, surface_triangles, x_display
 from massview.core.errors import ConfigError
 
 
@@ -62,8 +66,8 @@ def test_interpolate_ms_is_linear_inside_and_none_outside():
     assert interpolate_ms([], 5.0) is None
 
 
-@pytest.mark.skipif(shutil.which("pvbatch") is None or shutil.which("xvfb-run") is None,
-                    reason="pvbatch/xvfb-run not installed (Debian: apt-get install paraview xvfb)")
+@pytest.mark.skipif(shutil.which("pvbatch") is None or (shutil.which("Xvfb") is None and not os.environ.get("DISPLAY")),
+                    reason="pvbatch/Xvfb not installed (Debian: apt-get install paraview xvfb)")
 def test_pvbatch_surfaces_have_the_bracketed_triangle_counts(tmp_path):
     """Real pvbatch on one rank: its surface of every STEP-th sample has surface_triangles()."""
     rows, cols = 41, 57
@@ -101,3 +105,43 @@ def test_massview_jobs_are_launched_with_arguments_bench_frame_accepts(monkeypat
     out = paraview._massview(SimpleNamespace(size="320x240", frames=2), tmp_path / "store.zarr", [1, 2])
     assert len(launched) == 4 and {k for k in out} == {("sort-last", 1), ("sort-last", 2), ("sort-first", 1), ("sort-first", 2)}
     assert all(v["codec"] == "auto" for v in out.values())
+
+
+def test_x_display_uses_the_callers_display_and_starts_nothing(monkeypatch):
+    monkeypatch.setenv("DISPLAY", ":42")
+    monkeypatch.setattr("subprocess.Popen", lambda *a, **k: pytest.fail("started a server although DISPLAY is set"))
+    with x_display() as d:
+        assert d == ":42"
+
+
+def test_x_display_without_display_or_xvfb_says_what_to_install(monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.setattr(shutil, "which", lambda name, *a, **k: None)
+    with pytest.raises(RuntimeError, match="apt-get install xvfb"), x_display():
+        pass
+
+
+def test_x_display_reports_an_xvfb_that_does_not_start(monkeypatch, tmp_path):
+    fake = tmp_path / "Xvfb"
+    fake.write_text("#!/bin/sh\necho '(EE) cannot establish any listening sockets' >&2\nexit 1\n")
+    fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.setenv("PATH", f"{tmp_path}{os.pathsep}{os.environ.get('PATH', '')}")
+    with pytest.raises(RuntimeError, match="did not start.*cannot establish"), x_display(timeout=10):
+        pass
+
+
+@pytest.mark.skipif(shutil.which("Xvfb") is None or ctypes.util.find_library("X11") is None,
+                    reason="Xvfb/libX11 not installed (Debian: apt-get install xvfb)")
+def test_x_display_starts_one_real_server_and_stops_it(monkeypatch):
+    """A real Xvfb: a client connects to the display it reports, and none can once the block ends."""
+    monkeypatch.delenv("DISPLAY", raising=False)
+    x11 = ctypes.CDLL(ctypes.util.find_library("X11"))
+    x11.XOpenDisplay.restype, x11.XOpenDisplay.argtypes = ctypes.c_void_p, [ctypes.c_char_p]
+    x11.XCloseDisplay.argtypes = [ctypes.c_void_p]
+    with x_display() as d:
+        assert d.startswith(":") and d[1:].isdigit()
+        conn = x11.XOpenDisplay(d.encode())
+        assert conn
+        x11.XCloseDisplay(conn)
+    assert not x11.XOpenDisplay(d.encode())

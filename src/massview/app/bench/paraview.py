@@ -4,8 +4,8 @@
 
 1. exports the store's finest level as one float32 grid and the ``--frames`` cameras of the
    flyover path (position, focal point, up, field of view) — the cameras massview renders;
-2. runs ``pvbatch`` (under ``xvfb-run`` when there is no display, llvmpipe through GLX) on 1
-   and 2 ranks (``mpiexec`` of the MPI ParaView was built with, found on PATH as
+2. runs ``pvbatch`` (on one Xvfb server started for the whole run when there is no display,
+   :func:`x_display`; llvmpipe through GLX) on 1 and 2 ranks (``mpiexec`` of the MPI ParaView was built with, found on PATH as
    ``mpiexec.openmpi``/``mpiexec``), drawing a surface of every STEP-th sample (``--steps``;
    1: the full surface, 2·(n−1)² triangles; ``auto``: the two adjacent steps whose surfaces
    bracket the triangles massview drew, :func:`bracket_steps`), and reads IceT's own timers on
@@ -28,9 +28,11 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import shutil
 import subprocess
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +42,7 @@ from ...core.config import parse_size
 from ...core.errors import ConfigError
 from .frame import STAGES as _STAGE_NAMES
 
-__all__ = ["add_arguments", "run", "surface_triangles", "bracket_steps", "auto_steps", "interpolate_ms"]
+__all__ = ["add_arguments", "run", "surface_triangles", "bracket_steps", "auto_steps", "interpolate_ms", "x_display"]
 
 _SCRIPT = Path(__file__).with_name("pvbatch_script.py")
 
@@ -92,7 +94,66 @@ def export_cameras(store_path: Path, frames: int, size: str, path: Path) -> None
     path.write_text(json.dumps({"size": [w, h], "cameras": cams}))
 
 
-def run_pvbatch(grid: dict, cams: Path, step: int, ranks: int, workdir: Path) -> dict:
+@contextmanager
+def x_display(screen: str = "1920x1200x24", timeout: float = 30.0):
+    """The X display pvbatch draws on: the caller's ``DISPLAY`` when set, else one Xvfb server
+    for the whole ``with`` block, on a free display number that Xvfb picks and reports itself
+    once it accepts connections (``-displayfd``), stopped on exit. (This replaced an
+    ``xvfb-run -a`` per pvbatch run: after massview's own MPI jobs, the 2-rank pvbatch's server
+    refused its connection ("bad X server connection", with its retry, in both runs of the
+    whole benchmark on 2026-11-27), while a run without massview's jobs and a run on one server
+    started beforehand passed. The cause was not found.)"""
+    if os.environ.get("DISPLAY"):
+        yield os.environ["DISPLAY"]
+        return
+    xvfb = shutil.which("Xvfb")
+    if xvfb is None:
+        raise RuntimeError("pvbatch needs an X display: there is no DISPLAY and Xvfb is not installed "
+                           "(Debian/Ubuntu: `apt-get install xvfb`), or set DISPLAY to a running X server")
+    with tempfile.TemporaryFile() as log:
+        r, w = os.pipe()
+        try:
+            proc = subprocess.Popen([xvfb, "-displayfd", str(w), "-screen", "0", screen, "-nolisten", "tcp"], pass_fds=(w,),
+                                    stdin=subprocess.DEVNULL, stdout=log, stderr=log)
+        except BaseException:
+            os.close(r)
+            raise
+        finally:
+            os.close(w)
+        try:
+            number = b""
+            while not number.endswith(b"\n"):
+                ready, _, _ = select.select([r], [], [], timeout)
+                chunk = os.read(r, 32) if ready else b""
+                if not chunk:  # timed out, or Xvfb exited without a display
+                    break
+                number += chunk
+        finally:
+            os.close(r)
+        try:
+            if not number.strip().isdigit():
+                proc.kill()
+                proc.wait()
+                log.seek(0)
+                raise RuntimeError(f"Xvfb did not start a display within {timeout:g} s (exit {proc.returncode}): "
+                                   f"{log.read().decode(errors='replace')[-800:]}")
+            yield f":{int(number)}"
+        finally:
+            if proc.poll() is None:
+                proc.terminate()
+                try:
+                    proc.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+
+
+def run_pvbatch(grid: dict, cams: Path, step: int, ranks: int, workdir: Path, display: str | None = None) -> dict:
+    """pvbatch on ``ranks`` ranks drawing every ``step``-th sample; its JSON result. On the X
+    ``display`` given, else on :func:`x_display`'s."""
+    if display is None:
+        with x_display() as d:
+            return run_pvbatch(grid, cams, step, ranks, workdir, d)
     out = workdir / f"pv_{ranks}_{step}.json"
     script = workdir / "pvbatch_script.py"  # run from a copy: beside this module, "import paraview" would find it
     shutil.copyfile(_SCRIPT, script)
@@ -101,16 +162,15 @@ def run_pvbatch(grid: dict, cams: Path, step: int, ranks: int, workdir: Path) ->
     if ranks > 1:
         mpi = shutil.which("mpiexec.openmpi") or shutil.which("mpiexec")
         cmd = [mpi, "--allow-run-as-root", "--oversubscribe", "-n", str(ranks), *cmd]
-    if not os.environ.get("DISPLAY"):
-        cmd = ["xvfb-run", "-a", "-s", "-screen 0 1920x1200x24", *cmd]
-    env = dict(os.environ, OMPI_MCA_btl_vader_single_copy_mechanism="none")
+    env = dict(os.environ, OMPI_MCA_btl_vader_single_copy_mechanism="none", DISPLAY=display)
     for stale in workdir.glob(f"{out.name}.icet.*.json"):
         stale.unlink()
-    for attempt in range(2):  # xvfb-run -a can lose a race for a display number on a busy machine
+    for attempt in range(2):  # (a second try where a busy machine made the first fail)
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
         if proc.returncode == 0 and out.exists():
             return {**json.loads(out.read_text()), "icet": icet_composite_ms(workdir, out.name)}
-    raise RuntimeError(f"pvbatch failed (exit {proc.returncode}): {' '.join(map(str, cmd))}\n{(proc.stdout + proc.stderr)[-3000:]}")
+    raise RuntimeError(f"pvbatch failed (exit {proc.returncode}, DISPLAY={display}): {' '.join(map(str, cmd))}\n"
+                       f"{(proc.stdout + proc.stderr)[-3000:]}")
 
 
 def surface_triangles(rows: int, cols: int, step: int) -> int:
@@ -216,14 +276,17 @@ def run(args) -> int:
                     for s in (auto_steps(grid, [r["sync"]["triangles"] for r in mv.values() if r]) if v.strip() == "auto" else [int(v)])})
     for s in steps:
         surface_triangles(grid["rows"], grid["cols"], s)  # a clear error for a step < 1
-    for step in steps:
-        for n in ranks:
-            done = workdir / f"pv_{n}_{step}.json"
-            if args.reuse and done.exists():
-                pv[(step, n)] = json.loads(done.read_text())
-                continue
-            console.print(f"[dim]pvbatch, {n} rank(s), every {step} sample(s) ...[/]")
-            pv[(step, n)] = run_pvbatch(grid, cams, step, n, workdir)
+    todo = [(step, n) for step in steps for n in ranks]
+    for step, n in todo:
+        done = workdir / f"pv_{n}_{step}.json"
+        if args.reuse and done.exists():
+            pv[(step, n)] = json.loads(done.read_text())
+    if any(key not in pv for key in todo):
+        with x_display() as display:  # one X server for every pvbatch run
+            for step, n in todo:
+                if (step, n) not in pv:
+                    console.print(f"[dim]pvbatch, {n} rank(s), every {step} sample(s) (DISPLAY {display}) ...[/]")
+                    pv[(step, n)] = run_pvbatch(grid, cams, step, n, workdir, display)
     _print(console, pv, mv, ranks, steps, args, store)
     return 0
 
