@@ -9,7 +9,8 @@
    was built with, found on PATH as ``mpiexec.openmpi``/``mpiexec``), drawing a surface of
    every STEP-th sample (``--steps``; 1: the full surface, 2·(n−1)² triangles; ``auto``: the
    two adjacent steps whose surfaces bracket the triangles massview drew,
-   :func:`bracket_steps`), and reads IceT's own timers on every rank (``ICET_COMPOSITE_TIME`` …) to isolate its compositing per frame;
+   :func:`bracket_steps`), and reads IceT's own timers on every rank (``ICET_COMPOSITE_TIME``
+   …) to isolate its compositing per frame;
 3. runs massview first, on the same cameras (``bench frame``'s job: warm caches, synchronous
    loop) for sort-last and sort-first on 1 and 2 ranks;
 4. prints frame times, triangles, the 1→2-rank speed-ups and the ratios, and compositing per
