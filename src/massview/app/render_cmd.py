@@ -27,7 +27,7 @@ from ..core.camera import Camera, Viewport
 from ..core.config import RenderConfig
 from ..core.image import Image
 from ..core.paths import load_path
-from ..core.stats import summarize
+from ..core.stats import clear_run_outputs, summarize
 from ..parallel.decompose import parse_decomposition
 from ..systems import display_tiles, open_system
 from ..systems.frameloop import render_frames
@@ -93,6 +93,7 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
     is_display = any(r == rank for r, _ in display_tiles(cfg, n))
     if rank == 0 and out is not None:
         out.mkdir(parents=True, exist_ok=True)
+        clear_run_outputs(out)  # an earlier run's frames, stats and summary (before any rank writes)
     comm.Barrier()
     kept: list = []
     sink = _sink(out, cfg, rank, keep, depth, kept) if is_display else None

@@ -9,13 +9,15 @@ per rank goes to ``stats.jsonl``.
 from __future__ import annotations
 
 import json
+import os
+import re
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["STAGES", "FrameStats", "summarize", "read_stats"]
+__all__ = ["STAGES", "FrameStats", "summarize", "read_stats", "clear_run_outputs"]
 
 STAGES = ("lod", "draw", "readback", "encode", "transfer", "composite", "total")
 
@@ -52,6 +54,40 @@ class FrameStats:
             "bytes_recv": int(self.bytes_recv),
             "counters": self.counters,
         }
+
+
+_FRAME_FILE = re.compile(r"^\d{5,}\.(png|npy)$")  # a run's numbered frames (NNNNN.png) and depth arrays (NNNNN.npy)
+_FRAME_DIRS = ("frames", "depth")  # and wall/rRcC/, wall_depth/rRcC/ (one folder per display tile)
+
+
+def clear_run_outputs(out) -> int:
+    """Remove what an earlier run left in the output folder ``out`` before a new run writes
+    there: first its ``summary.json`` (so a new run that is interrupted never leaves a folder
+    that looks finished), then ``stats.jsonl`` and the numbered frames and depth arrays in
+    ``frames/``, ``depth/``, ``wall/…/`` and ``wall_depth/…/`` (a 2-frame run after a 5-frame
+    one left frames 2–4 of the old run beside the new ones). Nothing else is touched: files
+    of other names, other folders. Returns how many files were removed."""
+    out = os.fspath(out)
+    removed = 0
+    for name in ("summary.json", "stats.jsonl"):
+        try:
+            os.unlink(os.path.join(out, name))
+            removed += 1
+        except FileNotFoundError:
+            pass
+    folders = [os.path.join(out, d) for d in _FRAME_DIRS]
+    for wall in ("wall", "wall_depth"):
+        w = os.path.join(out, wall)
+        if os.path.isdir(w):
+            folders += [os.path.join(w, t) for t in sorted(os.listdir(w)) if re.fullmatch(r"r\d+c\d+", t)]
+    for d in folders:
+        if not os.path.isdir(d):
+            continue
+        for name in os.listdir(d):
+            if _FRAME_FILE.match(name) and os.path.isfile(os.path.join(d, name)):
+                os.unlink(os.path.join(d, name))
+                removed += 1
+    return removed
 
 
 def read_stats(path) -> list[dict]:

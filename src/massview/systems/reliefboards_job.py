@@ -33,7 +33,7 @@ import numpy as np
 from ..core.config import RenderConfig
 from ..core.errors import ConfigError, MassviewError, OutputError, RankJobError
 from ..core.paths import load_path
-from ..core.stats import summarize
+from ..core.stats import clear_run_outputs, summarize
 
 __all__ = ["board_options", "render_reliefboards", "run_job", "run", "m2_summary"]
 
@@ -96,6 +96,7 @@ def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool
     stats_file = None
     if rank == 0 and out is not None:
         out.mkdir(parents=True, exist_ok=True)
+        clear_run_outputs(out)  # an earlier run's frames, stats and summary
         stats_file = open(out / "stats.jsonl", "w")
 
     def sink(f, image, stats):

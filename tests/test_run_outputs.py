@@ -1,0 +1,39 @@
+"""A run into an output folder that already holds a run: the old run's frames, stats and
+summary are removed first (a 2-frame run after a 5-frame one used to leave frames 2–4 of the
+old run beside the new ones, and the demo's video was mostly the old run), and nothing else
+in the folder is touched."""
+
+from __future__ import annotations
+
+import json
+
+from massview.core.stats import clear_run_outputs
+from conftest import SMALL_SCENE, SMALL_SIZE, run_cli
+
+
+def test_clear_run_outputs_removes_only_a_runs_files(tmp_path):
+    made = ["summary.json", "stats.jsonl", "frames/00000.png", "frames/00004.png", "depth/00001.npy",
+            "wall/r0c1/00002.png", "wall_depth/r1c0/00003.npy"]
+    kept = ["notes.txt", "frames/cover.png", "frames/0001.png", "wall/readme.txt", "mine/00000.png", "wall/other/00000.png",
+            "demo.mp4"]
+    for rel in made + kept:
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(b"x")
+    assert clear_run_outputs(tmp_path) == len(made)
+    assert not any((tmp_path / rel).exists() for rel in made)
+    assert all((tmp_path / rel).exists() for rel in kept)
+    assert clear_run_outputs(tmp_path) == 0  # (nothing left to remove; a missing folder is no error)
+    assert clear_run_outputs(tmp_path / "none") == 0
+
+
+def test_a_shorter_render_into_the_same_folder_leaves_only_its_own_frames(tmp_path):
+    out = tmp_path / "run"
+    (out / "frames").mkdir(parents=True)
+    (out / "frames" / "keep-me.txt").write_text("a user's file")
+    run_cli("render", SMALL_SCENE, "--frames", 4, "--size", SMALL_SIZE, "--out", out, "-q")
+    assert sorted(p.name for p in (out / "frames").glob("*.png")) == [f"{i:05d}.png" for i in range(4)]
+    run_cli("render", SMALL_SCENE, "--frames", 2, "--size", "160x120", "--out", out, "-q")
+    assert sorted(p.name for p in (out / "frames").glob("*.png")) == ["00000.png", "00001.png"]
+    assert json.loads((out / "summary.json").read_text())["frames"] == 2
+    assert len((out / "stats.jsonl").read_text().splitlines()) == 2
+    assert (out / "frames" / "keep-me.txt").read_text() == "a user's file"
