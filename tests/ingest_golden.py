@@ -34,7 +34,7 @@ from massview.data.terrain import ArraySource, prepare_terrain
 from massview.data.terrain.synthetic import SyntheticSource
 
 GOLDEN = Path(__file__).parent / "data" / "ingest_golden.json"
-_RUN_ATTRS = {"complete", "source"}
+_RUN_ATTRS = {"complete", "source", "source_stamp"}  # (source_stamp: the input file's size and mtime)
 
 
 def _jacksboro():

@@ -283,3 +283,59 @@ def test_orthophoto_colours_the_pyramid(tmp_path):
     assert np.array_equal(coarse[:50, :50], np.moveaxis(rgb, 0, -1)[0:100:2, 0:100:2])
     with pytest.raises(IngestError, match="not an RGB image"):
         prepare_terrain(ArraySource(a, "x"), tmp_path / "bad.zarr", block=129, ortho=open_source(tmp_path / "d.npy"))
+
+
+def _interrupted_prepare(monkeypatch, dem, out, **kw):
+    """A real prepare of the file ``dem`` stopped (KeyboardInterrupt) after its first two strips."""
+    from massview.data.terrain import ingest
+
+    read, calls = ingest._read_strip, []
+
+    def stop_at_the_third(*a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return read(*a, **k)
+
+    monkeypatch.setattr(ingest, "_read_strip", stop_at_the_third)
+    with pytest.raises(KeyboardInterrupt):
+        prepare_terrain(open_source(dem), out, block=129, **kw)
+    monkeypatch.undo()
+
+
+def test_a_resumed_prepare_starts_again_when_the_input_or_options_changed(tmp_path, monkeypatch):
+    """An interrupted prepare is resumed only with the same input file (name, size,
+    modification time) and the same options; otherwise it starts again and says why (it used to
+    resume and keep the old file's heights, or its old spacing and vertical scale, silently)."""
+    import os
+
+    dem, out = tmp_path / "w.npy", tmp_path / "w.zarr"
+    old, new = synthetic_heights(0, 600, 0, 500, 600, 9), synthetic_heights(0, 600, 0, 500, 600, 10)
+    np.save(dem, old)
+    _interrupted_prepare(monkeypatch, dem, out)
+    same = prepare_terrain(open_source(dem), out, block=129)
+    assert same.resumed and not same.warnings[:-1]  # (the last warning: no georeference)
+
+    _interrupted_prepare(monkeypatch, dem, out, overwrite=True)
+    np.save(dem, new)  # other heights, same name and shape
+    os.utime(dem, ns=(dem.stat().st_atime_ns, dem.stat().st_mtime_ns + 10**9))  # (a later mtime even on a coarse clock)
+    res = prepare_terrain(open_source(dem), out, block=129)
+    assert not res.resumed and any("size or modification time" in w and "started again" in w for w in res.warnings)
+    assert np.array_equal(finest(TerrainStore(out))[:600, :500], new) and not np.array_equal(old, new)
+
+    _interrupted_prepare(monkeypatch, dem, out, overwrite=True)
+    res = prepare_terrain(open_source(dem, spacing="10"), out, block=129, vertical_scale=3.0)
+    assert not res.resumed and any("spacing, vertical scale" in w for w in res.warnings)
+    s = TerrainStore(out)
+    assert s.spacing == (10.0, 10.0) and s.vertical_scale == 3.0
+
+
+def test_bad_dtype_and_workers_are_one_line_errors_before_any_store(tmp_path):
+    raw = tmp_path / "d.raw"
+    np.zeros((30, 40), np.float32).tofile(raw)
+    proc = run_cli("prepare", "terrain", raw, "--shape", "30x40", "--dtype", "foo", "-o", tmp_path / "d.zarr", check=False)
+    assert proc.returncode != 0 and "--dtype 'foo'" in proc.stderr and "Traceback" not in proc.stderr
+    proc = run_cli("prepare", "terrain", raw, "--shape", "30x40", "--dtype", "float32", "--workers", "-2", "-o", tmp_path / "w.zarr",
+                   check=False)
+    assert proc.returncode != 0 and "--workers" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "d.zarr").exists() and not (tmp_path / "w.zarr").exists()

@@ -201,9 +201,10 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     attrs = {"spacing": [dx, dy], "vertical_scale": float(vertical_scale), "crs": src.crs,
              "transform": list(src.transform) if src.transform else None,
              "nodata": {"value": None if src.nodata is None else float(src.nodata), "filled": 0},
-             "source": src.name, "source_dtype": str(src.dtype), "color": None}
-    g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite)
-    workers = resolve_workers(workers)
+             "source": src.name, "source_stamp": getattr(src, "stamp", None), "source_dtype": str(src.dtype), "color": None}
+    workers = resolve_workers(workers)  # (a bad count is an error before the store exists)
+    restarted: list[str] = []
+    g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite, restarted)
     prog = progress or (lambda phase, adv, total: None)
     from .roettger import DEFAULT_C_MIN, TableBuilder  # T2's per-node table (Röttger d2)
 
@@ -221,6 +222,9 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
     res = PrepareResult(Path(out), lay, seconds, filled, resumed, src.rows * src.cols * src.dtype.itemsize, [], stages)
+    if restarted:
+        res.warnings.append(f"{out}: an interrupted prepare was there, but its {', '.join(restarted)} differ from this run's; "
+                            "it was started again from the beginning")
     if res.filled_fraction > 0.5:
         res.warnings.append(f"{src.name}: {res.filled_fraction:.0%} of the samples were nodata/NaN/inf and were filled from their "
                             "neighbours; check the nodata value (--nodata) and the extent")

@@ -38,6 +38,7 @@ class RasterSource:
     crs: str | None = None
     transform: tuple[float, ...] | None = None
     name: str = ""
+    stamp: list | None = None  # a file input's [size, mtime_ns] (open_source): a resumed prepare checks it
 
     def _raw(self, r0, r1, c0, c1) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -312,7 +313,11 @@ def open_source(path, *, nodata=None, array: str | None = None, shape: tuple[int
     elif suffix in (".raw", ".bin", ".r32", ".f32", ".r16", ".dat"):
         if shape is None or dtype is None:
             raise IngestError(f"{p}: raw binary needs --shape ROWSxCOLS and --dtype (e.g. float32, <i2)")
-        want = shape[0] * shape[1] * np.dtype(dtype).itemsize
+        try:
+            itemsize = np.dtype(dtype).itemsize
+        except TypeError:
+            raise IngestError(f"--dtype {dtype!r}: not a data type; give one such as float32, int16, <i2 or >u2") from None
+        want = shape[0] * shape[1] * itemsize
         if p.stat().st_size != want:
             raise IngestError(f"{p}: is {p.stat().st_size} bytes, but --shape {shape[0]}x{shape[1]} --dtype {dtype} needs {want}")
         src = BinaryFileSource(p, shape, dtype, 0, p.name)
@@ -321,4 +326,6 @@ def open_source(path, *, nodata=None, array: str | None = None, shape: tuple[int
     if nodata is not None:
         src.nodata = nodata
     _georeference(src, p, spacing, crs)
+    st = p.stat()
+    src.stamp = [st.st_size, st.st_mtime_ns]
     return src

@@ -59,8 +59,27 @@ def _compressor(typesize: int = 4):
     return BloscCodec(cname="lz4", clevel=5, shuffle="shuffle" if typesize > 1 else "noshuffle", typesize=typesize)
 
 
-def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, overwrite: bool = False):
-    """Create (or reopen for resuming, when its layout matches) an incomplete store."""
+_RESUME_KEYS = {"source": "input name", "source_stamp": "input file's size or modification time",
+               "source_dtype": "input data type", "spacing": "spacing", "vertical_scale": "vertical scale", "crs": "CRS",
+               "transform": "georeference"}
+
+
+def _resume_differences(old: dict, attrs: dict, layout: TerrainLayout) -> list[str]:
+    """What differs between an interrupted run's store attributes ``old`` and this run's: the
+    layout, the input (name, file size and modification time, data type, nodata value) and
+    the options that shape the store (spacing, vertical scale, CRS, georeference)."""
+    out = ["layout (size, --block or K)"] if any(old.get(k) != v for k, v in layout.to_json().items()) else []
+    out += [what for k, what in _RESUME_KEYS.items() if old.get(k) != attrs.get(k)]
+    if (old.get("nodata") or {}).get("value") != (attrs.get("nodata") or {}).get("value"):
+        out.append("nodata value")
+    return out
+
+
+def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, overwrite: bool = False,
+                 restarted: list | None = None):
+    """Create (or reopen for resuming, when its layout, its input and the options that shape it
+    match) an incomplete store. An incomplete store from a run whose input or options differ is
+    made anew; what differed is appended to ``restarted`` when given."""
     import zarr
 
     path = Path(path)
@@ -72,13 +91,15 @@ def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, ov
             old = None
         if old is None or old.get("format") != FORMAT:
             raise StoreError(f"{path} exists and is not a massview terrain store; choose another -o or remove it")
-        same = all(old.get(k) == v for k, v in layout.to_json().items()) and old.get("source") == attrs.get("source")
+        differ = _resume_differences(old, attrs, layout)
         if old.get("complete") and not overwrite:
             raise StoreError(f"{path} is already a complete store; pass --overwrite to rebuild it")
         arrays = [f"{a}/{lv}" for lv in range(layout.levels) for a in ("heights", "shade", *(("color",) if color else ()))]
         arrays += [f"blocks/{lv}/done" for lv in range(layout.levels)]
-        if same and not overwrite and all((path / a / "zarr.json").is_file() for a in arrays):
+        if not differ and not overwrite and all((path / a / "zarr.json").is_file() for a in arrays):
             return g, True  # resume (a run stopped while creating the arrays left nothing to resume: made anew)
+        if differ and not overwrite and not old.get("complete") and restarted is not None:
+            restarted.extend(differ)
         shutil.rmtree(path)
     g = zarr.open_group(str(path), mode="w", zarr_format=3)
     g.attrs.update({"format": FORMAT, "format_version": FORMAT_VERSION, "complete": False, **layout.to_json(),
