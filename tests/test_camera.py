@@ -97,3 +97,20 @@ def test_keyframes_pass_through_keys_and_reject_garbage(tmp_path):
         (tmp_path / "x.json").write_text("{")
         load_path(str(tmp_path / "x.json"), [0, 0, 0], [1, 1, 1])
     assert isinstance(path, KeyframePath)
+
+
+@pytest.mark.parametrize("name", BUILTIN_PATHS)
+def test_no_path_renders_the_same_view_twice(name):
+    """The closed loops (turn, orbit) go once round in steps of 1/frames: their first and last
+    views used to be the same full-circle position (a 2-frame orbit rendered one view twice);
+    the open paths still start and end at their ends."""
+    lo, hi = np.array([0.0, 0.0, 0.0]), np.array([100.0, 80.0, 20.0])
+    for frames in (2, 3, 10):
+        cams = load_path(name, lo, hi).cameras(frames, 64, 48)
+        keys = {(tuple(np.round(c.position, 9)), tuple(np.round(c.orientation, 9))) for c in cams}
+        assert len(keys) == frames, (name, frames)
+    path = load_path(name, lo, hi)
+    first, last = path.cameras(10, 64, 48)[0], path.cameras(10, 64, 48)[-1]
+    assert np.allclose(first.position, path.camera(0.0, 64, 48).position)
+    end = path.camera(0.9 if name in ("turn", "orbit") else 1.0, 64, 48)
+    assert np.allclose(last.position, end.position) and np.allclose(last.orientation, end.orientation)

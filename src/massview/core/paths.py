@@ -35,6 +35,7 @@ from .errors import ConfigError
 __all__ = ["BUILTIN_PATHS", "CameraPath", "KeyframePath", "ParametricPath", "load_path", "scene_clip"]
 
 BUILTIN_PATHS = ("turn", "zoom", "forward", "orbit", "flyover", "walkthrough")
+_LOOPS = ("turn", "orbit")  # closed: a full circle, t = 1 is t = 0
 
 
 def scene_clip(lo, hi, positions=None) -> tuple[float, float]:
@@ -182,6 +183,15 @@ class ParametricPath(CameraPath):
 
     def clip(self):
         return scene_clip(self.lo, self.hi)
+
+    def cameras(self, frames: int, width: int, height: int) -> list[Camera]:
+        """As :meth:`CameraPath.cameras`, except that the closed loops (``turn``, ``orbit``: a
+        full circle, t = 1 is t = 0) take ``frames`` steps of 1/frames round it, so no view comes
+        twice (with t = i/(frames − 1) a 2-frame orbit rendered one view twice, and a looped
+        video of the default 10 repeated its first frame)."""
+        if self.name not in _LOOPS or frames < 1:
+            return super().cameras(frames, width, height)
+        return [self.camera(i / frames, width, height) for i in range(frames)]
 
     def pose(self, t):
         c = (self.lo + self.hi) / 2
