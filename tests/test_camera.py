@@ -114,3 +114,17 @@ def test_no_path_renders_the_same_view_twice(name):
     assert np.allclose(first.position, path.camera(0.0, 64, 48).position)
     end = path.camera(0.9 if name in ("turn", "orbit") else 1.0, 64, 48)
     assert np.allclose(last.position, end.position) and np.allclose(last.orientation, end.orientation)
+
+
+def test_reference_with_color_by_rank_is_refused_where_it_cannot_hold():
+    """--reference asks for the one-rank image; --color-by-rank tints each rank's part: T1 and
+    M1 can never pass that check (the README once suggested both together for M1), T2 tints its
+    reference per portion and keeps both."""
+    from massview.core.config import RenderConfig
+
+    for system in ("auto", "dmmr"):
+        with pytest.raises(ConfigError, match="drop one of them"):
+            RenderConfig(reference=True, color_by_rank=True, system=system)
+        RenderConfig(reference=True, system=system)
+        RenderConfig(color_by_rank=True, system=system)
+    RenderConfig(reference=True, color_by_rank=True, system="roettger")

@@ -101,6 +101,9 @@ class RenderConfig:
             raise ConfigError(f"--triangle-budget must be at least 1, got {self.triangle_budget}")
         if self.layers and self.system != "roettger":
             raise ConfigError("several stores (layers) need --system roettger")
+        if self.reference and self.color_by_rank and self.system in ("auto", "dmmr"):
+            raise ConfigError("--reference checks that the frame equals one rank's, and --color-by-rank tints each rank's part, so "
+                              "the two differ by design (only --system roettger tints its reference alike): drop one of them")
         object.__setattr__(self, "layers", tuple(self.layers))
         self._check_shading()
         self._check_dmmr()
