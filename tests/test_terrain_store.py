@@ -339,3 +339,35 @@ def test_bad_dtype_and_workers_are_one_line_errors_before_any_store(tmp_path):
                    check=False)
     assert proc.returncode != 0 and "--workers" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "d.zarr").exists() and not (tmp_path / "w.zarr").exists()
+
+
+@pytest.mark.parametrize("damage", ["root layout", "heights/1", "lod/zmin/0"])
+def test_a_damaged_zarr_json_is_a_one_line_error_naming_it(tmp_path, damage):
+    """A store whose root attributes lack the layout, or whose array metadata does not parse:
+    info, verify and render say which and what to do, no traceback (they raised KeyError and
+    JSONDecodeError)."""
+    prepare(synthetic_heights(0, 300, 0, 300, 300, 6), tmp_path, "d.zarr", color="computed")
+    store = tmp_path / "d.zarr"
+    if damage == "root layout":
+        doc = json.loads((store / "zarr.json").read_text())
+        del doc["attributes"]["rows"]
+        (store / "zarr.json").write_text(json.dumps(doc))
+        named = "no valid layout"
+    else:
+        (store / damage / "zarr.json").write_text('{"shape": [1, ')  # cut short
+        named = damage
+    for cmd in (["info", store], ["verify", store, "-q"], ["render", store, "--frames", 1, "--size", "64x48", "-o", tmp_path / "r", "-q"]):
+        proc = run_cli(*cmd, check=False)
+        if damage == "lod/zmin/0" and cmd[0] == "info":
+            continue  # (info reads no metadata array)
+        assert proc.returncode != 0, (cmd[0], proc.stdout[-500:])
+        assert named in proc.stderr and "Traceback" not in proc.stderr, (cmd[0], proc.stderr[-1500:])
+
+
+def test_verify_of_an_interrupted_store_says_to_finish_it_not_to_overwrite_it(tmp_path):
+    a = synthetic_heights(0, 600, 0, 500, 600, 9)
+    with pytest.raises(KeyboardInterrupt):
+        prepare_terrain(FlakySource(a, 2), tmp_path / "r.zarr", block=129, color="computed")
+    proc = run_cli("verify", tmp_path / "r.zarr", "-q", check=False)
+    assert proc.returncode != 0 and "re-run the same prepare command" in proc.stderr + proc.stdout
+    assert "--overwrite" not in proc.stderr + proc.stdout

@@ -338,12 +338,31 @@ class TerrainStore:
                              "or re-run `massview prepare terrain` with --overwrite")
         if require_complete and not self.attrs.get("complete"):
             raise StoreError(f"{self.path}: store is incomplete (prepare was interrupted); re-run the same `massview prepare terrain` command to finish it")
-        self.layout = TerrainLayout(int(self.attrs["rows"]), int(self.attrs["cols"]), int(self.attrs["M"]), int(self.attrs["K"]))
-        self._heights = [self.group[f"heights/{lv}"] for lv in range(self.layout.levels)]
+        try:
+            self.layout = TerrainLayout(int(self.attrs["rows"]), int(self.attrs["cols"]), int(self.attrs["M"]), int(self.attrs["K"]))
+        except (KeyError, TypeError, ValueError) as e:
+            raise StoreError(f"{self.path}: its attributes (zarr.json) have no valid layout ({type(e).__name__}: {e}); the store is "
+                             "damaged — re-run `massview prepare terrain` with --overwrite") from None
+        self._heights = []
+        for lv in range(self.layout.levels):
+            try:
+                self._heights.append(self.group[f"heights/{lv}"])
+            except Exception as e:  # noqa: BLE001 - a missing array or a damaged zarr.json (KeyError, JSONDecodeError, ...)
+                raise StoreError(f"{self.path}: the array heights/{lv} does not open ({type(e).__name__}: {e}); the store is "
+                                 "damaged — re-run `massview prepare terrain` with --overwrite") from None
         self._blosc = None  # the heights' blosc codec for direct chunk reads (False: not blosc)
         self.has_color = "color" in self.group and self.attrs.get("color") == "orthophoto"
         self.has_shade = "shade" in self.group and not upgrading
         self._color = [self.group[f"color/{lv}"] for lv in range(self.layout.levels)] if self.has_color else None
+
+    def array(self, name: str):
+        """The store's zarr array ``name`` (e.g. ``blocks/0/minmax``); StoreError naming it where
+        it is missing or its ``zarr.json`` does not parse."""
+        try:
+            return self.group[name]
+        except Exception as e:  # noqa: BLE001 - KeyError, JSONDecodeError, zarr's own errors
+            raise StoreError(f"{self.path}: the array {name} does not open ({type(e).__name__}: {e}); the store is damaged — "
+                             "re-run `massview prepare terrain` with --overwrite") from None
 
     @property
     def spacing(self) -> tuple[float, float]:
@@ -458,24 +477,23 @@ class TerrainStore:
                                     "re-run `massview upgrade` or prepare with --overwrite") from None
 
     def block_minmax(self, level: int) -> np.ndarray:
-        return np.asarray(self.group[f"blocks/{level}/minmax"][...])
+        return np.asarray(self.array(f"blocks/{level}/minmax")[...])
 
     def block_error(self, level: int) -> np.ndarray:
-        return np.asarray(self.group[f"blocks/{level}/error"][...])
+        return np.asarray(self.array(f"blocks/{level}/error")[...])
 
     def height_ranges(self, j: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """(zmin, zmax) float32 (2^j, 2^j) of the level-j squares (``lod/zmin/<j>``,
         ``lod/zmax/<j>``); level 0 is the whole domain's range (what the world box needs)."""
-        return np.asarray(self.group[f"lod/zmin/{j}"][...]), np.asarray(self.group[f"lod/zmax/{j}"][...])
+        return np.asarray(self.array(f"lod/zmin/{j}")[...]), np.asarray(self.array(f"lod/zmax/{j}")[...])
 
     def lod_arrays(self):
         """(square_error[j], edge_error[j], zmin[j], zmax[j]) lists for the patch LOD."""
         J = self.layout.J
-        g = self.group
-        sq = [np.asarray(g[f"lod/square_error/{j}"][...]) for j in range(J)]
-        dg = [np.asarray(g[f"lod/edge_error/{j}"][...]) for j in range(J)]
-        zmin = [np.asarray(g[f"lod/zmin/{j}"][...]) for j in range(J + 1)]
-        zmax = [np.asarray(g[f"lod/zmax/{j}"][...]) for j in range(J + 1)]
+        sq = [np.asarray(self.array(f"lod/square_error/{j}")[...]) for j in range(J)]
+        dg = [np.asarray(self.array(f"lod/edge_error/{j}")[...]) for j in range(J)]
+        zmin = [np.asarray(self.array(f"lod/zmin/{j}")[...]) for j in range(J + 1)]
+        zmax = [np.asarray(self.array(f"lod/zmax/{j}")[...]) for j in range(J + 1)]
         return sq, dg, zmin, zmax
 
 

@@ -21,20 +21,19 @@ def verify_store(path, progress=None) -> list[str]:
         problems.append("store is not marked complete (prepare was interrupted); re-run the same prepare command")
     lay = store.layout
     for lv in range(lay.levels):
-        try:
-            done = np.asarray(store.group[f"blocks/{lv}/done"][...])
-        except KeyError:
-            raise StoreError(f"{store.path}: blocks/{lv}/done is missing") from None
+        done = np.asarray(store.array(f"blocks/{lv}/done")[...])  # (StoreError naming it when missing or damaged)
         if not done.all():
             i, j = np.argwhere(done == 0)[0]
             problems.append(f"level {lv}: block ({i}, {j}) and {int((done == 0).sum()) - 1} more never finished writing")
+    if problems and not store.attrs.get("complete"):  # blocks are missing because the prepare stopped: resumable, say so
+        return problems                                 # (reading them would name each as "missing, re-run with --overwrite")
     meta = compute_metadata(store, progress or (lambda *a: None))
     try:
         stored_sq, stored_dg, stored_zmin, stored_zmax = store.lod_arrays()
         stored_mm = [store.block_minmax(lv) for lv in range(lay.levels)]
         stored_err = [store.block_error(lv) for lv in range(lay.levels)]
-    except KeyError as e:
-        return problems + [f"metadata array {e} is missing"]
+    except StoreError as e:  # a metadata array missing or damaged
+        return problems + [str(e)]
     for lv in range(lay.levels):
         bad = np.argwhere(np.any(stored_mm[lv] != meta.minmax[lv], axis=-1))
         if len(bad):
