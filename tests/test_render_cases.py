@@ -26,3 +26,15 @@ def test_a_failing_rank_ends_the_job_and_names_the_case(tmp_path):
     with pytest.raises(AssertionError, match=r"2-rank job of 3 render cases failed in case faulty(.|\n)*injected fault at frame 0"):
         render_cases(tmp_path, 2, {"fine": TINY, "faulty": [*TINY, "--fault", "1:0"], "never": TINY}, timeout=120)
     assert summary(tmp_path / "fine")["ranks"] == 2 and not (tmp_path / "never").exists()
+
+
+@pytest.mark.mpi
+def test_sort_first_tiles_without_pixels_render_nothing_and_still_equal_serial(tmp_path):
+    """A 1×1 frame split among 3 sort-first ranks: two ranks get empty tiles. They draw nothing
+    (their camera's projection divided by zero: ZeroDivisionError and MPI_Abort) and the
+    assembled frame still equals the one-rank frame."""
+    cases = {dec: [SMALL_SCENE, "--frames", 2, "--size", "1x1", "--decomposition", dec, "--reference"]
+             for dec in ("sort-first:kd", "sort-first:horizontal")}
+    for dec, out in render_cases(tmp_path, 3, cases, timeout=180).items():
+        s = summary(out)
+        assert s["ranks"] == 3 and s["frames"] == 2 and s["max_abs_diff"] == 0, (dec, s)

@@ -21,7 +21,7 @@ import numpy as np
 from ..core.camera import Camera, Viewport
 from ..core.config import RenderConfig
 from ..core.errors import MassviewError
-from ..core.image import Image
+from ..core.image import Image, blank_image
 from ..core.stats import FrameStats
 from ..parallel.composite import composite, deliver, final_regions
 from ..parallel.decompose import parse_decomposition, parse_wall
@@ -134,6 +134,9 @@ def _begin(comm, system, cfg: RenderConfig, camera: Camera | None, frame: int, s
         tasks = comm.bcast(system.plan(camera, cfg, n) if rank == 0 else None, root=0)
     _check_fault(cfg, rank, frame)
     tint = rank_tint(rank) if cfg.color_by_rank else (0, 0, 0, 0)
+    vp = getattr(tasks[rank], "viewport", None)
+    if vp is not None and (vp.w <= 0 or vp.h <= 0):  # a sort-first tile with no pixels (a tiny --size split among
+        return camera, blank_image(vp)                # more ranks than it has rows or columns): nothing to draw
     return camera, system.render(tasks[rank], camera, cfg, stats, tint)
 
 
