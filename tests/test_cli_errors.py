@@ -18,6 +18,8 @@ from conftest import run_cli
     (["render", "builtin:objects", "--ranks", "3", "--decomposition", "sort-first:grid", "--grid", "2x2"], "--grid 2x2"),
     (["render", "builtin:objects?n=abc"], "n and seed must be integers"),
     (["report", "/nonexistent/run"], "no stats.jsonl"),
+    (["render", os.path.dirname(__file__)], "is a folder without a store's zarr.json"),
+    (["render", __file__], "is a file (a store is a folder)"),
 ])
 def test_bad_input_is_reported_plainly(args, needle, tmp_path):
     proc = run_cli(*args, "--out", tmp_path, check=False) if args[0] == "render" else run_cli(*args, check=False)
@@ -43,3 +45,16 @@ def test_exit_skips_the_final_collection_after_every_other_exit_handler(tmp_path
     assert out.returncode == 0, out.stderr
     assert out.stdout.splitlines()[-2:] == ["frozen before exit: False", "frozen at exit: True"]
     assert (tmp_path / "d.npy").exists() and int((tmp_path / "rss").read_text()) > 0
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--colormap", "notacmap"], "--colormap 'notacmap' is not a matplotlib colormap"),
+    (["--system", "dmmr", "--ranks", "2"], "--system dmmr draws polygon scenes"),
+])
+def test_terrain_options_are_checked_before_any_rank_or_output(terrain_store, tmp_path, args, needle):
+    """A colormap matplotlib does not know, and M1 on a terrain store: one line before the
+    ranks start, no output folder (they failed after the progress bar started, or on rank 1
+    with MPI_Abort noise, leaving an empty folder)."""
+    proc = run_cli("render", terrain_store, *args, "--frames", "1", "--size", "64x48", "--out", tmp_path / "out", check=False)
+    assert proc.returncode != 0 and needle in proc.stderr and "Traceback" not in proc.stderr and "MPI_Abort" not in proc.stderr
+    assert not (tmp_path / "out").exists()

@@ -301,7 +301,15 @@ def validate(spec: str, cfg: RenderConfig, nranks: int) -> None:
     from .parallel.decompose import parse_decomposition, parse_wall, sort_first_tiles
     from .systems import scene_kind
 
-    modes = {"terrain": ("kpatch", "linear", "quadtree"), "scene": ("visible", "static")}.get(scene_kind(spec), ())
+    kind = scene_kind(spec)
+    modes = {"terrain": ("kpatch", "linear", "quadtree"), "scene": ("visible", "static")}.get(kind, ())
+    if cfg.system == "dmmr" and kind == "terrain":
+        raise ConfigError(f"--system dmmr draws polygon scenes (a scene store or builtin:objects), and {spec} is a terrain store: "
+                          "leave --system out (T1) or use --system roettger (T2)")
+    if kind == "terrain" and cfg.colormap != "auto":
+        from .render.colormaps import ramp
+
+        ramp(cfg.colormap)  # a name matplotlib does not know: ConfigError now, not after the ranks started
     if cfg.system == "roettger":  # T2: roles, wall per visualization rank, the stores' tables
         from .systems.roettger import validate as validate_roettger
 

@@ -24,6 +24,11 @@ def scene_kind(spec: str) -> str:
 
         TerrainStore(p)  # raises a StoreError naming what is wrong with it
         return "terrain"
+    if p.exists():
+        what = "a folder without a store's zarr.json" if p.is_dir() else "a file (a store is a folder)"
+        raise SceneNotFoundError(f"{spec}: is {what}, not a massview terrain or scene store; give a store made by "
+                                 "`massview prepare terrain INPUT -o STORE` or `massview prepare scene MESH... -o SCENE` "
+                                 "(an elevation or mesh file goes to prepare first)")
     raise SceneNotFoundError(
         f"scene {spec!r} not found: give builtin:objects[?n=COUNT&seed=S] or a terrain store "
         "or a scene store (make one with `massview prepare terrain INPUT -o STORE`, `massview generate terrain STORE --size N`, "
