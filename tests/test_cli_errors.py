@@ -58,3 +58,10 @@ def test_terrain_options_are_checked_before_any_rank_or_output(terrain_store, tm
     proc = run_cli("render", terrain_store, *args, "--frames", "1", "--size", "64x48", "--out", tmp_path / "out", check=False)
     assert proc.returncode != 0 and needle in proc.stderr and "Traceback" not in proc.stderr and "MPI_Abort" not in proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_version():
+    import massview
+
+    proc = run_cli("--version")
+    assert proc.stdout.strip() == f"massview {massview.__version__}"

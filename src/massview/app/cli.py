@@ -110,7 +110,10 @@ def _add_roettger_args(p: argparse.ArgumentParser) -> None:
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The whole command line; given ``argv``, the ``bench`` subcommands (whose modules import
     the renderer, MPI and the scene systems: ~0.1 s) only when ``argv`` starts with ``bench``."""
+    from .. import __version__
+
     ap = argparse.ArgumentParser(prog="massview", description="Parallel out-of-core rendering of massive terrains and models.")
+    ap.add_argument("--version", action="version", version=f"massview {__version__}")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
     r = sub.add_parser("render", help="render a camera path on N ranks")
     _add_render_args(r)
