@@ -37,3 +37,12 @@ def test_a_shorter_render_into_the_same_folder_leaves_only_its_own_frames(tmp_pa
     assert json.loads((out / "summary.json").read_text())["frames"] == 2
     assert len((out / "stats.jsonl").read_text().splitlines()) == 2
     assert (out / "frames" / "keep-me.txt").read_text() == "a user's file"
+
+
+def test_the_summary_names_the_split_m1_makes(tmp_path):
+    """M1's server divides the frustum itself: the summary (and progress line) said
+    "sort-last, binary-swap", the defaults it never used."""
+    out = tmp_path / "m1"
+    run_cli("render", "builtin:objects?n=200", "--system", "dmmr", "--ranks", 2, "--frames", 1, "--size", "96x72", "--out", out, "-q")
+    s = json.loads((out / "summary.json").read_text())
+    assert (s["decomposition"], s["compositor"]) == ("sort-first:balanced", "sub-frame assembly")

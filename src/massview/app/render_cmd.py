@@ -87,6 +87,9 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
     system = open_system(scene, cfg) if isinstance(scene, str) else scene
     name = scene if isinstance(scene, str) else getattr(system, "spec", "scene")
     kind, mode = parse_decomposition(cfg.decomposition, system.sort_last_modes)
+    decomposition, compositor = f"{kind}:{mode}" if mode else kind, cfg.compositor if kind == "sort-last" else "tile-assembly"
+    if hasattr(system, "split_label"):  # a system that splits the frame its own way (M1, T2)
+        decomposition, compositor = system.split_label(cfg)
     if rank == 0 and cameras is None:
         cameras = load_path(cfg.path, *system.bounds).cameras(cfg.frames, cfg.width, cfg.height)
     nframes = comm.bcast(len(cameras) if rank == 0 else None, root=0)
@@ -97,8 +100,8 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
     comm.Barrier()
     kept: list = []
     sink = _sink(out, cfg, rank, keep, depth, kept) if is_display else None
-    progress = _progress(f"{name} · {n} rank{'s' if n > 1 else ''} · {cfg.decomposition}"
-                         + (f" · {cfg.compositor}" if kind == "sort-last" else ""), nframes) if rank == 0 and not quiet else None
+    progress = _progress(f"{name} · {n} rank{'s' if n > 1 else ''} · {decomposition}"
+                         + (f" · {compositor}" if compositor != "tile-assembly" else ""), nframes) if rank == 0 and not quiet else None
     records, diffs = [], []
     stats_file = open(out / "stats.jsonl", "w") if rank == 0 and out is not None else None
     t_start = time.perf_counter()
@@ -137,8 +140,7 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
     if rank != 0:
         return None
     summary = summarize(
-        records, scene=name, decomposition=f"{kind}:{mode}" if mode else kind,
-        compositor=cfg.compositor if kind == "sort-last" else "tile-assembly", size=[cfg.width, cfg.height],
+        records, scene=name, decomposition=decomposition, compositor=compositor, size=[cfg.width, cfg.height],
         path=path_label or cfg.path, wall=cfg.wall,
         tile_targets=cfg.tile_targets, codec=cfg.codec, renderer=system.renderer,
         peak_rss_mib_per_rank=[round(v / 2**20, 1) for v in rss], pipeline=cfg.pipeline, wall_s=round(wall_s, 3),

@@ -133,6 +133,13 @@ class DmmrSystem:
         kind, layout = parse_decomposition(cfg.decomposition, ("default",))
         return "balanced" if kind == "sort-last" or layout == "kd" else layout
 
+    def split_label(self, cfg: RenderConfig) -> tuple[str, str]:
+        """(decomposition, compositor) as the summary names them: the server divides the
+        frustum (Algorithm 1, load-balanced, or equal tiles) and assembles the clients'
+        sub-frames."""
+        kind, _ = parse_decomposition(cfg.decomposition, ("default",))
+        return (cfg.decomposition if kind == "sort-first" else "sort-first:balanced"), "sub-frame assembly"
+
     @property
     def bounds(self):
         lo, hi = self.store.bounds

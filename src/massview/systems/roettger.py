@@ -97,6 +97,15 @@ class RoettgerSystem:
 
     sort_last_modes: tuple[str, ...] = ()
 
+    @staticmethod
+    def split_label(cfg: RenderConfig) -> tuple[str, str]:
+        """(decomposition, compositor) as the summary names them: visualization ranks draw
+        sort-first tiles (or wall tiles) of what the computation ranks send."""
+        if cfg.wall:
+            return f"wall {cfg.wall}", "tile-assembly"
+        layout = cfg.decomposition.partition(":")[2] if cfg.decomposition.startswith("sort-first:") else "horizontal"
+        return f"sort-first:{layout if layout in ('horizontal', 'vertical', 'grid') else 'horizontal'}", "tile-assembly"
+
     def __init__(self, specs, cfg: RenderConfig):
         self.specs = [str(s) for s in specs]
         self.cfg = cfg
