@@ -65,3 +65,23 @@ def test_version():
 
     proc = run_cli("--version")
     assert proc.stdout.strip() == f"massview {massview.__version__}"
+
+
+def test_kernels_cached_looks_for_this_pythons_cache_files(tmp_path, monkeypatch):
+    """The first-prepare note (kernels compile for about a minute) is printed only where numba's
+    cache beside the ingest modules holds no index file for this Python."""
+    from massview.app import terrain_cmds
+    from massview.data import terrain
+
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    fake = tmp_path / "terrain"
+    (fake / "__pycache__").mkdir(parents=True)
+    monkeypatch.setattr(terrain, "__file__", str(fake / "__init__.py"))
+    assert not terrain_cmds.kernels_cached()
+    (fake / "__pycache__" / "kernels.grid_level-164.py27.nbi").write_bytes(b"")  # another Python's
+    assert not terrain_cmds.kernels_cached()
+    (fake / "__pycache__" / f"kernels.grid_level-164.py{sys.version_info.major}{sys.version_info.minor}.nbi").write_bytes(b"")
+    assert terrain_cmds.kernels_cached()
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    (fake / "__pycache__").rename(fake / "gone")
+    assert terrain_cmds.kernels_cached()

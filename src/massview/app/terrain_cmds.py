@@ -86,6 +86,22 @@ def _shape(spec: str | None):
         raise ConfigError(f"--shape {spec!r}: expected ROWSxCOLS") from None
 
 
+def kernels_cached() -> bool:
+    """Whether numba's disk cache holds compiled ingest kernels for this Python (beside the
+    modules, where ``cached_jit`` puts them unless ``NUMBA_CACHE_DIR`` says otherwise: then
+    assumed yes)."""
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return True
+    from ..data import terrain
+
+    tag = f".py{sys.version_info.major}{sys.version_info.minor}.nbi"
+    cache = Path(terrain.__file__).parent / "__pycache__"
+    try:
+        return any(name.endswith(tag) for name in os.listdir(cache))
+    except OSError:
+        return False
+
+
 def cmd_prepare(args) -> int:
     from ..data.terrain import open_source, prepare_terrain
     from ..data.terrain.workers import return_freed_memory
@@ -96,6 +112,9 @@ def cmd_prepare(args) -> int:
     src = open_source(args.input, nodata=args.nodata, array=args.array, shape=_shape(args.shape), dtype=args.dtype,
                       spacing=args.spacing, crs=args.crs)
     ortho = open_source(args.color) if args.color else None
+    if not args.quiet and not kernels_cached():
+        print("massview: note: the first prepare after installing compiles its kernels (about a minute on 2 cores, once: "
+              "later runs load them from the cache)", file=sys.stderr)
     with progress_bar(args.quiet) as prog:
         res = prepare_terrain(src, Path(args.output), block=args.block, vertical_scale=args.vertical_scale,
                               color=None if args.no_color else "computed", ortho=ortho, overwrite=args.overwrite, progress=prog,
