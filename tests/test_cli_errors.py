@@ -20,6 +20,8 @@ from conftest import run_cli
     (["report", "/nonexistent/run"], "no stats.jsonl"),
     (["render", os.path.dirname(__file__)], "is a folder without a store's zarr.json"),
     (["render", __file__], "is a file (a store is a folder)"),
+    (["info", "/nonexistent/store.zarr"], "no such store; make a terrain store"),
+    (["verify", "/nonexistent/store.zarr"], "or a scene store"),
 ])
 def test_bad_input_is_reported_plainly(args, needle, tmp_path):
     proc = run_cli(*args, "--out", tmp_path, check=False) if args[0] == "render" else run_cli(*args, check=False)

@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 from ..core.config import COMPOSITOR_NAMES, RenderConfig, parse_size, parse_sun
-from ..core.errors import ConfigError, MassviewError
+from ..core.errors import ConfigError, MassviewError, StoreError
 from ..core.paths import BUILTIN_PATHS
 from ..parallel.codec import CODEC_CHOICES
 from ..parallel.runtime import reuse_freed_memory
@@ -128,7 +128,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     dm.add_argument("--ranks", type=_positive, default=2, help="local ranks (default 2)")
     dm.add_argument("--frames", type=_positive, default=90, help="frames of the flyover (default 90: 3 s of video)")
     dm.add_argument("--terrain-size", type=_positive, default=4097, help="samples per side of the synthetic terrain (default 4097)")
-    dm.add_argument("--cache-dir", default=os.environ.get("MASSVIEW_CACHE", "~/.cache/massview"), help="where the demo terrain is kept")
+    dm.add_argument("--cache-dir", default=os.environ.get("MASSVIEW_CACHE", "~/.cache/massview"), help="where the demo terrain is kept (default ~/.cache/massview, or $MASSVIEW_CACHE; made once, reused by later demos)")
     dm.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     gen = sub.add_parser("generate", help="generate synthetic data")
     gsub = gen.add_subparsers(dest="what", required=True, metavar="WHAT")
@@ -348,6 +348,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.command in ("generate", "prepare", "info", "verify"):
             from . import scene_cmds, terrain_cmds
 
+            if args.command in ("info", "verify") and not Path(args.store).exists():
+                raise StoreError(f"{args.store}: no such store; make a terrain store with `massview prepare terrain INPUT -o STORE` "
+                                 "or a scene store with `massview prepare scene MESH... -o SCENE`")
             scene = getattr(args, "what", None) == "scene" or (args.command in ("info", "verify") and scene_cmds.is_scene(args.store))
             return getattr(scene_cmds if scene else terrain_cmds, f"cmd_{args.command}")(args)
     except MassviewError as e:
