@@ -128,3 +128,18 @@ def test_reference_with_color_by_rank_is_refused_where_it_cannot_hold():
         RenderConfig(reference=True, system=system)
         RenderConfig(color_by_rank=True, system=system)
     RenderConfig(reference=True, color_by_rank=True, system="roettger")
+
+
+@pytest.mark.parametrize("size", [(320, 240), (1280, 720), (240, 320), (1000, 100)])
+@pytest.mark.parametrize("box", [((0, 0, 0), (100, 100, 20)), ((0, 0, 0), (400, 40, 10)), ((-5, -5, -5), (5, 5, 5))])
+def test_orbit_keeps_the_whole_box_in_view_without_standing_far_off(size, box):
+    """The default path: every corner of the scene's box inside the frame at every step (the
+    near corners of a square terrain were cut off, more of a long scene), and one corner near
+    the edge (the box fills the frame as far as its aspect allows)."""
+    lo, hi = np.array(box[0], float), np.array(box[1], float)
+    corners = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    for cam in load_path("orbit", lo, hi).cameras(12, *size):
+        clip = corners @ cam.view_projection().T
+        ndc = clip[:, :2] / clip[:, 3:4]
+        assert (clip[:, 3] > 0).all() and np.abs(ndc).max() <= 1.0, (size, box, ndc)
+        assert np.abs(ndc).max() >= 0.9, (size, box, ndc)
