@@ -135,7 +135,9 @@ def test_reference_with_color_by_rank_is_refused_where_it_cannot_hold():
 def test_orbit_keeps_the_whole_box_in_view_without_standing_far_off(size, box):
     """The default path: every corner of the scene's box inside the frame at every step (the
     near corners of a square terrain were cut off, more of a long scene), and one corner near
-    the edge (the box fills the frame as far as its aspect allows)."""
+    the edge (the box fills the frame as far as its aspect allows); its near plane just before
+    the box, so depth stays precise (far/near was ~20000: depth ties at a distant view made the
+    forward and deferred draws differ in a pixel)."""
     lo, hi = np.array(box[0], float), np.array(box[1], float)
     corners = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     for cam in load_path("orbit", lo, hi).cameras(12, *size):
@@ -143,3 +145,5 @@ def test_orbit_keeps_the_whole_box_in_view_without_standing_far_off(size, box):
         ndc = clip[:, :2] / clip[:, 3:4]
         assert (clip[:, 3] > 0).all() and np.abs(ndc).max() <= 1.0, (size, box, ndc)
         assert np.abs(ndc).max() >= 0.9, (size, box, ndc)
+        depth = clip[:, 2] / clip[:, 3]  # inside the near and far planes, and the near plane not wastefully close
+        assert np.abs(depth).max() <= 1.0 and cam.far / cam.near < 50, (size, box, depth, cam.near, cam.far)

@@ -214,6 +214,8 @@ class ParametricPath(CameraPath):
         d = float(np.max(corners @ v + 1.05 * np.maximum(np.abs(corners @ right) / tx, np.abs(corners @ up) / ty)))
         eye = c + v * max(d, 1e-9)
         near, far = scene_clip(self.lo, self.hi, eye[None])
+        nearest = float(np.min(max(d, 1e-9) - corners @ v))  # the box's least view depth: at a corner (it is convex)
+        near = max(near, 0.9 * nearest)  # just before it: depth stays precise (at 2e-4 of the diagonal, far/near was ~20000)
         return Camera(tuple(eye), look_at_quaternion(eye, c), fovy=self.fovy, near=near, far=far, width=width, height=height)
 
     def pose(self, t):
