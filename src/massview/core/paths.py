@@ -211,10 +211,10 @@ class ParametricPath(CameraPath):
         tx = ty * width / max(height, 1)
         corners = np.array([[x, y, z] for x in (self.lo[0], self.hi[0]) for y in (self.lo[1], self.hi[1])
                             for z in (self.lo[2], self.hi[2])]) - c
-        d = float(np.max(corners @ v + 1.05 * np.maximum(np.abs(corners @ right) / tx, np.abs(corners @ up) / ty)))
-        eye = c + v * max(d, 1e-9)
+        d = max(float(np.max(corners @ v + 1.05 * np.maximum(np.abs(corners @ right) / tx, np.abs(corners @ up) / ty))), 1e-9)
+        eye = c + v * d
         near, far = scene_clip(self.lo, self.hi, eye[None])
-        nearest = float(np.min(max(d, 1e-9) - corners @ v))  # the box's least view depth: at a corner (it is convex)
+        nearest = float(np.min(d - corners @ v))  # the box's least view depth: at a corner (it is convex)
         near = max(near, 0.9 * nearest)  # just before it: depth stays precise (at 2e-4 of the diagonal, far/near was ~20000)
         return Camera(tuple(eye), look_at_quaternion(eye, c), fovy=self.fovy, near=near, far=far, width=width, height=height)
 

@@ -84,11 +84,17 @@ def validate(scene: str, cfg: RenderConfig, nranks: int) -> None:
                               f"quadtree has {info.n} levels); use fewer --compute-ranks")
 
 
+def _vis_layout(cfg: RenderConfig) -> str:
+    """The sort-first layout of the visualization ranks' tiles (horizontal unless
+    ``--decomposition sort-first:vertical|grid``)."""
+    layout = cfg.decomposition.partition(":")[2] if cfg.decomposition.startswith("sort-first:") else "horizontal"
+    return layout if layout in ("horizontal", "vertical", "grid") else "horizontal"
+
+
 def _vis_tiles(cfg: RenderConfig, nvis: int, width: int, height: int) -> list[Viewport]:
     if cfg.wall:
         return parse_wall(cfg.wall, nvis, width, height)
-    layout = cfg.decomposition.partition(":")[2] if cfg.decomposition.startswith("sort-first:") else "horizontal"
-    return sort_first_tiles(layout if layout in ("horizontal", "vertical", "grid") else "horizontal", nvis, width, height, cfg.grid)
+    return sort_first_tiles(_vis_layout(cfg), nvis, width, height, cfg.grid)
 
 
 class RoettgerSystem:
@@ -101,10 +107,7 @@ class RoettgerSystem:
     def split_label(cfg: RenderConfig) -> tuple[str, str]:
         """(decomposition, compositor) as the summary names them: visualization ranks draw
         sort-first tiles (or wall tiles) of what the computation ranks send."""
-        if cfg.wall:
-            return f"wall {cfg.wall}", "tile-assembly"
-        layout = cfg.decomposition.partition(":")[2] if cfg.decomposition.startswith("sort-first:") else "horizontal"
-        return f"sort-first:{layout if layout in ('horizontal', 'vertical', 'grid') else 'horizontal'}", "tile-assembly"
+        return (f"wall {cfg.wall}" if cfg.wall else f"sort-first:{_vis_layout(cfg)}"), "tile-assembly"
 
     def __init__(self, specs, cfg: RenderConfig):
         self.specs = [str(s) for s in specs]

@@ -201,7 +201,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     attrs = {"spacing": [dx, dy], "vertical_scale": float(vertical_scale), "crs": src.crs,
              "transform": list(src.transform) if src.transform else None,
              "nodata": {"value": None if src.nodata is None else float(src.nodata), "filled": 0},
-             "source": src.name, "source_stamp": getattr(src, "stamp", None), "source_dtype": str(src.dtype), "color": None}
+             "source": src.name, "source_stamp": src.stamp, "source_dtype": str(src.dtype), "color": None}
     workers = resolve_workers(workers)  # (a bad count is an error before the store exists)
     restarted: list[str] = []
     g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite, restarted)

@@ -98,7 +98,7 @@ def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, ov
         arrays += [f"blocks/{lv}/done" for lv in range(layout.levels)]
         if not differ and not overwrite and all((path / a / "zarr.json").is_file() for a in arrays):
             return g, True  # resume (a run stopped while creating the arrays left nothing to resume: made anew)
-        if differ and not overwrite and not old.get("complete") and restarted is not None:
+        if differ and not overwrite and restarted is not None:  # (a complete store without --overwrite raised above)
             restarted.extend(differ)
         shutil.rmtree(path)
     g = zarr.open_group(str(path), mode="w", zarr_format=3)
@@ -343,13 +343,7 @@ class TerrainStore:
         except (KeyError, TypeError, ValueError) as e:
             raise StoreError(f"{self.path}: its attributes (zarr.json) have no valid layout ({type(e).__name__}: {e}); the store is "
                              "damaged — re-run `massview prepare terrain` with --overwrite") from None
-        self._heights = []
-        for lv in range(self.layout.levels):
-            try:
-                self._heights.append(self.group[f"heights/{lv}"])
-            except Exception as e:  # noqa: BLE001 - a missing array or a damaged zarr.json (KeyError, JSONDecodeError, ...)
-                raise StoreError(f"{self.path}: the array heights/{lv} does not open ({type(e).__name__}: {e}); the store is "
-                                 "damaged — re-run `massview prepare terrain` with --overwrite") from None
+        self._heights = [self.array(f"heights/{lv}") for lv in range(self.layout.levels)]
         self._blosc = None  # the heights' blosc codec for direct chunk reads (False: not blosc)
         self.has_color = "color" in self.group and self.attrs.get("color") == "orthophoto"
         self.has_shade = "shade" in self.group and not upgrading
