@@ -107,6 +107,14 @@ def load_png(path: Path) -> np.ndarray:
         return np.asarray(im.convert("RGB"))
 
 
+def not_sky(frame: np.ndarray) -> int:
+    """Pixels of an RGB frame that are not the painted sky: every sky colour lies between
+    SKY_HORIZON and SKY_ZENITH, so red < green < blue with blue − red ≥ 30; the terrain's
+    colours (and white snow) are not like that. A frame with nothing drawn counts ~0."""
+    r, g, b = (frame[..., k].astype(np.int16) for k in range(3))
+    return int(np.count_nonzero(~((r < g) & (g < b) & (b - r >= 25))))
+
+
 def save_diff(a: np.ndarray, b: np.ndarray, path: Path) -> Path:
     """Write a diff image (red where pixels differ) next to a failing comparison."""
     d = np.any(a != b, axis=2)

@@ -108,3 +108,19 @@ def test_bad_kernel_names_the_setting(monkeypatch):
     monkeypatch.setenv("MASSVIEW_SKY_KERNEL", "fast")
     with pytest.raises(ConfigError, match="MASSVIEW_SKY_KERNEL='fast'"):
         paint_sky(cam, img)
+
+
+@pytest.mark.parametrize("pitch", [-80.0, -30.0, 0.0, 30.0, 80.0])
+def test_not_sky_counts_no_sky_pixel_and_every_terrain_colour(pitch):
+    """The tests' ``not_sky`` (conftest), which tells the terrain from the painted sky in a PNG:
+    a frame that is all sky counts 0 whatever the view, and every colour of the hypsometric
+    ramp (shaded darker or lighter) counts."""
+    from conftest import not_sky
+    from massview.core.image import blank_image
+    from massview.render.colormaps import _RGB
+
+    cam = Camera.look_at((0.0, 0.0, 0.0), (1.0, 0.3, math.tan(math.radians(pitch))), width=320, height=240, fovy=60.0)
+    sky = paint_sky(cam, blank_image(cam.viewport), kernel="numpy")
+    assert not_sky(sky.color[..., :3]) == 0
+    ramp = np.clip(_RGB[:, None, :] * np.linspace(0.3, 1.3, 11)[None, :, None], 0, 255).astype(np.uint8)
+    assert not_sky(ramp) == ramp.shape[0] * ramp.shape[1]

@@ -22,7 +22,8 @@ per display tile) and C computation ranks (the last C ranks). The paper's pseudo
   one ``alltoall`` of message sizes lets a tile that sees nothing of a portion get 0 bytes.
 * **Draw**: visualization ranks keep what they hold from each computation rank, draw all
   fans in the canonical (layer, Morton) order — the serial reference's order — and assemble
-  the sort-first tiles on visualization rank 0 (or write their own wall tile).
+  the sort-first tiles on visualization rank 0 (or write their own wall tile), whose
+  background pixels then get T1's sky (:func:`paint_sky`).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from ..lod.cull import spheres_in_frustum
 from ..lod.fanstream import FanReceiver, FanSender
 from ..lod.roettger import RoettgerParams, default_c, partition_depth, portion_nodes, portion_owner
 from ..parallel.composite import deliver
+from ..render.colormaps import paint_sky
 from ..parallel.decompose import parse_wall, sort_first_tiles
 from ..parallel.roles import Role, recv_bytes, send_bytes, split_roles
 from .frameloop import FrameResult, image_diff
@@ -200,12 +202,15 @@ class RoettgerSystem:
             else:
                 sizes = {c: _polite_recv(comm, c, _TAG + 1) for c in self.comp_ranks}
                 tile, c_used = self._visualize(cfg, camera, tiles, sizes, stats)
+        if tile is not None:  # the sky behind the terrain, on the final pixels, as T1 paints it
+            with stats.stage("finish"):
+                tile = paint_sky(camera, tile)
         result = FrameResult(stats, tile)
         if tile is not None:
             if sink is not None:
                 sink(frame, tile)
             if cfg.reference:
-                ref = self._reference_image(camera, c_used, stats).crop(tile.viewport)
+                ref = paint_sky(camera, self._reference_image(camera, c_used, stats).crop(tile.viewport))
                 result.diff = image_diff(tile, ref)
         self._frame_done()
         return result
