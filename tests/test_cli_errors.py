@@ -22,6 +22,9 @@ from conftest import run_cli
     (["render", __file__], "is a file (a store is a folder)"),
     (["info", "/nonexistent/store.zarr"], "no such store; make a terrain store"),
     (["verify", "/nonexistent/store.zarr"], "or a scene store"),
+    (["render", "builtin:objects", "--size", "-5x10"], "--size -5x10: width and height must be between 1"),  # (was argparse's "expected one argument")
+    (["generate", "terrain", "--size", "65"], "no output given"),
+    (["generate", "terrain", "a.npy", "-o", "b.npy", "--size", "65"], "two outputs given"),
 ])
 def test_bad_input_is_reported_plainly(args, needle, tmp_path):
     proc = run_cli(*args, "--out", tmp_path, check=False) if args[0] == "render" else run_cli(*args, check=False)
@@ -87,3 +90,18 @@ def test_kernels_cached_looks_for_this_pythons_cache_files(tmp_path, monkeypatch
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     (fake / "__pycache__").rename(fake / "gone")
     assert terrain_cmds.kernels_cached()
+
+
+def test_generate_terrain_takes_its_output_as_o_too(tmp_path):
+    """``generate terrain -o OUT`` as every other command takes its output, and positionally."""
+    run_cli("generate", "terrain", "-o", tmp_path / "a.npy", "--size", 65, "-q")
+    run_cli("generate", "terrain", tmp_path / "b.npy", "--size", 65, "-q")
+    assert (tmp_path / "a.npy").read_bytes() == (tmp_path / "b.npy").read_bytes()
+
+
+def test_a_dash_value_reaches_its_option():
+    from massview.app.cli import _negative_values
+
+    assert _negative_values(["render", "s", "--size", "-5x10", "--frames", "-3", "-q"]) == ["render", "s", "--size=-5x10", "--frames=-3", "-q"]
+    assert _negative_values(["render", "s", "--size=1x1", "-3"]) == ["render", "s", "--size=1x1", "-3"]  # (already joined)
+    assert _negative_values(["--", "-3"]) == ["--", "-3"]

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import atexit
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -77,7 +78,8 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loading", choices=("async", "complete"), default="complete",
                    help="terrain and scenes: complete = wait until every block the view needs is loaded (default for render: final-quality frames); "
                         "async = never wait for data, draw coarser meanwhile (default for view)")
-    p.add_argument("--exaggeration", type=float, default=1.0, help="terrain: vertical exaggeration at view time (default 1)")
+    p.add_argument("--exaggeration", type=float, default=1.0, help="terrain: vertical exaggeration at view time, about the lowest sample (default 1; applied after the "
+                        "store's --vertical-scale, which prepare set)")
     p.add_argument("--sun", default="315,45", help="terrain: sun AZIMUTH,ALTITUDE in degrees, as gdaldem (default 315,45)")
     p.add_argument("--colormap", default="auto", help="terrain: a matplotlib colormap, hypsometric, ortho, none (grey) or auto (default)")
     p.add_argument("--haze", type=float, default=1.0, help="terrain: aerial perspective strength, 0 = off (default 1)")
@@ -133,7 +135,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     gen = sub.add_parser("generate", help="generate synthetic data")
     gsub = gen.add_subparsers(dest="what", required=True, metavar="WHAT")
     gt = gsub.add_parser("terrain", help="a synthetic DEM (ridged multifractal), generated tile by tile")
-    gt.add_argument("out", help="output: a store folder, FILE.tif or FILE.npy")
+    gt.add_argument("out", nargs="?", help="output: a store folder, FILE.tif or FILE.npy (or give it with -o, as other commands take it)")
+    gt.add_argument("-o", "--output", default=None, help="the same output, as an option")
     gt.add_argument("--size", type=_positive, required=True, help="samples per side")
     gt.add_argument("--seed", type=int, default=1)
     gt.add_argument("--format", choices=("store", "tif", "npy"), default=None, help="default: from the extension (store otherwise)")
@@ -149,7 +152,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     pt.add_argument("input")
     pt.add_argument("-o", "--output", required=True, help="store folder to write")
     pt.add_argument("--block", type=int, default=257, help="M-block size: 129, 257 (default) or 513")
-    pt.add_argument("--vertical-scale", type=float, default=1.0, help="height exaggeration applied when rendering")
+    pt.add_argument("--vertical-scale", type=float, default=1.0, help="factor taking the stored heights to world units, kept in the store (default 1; e.g. 0.3048 for heights in feet). "
+                         "To exaggerate relief for viewing use `render --exaggeration`, which needs no new prepare")
     pt.add_argument("--nodata", type=float, default=None, help="nodata value (default: the file's own)")
     pt.add_argument("--array", default=None, help="array name inside an .npz")
     pt.add_argument("--shape", default=None, help="ROWSxCOLS of a raw binary input")
@@ -300,6 +304,23 @@ def _no_final_collection() -> None:
     gc.freeze()
 
 
+_DASH_VALUE = re.compile(r"^-\d")
+
+
+def _negative_values(argv: list[str]) -> list[str]:
+    """``--opt -5x10`` → ``--opt=-5x10``: argparse takes a value that starts with a dash and is
+    not a plain number (``-5x10``, ``-1e3``) for an option and says only "expected one
+    argument"; joined, the value reaches the option's own check, which names what is wrong.
+    (No option of massview is a dash and a digit.)"""
+    out: list[str] = []
+    for tok in argv:
+        if out and _DASH_VALUE.match(tok) and out[-1].startswith("--") and "=" not in out[-1] and out[-1] != "--":
+            out[-1] = f"{out[-1]}={tok}"
+        else:
+            out.append(tok)
+    return out
+
+
 _EXIT_HANDLER: list = []  # (registered once per process, by the first main)
 
 
@@ -317,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
         from ..systems.reliefboards_job import run_job as run_m2_job
 
         return run_m2_job(argv[1])
-    args = build_parser(argv).parse_args(argv)
+    args = build_parser(argv).parse_args(_negative_values(argv))
     try:
         if args.command == "render" and args.system == "reliefboards":
             from .reliefboards_cmds import cmd_render as _reliefboards

@@ -51,7 +51,11 @@ def cmd_generate(args) -> int:
     from ..data.terrain.synthetic import SyntheticSource, write_synthetic
     from .outputs import check_output_file
 
-    out = Path(args.out)
+    if args.out and args.output and Path(args.out) != Path(args.output):
+        raise ConfigError(f"two outputs given ({args.out} and -o {args.output}); give one")
+    if not (args.out or args.output):
+        raise ConfigError("no output given; `massview generate terrain -o OUT --size N` (OUT: a store folder, FILE.tif or FILE.npy)")
+    out = Path(args.output or args.out)
     fmt = args.format or {".npy": "npy", ".tif": "tif", ".tiff": "tif"}.get(out.suffix.lower(), "store")
     check_output_file(out, "output")
     if fmt != "store" and out.is_dir():
