@@ -73,6 +73,14 @@ class Scene:
             self._bounds = tuple(np.asarray(v, np.float64) for v in b)
         return self._bounds
 
+    @property
+    def obstacles(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The objects' boxes ``(box_lo, box_hi)`` that the ``walkthrough`` path walks round, as
+        the system reports them (None for a terrain), from metadata alone."""
+        if self._system is not None:
+            return getattr(self._system, "obstacles", None)
+        return scene_obstacles(self.spec, self.kind)
+
     def system(self, cfg: RenderConfig):
         """The in-process rendering system for ``cfg`` (reopened when budgets or loading change)."""
         from .systems import open_system
@@ -97,6 +105,21 @@ class Scene:
     def __repr__(self) -> str:
         lo, hi = self.bounds
         return f"Scene({self.spec!r}, {self.kind}, bounds {np.round(lo, 1).tolist()} .. {np.round(hi, 1).tolist()})"
+
+
+def scene_obstacles(spec: str, kind: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """The object boxes the system for ``spec`` gives the ``walkthrough`` path (its
+    ``obstacles``), from metadata alone: a scene store's skeleton boxes, ``builtin:objects``'
+    generated objects; None for a terrain."""
+    if kind == "scene":
+        from .data.scene import SceneStore
+
+        return SceneStore(spec).object_boxes
+    if kind == "terrain":
+        return None
+    from .systems.objects import ObjectsSystem
+
+    return ObjectsSystem(spec).obstacles
 
 
 def scene_bounds(spec: str, kind: str, system: str = "auto") -> tuple[np.ndarray, np.ndarray]:
@@ -142,6 +165,17 @@ def _bounds(scene) -> tuple[np.ndarray, np.ndarray]:
         return s.bounds
 
 
+def _fitted_path(name: str, scene):
+    """The path ``name`` fitted to a Scene or a spec: its box and, for ``walkthrough``, its
+    objects' boxes (what the CLI's render gives it)."""
+    if name != "walkthrough":
+        return load_path(name, *_bounds(scene))
+    if isinstance(scene, Scene):
+        return load_path(name, *scene.bounds, obstacles=scene.obstacles)
+    with Scene(scene) as s:
+        return load_path(name, *s.bounds, obstacles=s.obstacles)
+
+
 def _size(size) -> tuple[int, int]:
     if isinstance(size, str):
         return parse_size(size)
@@ -172,10 +206,11 @@ def camera(scene: Scene | str | None = None, *, position, look_at=None, orientat
 
 def path(name_or_file: str | Path, scene: Scene | str, frames: int = 10, size=(1280, 1024)) -> list[Camera]:
     """``frames`` cameras along a built-in path (``turn``, ``zoom``, ``forward``, ``orbit``,
-    ``flyover``, fitted to the scene) or a keyframe ``.json`` file (clip planes fitted to the
+    ``flyover``, ``walkthrough``, fitted to the scene; ``walkthrough`` walks round its objects)
+    or a keyframe ``.json`` file (clip planes fitted to the
     scene unless the file gives ``near``/``far``)."""
     w, h = _size(size)
-    return load_path(str(name_or_file), *_bounds(scene)).cameras(int(frames), w, h)
+    return _fitted_path(str(name_or_file), scene).cameras(int(frames), w, h)
 
 
 def render_config(config: RenderConfig | None = None, **options) -> RenderConfig:
@@ -221,7 +256,7 @@ def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
     if isinstance(what, Camera):
         return [what], "camera"
     if isinstance(what, (str, Path)):
-        return load_path(str(what), *scene.bounds).cameras(cfg.frames, cfg.width, cfg.height), str(what)
+        return _fitted_path(str(what), scene).cameras(cfg.frames, cfg.width, cfg.height), str(what)
     cams = list(what)
     if not cams or not all(isinstance(c, Camera) for c in cams):
         raise ConfigError("render(): give a path name, a keyframe .json file, a Camera or a list of Cameras")

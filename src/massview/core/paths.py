@@ -16,15 +16,16 @@ Positions and look-at points are interpolated with centripetal-free uniform Catm
 splines in time; orientations given directly are slerped. Built-in paths (``turn``, ``zoom``,
 ``forward``, ``orbit``, ``flyover``, ``walkthrough``) are fitted to a scene's axis-aligned
 bounding box, +z up. ``walkthrough`` walks through a model at eye height (1.7 units above the
-bottom of the box, or 30 % of the box height if that is lower) along x with a gentle sway in y,
-looking ahead.
+bottom of the box, or 30 % of the box height if that is lower), looking ahead: given the
+scene's object boxes, along a way round them (:mod:`massview.core.walk`), else along x with a
+gentle sway in y.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -164,12 +165,16 @@ class KeyframePath(CameraPath):
 
 @dataclass
 class ParametricPath(CameraPath):
-    """One of the built-in paths, fitted to the box ``lo``..``hi`` (world units, +z up)."""
+    """One of the built-in paths, fitted to the box ``lo``..``hi`` (world units, +z up).
+    ``obstacles``: the scene's object boxes ``(box_lo, box_hi)`` ((n, 3) each), which
+    ``walkthrough`` walks round (:mod:`massview.core.walk`); without them, or where they leave
+    no way through, it walks the straight swaying line."""
 
     name: str
     lo: np.ndarray
     hi: np.ndarray
     fovy: float = 45.0
+    obstacles: tuple | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         if self.name not in BUILTIN_PATHS:
@@ -258,12 +263,29 @@ class ParametricPath(CameraPath):
             tgt = eye + d * s * 0.2 + np.array([0, 0, -0.035 * s])
         return eye, look_at_quaternion(eye, tgt)
 
+    def _route(self, z: float):
+        """The planned walk (waypoints (k, 2), cumulative length (k,)), None without obstacles or
+        a way through; planned once."""
+        if not hasattr(self, "_planned"):
+            from .walk import walk_route
+
+            way = None if self.obstacles is None else walk_route(self.lo, self.hi, *self.obstacles, z)
+            self._planned = None if way is None or len(way) < 2 else \
+                (way, np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(way, axis=0), axis=1))]))
+        return self._planned
+
     def _walk(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Eye height through the scene along x, swaying in y, looking ahead (slightly down)."""
+        """Eye height through the scene, looking ahead (slightly down): along the planned way
+        round the obstacles at constant speed, else along x swaying in y."""
         ext = self.hi - self.lo
         z = self.lo[2] + min(1.7, 0.3 * ext[2])
+        route = self._route(z)
 
         def at(u):
+            if route is not None:
+                way, s = route
+                d = u * s[-1]
+                return np.array([np.interp(d, s, way[:, 0]), np.interp(d, s, way[:, 1]), z])
             return np.array([self.lo[0] + ext[0] * (0.08 + 0.84 * u),
                              (self.lo[1] + self.hi[1]) / 2 + 0.12 * ext[1] * math.sin(2 * math.pi * u), z])
 
@@ -273,11 +295,12 @@ class ParametricPath(CameraPath):
         return eye, eye + d * 10.0 + np.array([0.0, 0.0, -0.6])
 
 
-def load_path(spec: str, lo, hi) -> CameraPath:
+def load_path(spec: str, lo, hi, obstacles: tuple | None = None) -> CameraPath:
     """A built-in path name fitted to the box lo..hi, or a keyframe ``.json`` file (its missing
-    clip planes fitted to the box)."""
+    clip planes fitted to the box). ``obstacles`` (the scene's object boxes ``(box_lo,
+    box_hi)``): what ``walkthrough`` walks round."""
     if spec in BUILTIN_PATHS:
-        return ParametricPath(spec, lo, hi)
+        return ParametricPath(spec, lo, hi, obstacles=obstacles if spec == "walkthrough" else None)
     p = Path(spec)
     if p.suffix.lower() != ".json":
         raise ConfigError(f"--path {spec!r}: use one of {', '.join(BUILTIN_PATHS)} or a .json keyframe file")

@@ -146,6 +146,11 @@ class DmmrSystem:
         return np.asarray(lo, np.float64), np.asarray(hi, np.float64)
 
     @property
+    def obstacles(self):
+        """The objects' boxes, which the ``walkthrough`` path walks round."""
+        return self.store.object_boxes
+
+    @property
     def renderer(self) -> str:
         return "dmmr: server + clients (each: occlusion-query and render GL contexts)"
 

@@ -52,6 +52,12 @@ class ObjectsSystem:
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return self.scene.bounds
 
+    @property
+    def obstacles(self) -> tuple[np.ndarray, np.ndarray]:
+        """The objects' boxes (about their bounding spheres), which ``walkthrough`` walks round."""
+        c, r = self.scene.centers, self.scene.radii[:, None]
+        return c - r, c + r
+
     def visible(self, camera: Camera, vp=None) -> np.ndarray:
         return np.nonzero(spheres_in_frustum(self.scene.centers, self.scene.radii, camera.frustum_planes(vp)))[0]
 

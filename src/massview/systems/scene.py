@@ -117,6 +117,11 @@ class SceneSystem:
         lo, hi = self.store.bounds
         return np.asarray(lo, np.float64), np.asarray(hi, np.float64)
 
+    @property
+    def obstacles(self):
+        """The objects' boxes, which the ``walkthrough`` path walks round."""
+        return self.store.object_boxes
+
     def _renderers(self):
         if self._gl is None:
             ctx = create_context(self._egl_device)

@@ -205,6 +205,12 @@ class SceneStore:
         return self.skeleton.box_lo.min(axis=0), self.skeleton.box_hi.max(axis=0)
 
     @property
+    def object_boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """World-space boxes (box_lo (n, 3), box_hi (n, 3)) of the objects: what ``walkthrough``
+        walks round."""
+        return self.skeleton.box_lo, self.skeleton.box_hi
+
+    @property
     def geometry_count(self) -> int:
         return len(self.tables["levels"])
 
