@@ -53,3 +53,17 @@ def test_imports_point_down_only():
             if target in ORDER and ORDER.index(target) > ORDER.index(layer):
                 bad.append(f"{f.relative_to(SRC)} ({layer}) imports {target}/")
     assert not bad, "\n".join(bad)
+
+
+def test_core_imports_numpy_only():
+    """core/ is "numpy only" (DESIGN.md): besides the standard library and massview itself it
+    imports numpy and nothing else (the walkthrough's planner, which needs scipy, lives in lod/)."""
+    import sys
+
+    bad = []
+    for f in (SRC / "core").rglob("*.py"):
+        for mod, level in _imports(f):
+            top = mod.split(".")[0]
+            if level == 0 and top and top not in sys.stdlib_module_names and top not in ("numpy", "massview", "__future__"):
+                bad.append(f"{f.relative_to(SRC)} imports {mod}")
+    assert not bad, "\n".join(bad)

@@ -1,4 +1,4 @@
-"""``walkthrough`` walks round a scene's objects (core/walk.py): on street grids, a maze that is
+"""``walkthrough`` walks round a scene's objects (lod/walk.py): on street grids, a maze that is
 open only south–north, a closed scene (the old straight line), and a generated city store, where
 the old straight line went through building walls. Checked on the cameras themselves: every
 eye stays clear of every box that stands in a walker's way."""
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from massview.core.paths import load_path
-from massview.core.walk import walk_route
+from massview.lod.walk import plan_walk, walk_route
 
 
 def _blocks(n: int, size: float, street: float, height: float = 20.0):
@@ -30,7 +30,7 @@ def _clearance(eyes: np.ndarray, blo: np.ndarray, bhi: np.ndarray) -> float:
 
 def _eyes(blo, bhi, obstacles, frames=40):
     lo, hi = blo.min(0), bhi.max(0)
-    cams = load_path("walkthrough", lo, hi, obstacles=obstacles).cameras(frames, 64, 48)
+    cams = load_path("walkthrough", lo, hi, route=plan_walk("walkthrough", lo, hi, obstacles)).cameras(frames, 64, 48)
     return lo, hi, np.array([c.position for c in cams]), np.array([c.forward for c in cams])
 
 
@@ -71,19 +71,22 @@ def test_low_and_floor_sized_boxes_are_not_in_the_way():
 def test_a_closed_scene_falls_back_to_the_straight_walk():
     box = (np.array([[0.0, 28, 0], [48, 0, 0]]), np.array([[100.0, 32, 10], [52, 60, 10]]))  # a wall across each way
     assert walk_route([0, 0, 0], [100, 60, 10], *box, 1.7) is None
-    planned = load_path("walkthrough", [0, 0, 0], [100, 60, 10], obstacles=box).cameras(5, 64, 48)
+    assert plan_walk("walkthrough", [0, 0, 0], [100, 60, 10], box) is None
+    planned = load_path("walkthrough", [0, 0, 0], [100, 60, 10], route=None).cameras(5, 64, 48)
     straight = load_path("walkthrough", [0, 0, 0], [100, 60, 10]).cameras(5, 64, 48)
     assert [c.position for c in planned] == [c.position for c in straight]
 
 
-def test_the_walk_is_deterministic_and_only_walkthrough_takes_obstacles():
+def test_the_walk_is_deterministic_and_only_walkthrough_is_planned():
     blo, bhi = _blocks(6, 12.0, 4.0)
     a = _eyes(blo, bhi, (blo, bhi))[2]
     b = _eyes(blo, bhi, (blo.copy(), bhi.copy()))[2]
     assert np.array_equal(a, b)
     lo, hi = blo.min(0), bhi.max(0)
     for name in ("orbit", "flyover", "zoom"):
-        assert [c.position for c in load_path(name, lo, hi, obstacles=(blo, bhi)).cameras(4, 64, 48)] == \
+        assert plan_walk(name, lo, hi, (blo, bhi)) is None
+        way = plan_walk("walkthrough", lo, hi, (blo, bhi))
+        assert [c.position for c in load_path(name, lo, hi, route=way).cameras(4, 64, 48)] == \
             [c.position for c in load_path(name, lo, hi).cameras(4, 64, 48)]
 
 
@@ -104,7 +107,7 @@ def test_a_generated_city_is_walked_through_its_streets(tmp_path):
     cams = mv.path("walkthrough", str(store), frames=12, size=(64, 48))
     system = open_system(str(store), RenderConfig())
     try:
-        cli = load_path("walkthrough", *system.bounds, obstacles=system.obstacles).cameras(12, 64, 48)
+        cli = load_path("walkthrough", *system.bounds, route=plan_walk("walkthrough", *system.bounds, system.obstacles)).cameras(12, 64, 48)
     finally:
         if hasattr(system, "close"):
             system.close()

@@ -170,10 +170,12 @@ def _fitted_path(name: str, scene):
     objects' boxes (what the CLI's render gives it)."""
     if name != "walkthrough":
         return load_path(name, *_bounds(scene))
+    from .lod.walk import plan_walk
+
     if isinstance(scene, Scene):
-        return load_path(name, *scene.bounds, obstacles=scene.obstacles)
+        return load_path(name, *scene.bounds, route=plan_walk(name, *scene.bounds, scene.obstacles))
     with Scene(scene) as s:
-        return load_path(name, *s.bounds, obstacles=s.obstacles)
+        return load_path(name, *s.bounds, route=plan_walk(name, *s.bounds, s.obstacles))
 
 
 def _size(size) -> tuple[int, int]:

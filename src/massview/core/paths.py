@@ -17,7 +17,7 @@ splines in time; orientations given directly are slerped. Built-in paths (``turn
 ``forward``, ``orbit``, ``flyover``, ``walkthrough``) are fitted to a scene's axis-aligned
 bounding box, +z up. ``walkthrough`` walks through a model at eye height (1.7 units above the
 bottom of the box, or 30 % of the box height if that is lower), looking ahead: given the
-scene's object boxes, along a way round them (:mod:`massview.core.walk`), else along x with a
+scene's object boxes, along a way round them (:mod:`massview.lod.walk`), else along x with a
 gentle sway in y.
 """
 
@@ -33,7 +33,7 @@ import numpy as np
 from .camera import Camera, look_at_quaternion
 from .errors import ConfigError
 
-__all__ = ["BUILTIN_PATHS", "CameraPath", "KeyframePath", "ParametricPath", "load_path", "scene_clip"]
+__all__ = ["BUILTIN_PATHS", "CameraPath", "KeyframePath", "ParametricPath", "load_path", "scene_clip", "walk_eye_z"]
 
 BUILTIN_PATHS = ("turn", "zoom", "forward", "orbit", "flyover", "walkthrough")
 _LOOPS = ("turn", "orbit")  # closed: a full circle, t = 1 is t = 0
@@ -166,15 +166,15 @@ class KeyframePath(CameraPath):
 @dataclass
 class ParametricPath(CameraPath):
     """One of the built-in paths, fitted to the box ``lo``..``hi`` (world units, +z up).
-    ``obstacles``: the scene's object boxes ``(box_lo, box_hi)`` ((n, 3) each), which
-    ``walkthrough`` walks round (:mod:`massview.core.walk`); without them, or where they leave
-    no way through, it walks the straight swaying line."""
+    ``route``: xy waypoints (k, 2) that ``walkthrough`` walks along at eye height (planned round
+    a scene's objects by :func:`massview.lod.walk.plan_walk`); without one it walks the straight
+    swaying line."""
 
     name: str
     lo: np.ndarray
     hi: np.ndarray
     fovy: float = 45.0
-    obstacles: tuple | None = field(default=None, compare=False, repr=False)
+    route: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         if self.name not in BUILTIN_PATHS:
@@ -263,23 +263,19 @@ class ParametricPath(CameraPath):
             tgt = eye + d * s * 0.2 + np.array([0, 0, -0.035 * s])
         return eye, look_at_quaternion(eye, tgt)
 
-    def _route(self, z: float):
-        """The planned walk (waypoints (k, 2), cumulative length (k,)), None without obstacles or
-        a way through; planned once."""
-        if not hasattr(self, "_planned"):
-            from .walk import walk_route
-
-            way = None if self.obstacles is None else walk_route(self.lo, self.hi, *self.obstacles, z)
-            self._planned = None if way is None or len(way) < 2 else \
-                (way, np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(way, axis=0), axis=1))]))
-        return self._planned
+    def _route(self):
+        """(waypoints (k, 2), their cumulative length (k,)) of the given route, None without one."""
+        way = None if self.route is None else np.asarray(self.route, np.float64).reshape(-1, 2)
+        if way is None or len(way) < 2:
+            return None
+        return way, np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(way, axis=0), axis=1))])
 
     def _walk(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Eye height through the scene, looking ahead (slightly down): along the planned way
-        round the obstacles at constant speed, else along x swaying in y."""
+        """Eye height through the scene, looking ahead (slightly down): along the route at
+        constant speed, else along x swaying in y."""
         ext = self.hi - self.lo
-        z = self.lo[2] + min(1.7, 0.3 * ext[2])
-        route = self._route(z)
+        z = walk_eye_z(self.lo, self.hi)
+        route = self._route()
 
         def at(u):
             if route is not None:
@@ -295,12 +291,18 @@ class ParametricPath(CameraPath):
         return eye, eye + d * 10.0 + np.array([0.0, 0.0, -0.6])
 
 
-def load_path(spec: str, lo, hi, obstacles: tuple | None = None) -> CameraPath:
+def walk_eye_z(lo, hi) -> float:
+    """``walkthrough``'s eye height: 1.7 units above the box's bottom, or 30 % of its height
+    if that is lower."""
+    return float(lo[2]) + min(1.7, 0.3 * (float(hi[2]) - float(lo[2])))
+
+
+def load_path(spec: str, lo, hi, route: np.ndarray | None = None) -> CameraPath:
     """A built-in path name fitted to the box lo..hi, or a keyframe ``.json`` file (its missing
-    clip planes fitted to the box). ``obstacles`` (the scene's object boxes ``(box_lo,
-    box_hi)``): what ``walkthrough`` walks round."""
+    clip planes fitted to the box). ``route`` (xy waypoints, :func:`massview.lod.walk.plan_walk`):
+    the way ``walkthrough`` walks."""
     if spec in BUILTIN_PATHS:
-        return ParametricPath(spec, lo, hi, obstacles=obstacles if spec == "walkthrough" else None)
+        return ParametricPath(spec, lo, hi, route=route if spec == "walkthrough" else None)
     p = Path(spec)
     if p.suffix.lower() != ".json":
         raise ConfigError(f"--path {spec!r}: use one of {', '.join(BUILTIN_PATHS)} or a .json keyframe file")

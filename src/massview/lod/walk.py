@@ -20,18 +20,31 @@ objects' boxes instead:
 4. **smoothing**: the cell centres resampled every 2 cells along the way and averaged over 5
    neighbours twice, a point kept smoothed only where it is still walkable.
 
-Returns None where no way exists (the caller walks the old straight line then).
+Returns None where no way exists (the caller walks the old straight line then). Planned here
+(``lod``, which may use scipy) and handed to :func:`massview.core.paths.load_path` as waypoints.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["walk_route"]
+from ..core.paths import walk_eye_z
+
+__all__ = ["walk_route", "plan_walk"]
 
 _BAND = (0.3, 1.2)  # the walker's body, as fractions of the eye height above the box's bottom
 _EDGE = 25.0  # cost per cell an end lies inside the 8 % (92 %) line: above a diagonal step's most, √2 × (1 + 4²)
 _MAX_FOOTPRINT = 0.25  # of the scene's footprint: larger boxes are floors or enclosures, not obstacles
+
+
+def plan_walk(path: str, lo, hi, obstacles) -> np.ndarray | None:
+    """The route for the camera path ``path`` (a ``--path`` value) in the box ``lo``..``hi``
+    with the objects' boxes ``obstacles`` ((box_lo, box_hi), or None): :func:`walk_route` at
+    ``walkthrough``'s eye height for ``walkthrough`` in a scene with objects, else None (what
+    :func:`massview.core.paths.load_path` takes as ``route``)."""
+    if path != "walkthrough" or obstacles is None:
+        return None
+    return walk_route(lo, hi, *obstacles, walk_eye_z(lo, hi))
 
 
 def walk_route(lo, hi, box_lo, box_hi, eye_z: float, cells: int = 256) -> np.ndarray | None:
