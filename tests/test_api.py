@@ -8,6 +8,7 @@ import pytest
 from PIL import Image
 
 import massview as mv
+from massview.core.errors import ConfigError
 from conftest import SMALL_SCENE, clean_env, load_png, run_cli
 
 
@@ -118,3 +119,39 @@ def test_cli_defaults_render_complete_view_async():
 
     assert build_parser().parse_args(["render", "x"]).loading == "complete"
     assert build_parser().parse_args(["view", "x"]).loading == "async"
+
+
+@pytest.mark.parametrize("call,needle", [
+    (lambda sc, cam: mv.render(sc, "orbit", frames=0, size=(64, 48)), "frames must be a whole number ≥ 1, got 0"),  # (rendered 10)
+    (lambda sc, cam: mv.render(sc, cam, ranks=0), "ranks must be a whole number ≥ 1, got 0"),  # (ran 1 rank)
+    (lambda sc, cam: mv.render(sc, cam, ranks=2.5), "got 2.5"),  # (ran 2)
+    (lambda sc, cam: mv.render(sc, cam, ranks="2"), "got '2'"),
+    (lambda sc, cam: mv.path("orbit", sc, frames=2.7), "frames must be a whole number"),
+    (lambda sc, cam: mv.render(sc, cam, compositor="magic"), "--compositor must be one of"),  # (accepted on one rank)
+    (lambda sc, cam: mv.render(sc, 5), "give a path name, a keyframe .json file, a Camera"),  # (TypeError)
+    (lambda sc, cam: mv.render(sc, cam, tau="one"), "--tau (tau=) must be a number, got 'one'"),  # (TypeError)
+    (lambda sc, cam: mv.render(sc, "orbit", frames=True, size=(64, 48)), "frames must be a whole number"),
+    (lambda sc, cam: mv.render(sc, cam, reference="yes"), "--reference (reference=) must be True or False"),
+    (lambda sc, cam: mv.render(sc, cam, config=3), "config= takes a RenderConfig"),  # (AttributeError)
+    (lambda sc, cam: mv.camera(sc, position=(1, 1), look_at=(1, 1, 1)), "position must be 3 finite numbers"),  # (ValueError)
+    (lambda sc, cam: mv.camera(sc, position=(1, 1, 1), look_at=(1, 1, 1)), "look_at is the position itself"),
+    (lambda sc, cam: mv.open_scene(5), "got int 5"),
+])
+def test_bad_api_values_are_named_not_replaced(scene, call, needle):
+    """A value the API cannot use is a ConfigError naming it, never silently another value
+    and never a raw TypeError (a new user's list, second walkthrough)."""
+    cam = mv.path("orbit", scene, frames=1, size=(64, 48))[0]
+    with pytest.raises(ConfigError) as e:
+        call(scene, cam)
+    assert needle in str(e.value)
+
+
+def test_api_takes_the_clis_sun_string_and_a_dict_config(scene):
+    cam = mv.path("orbit", scene, frames=1, size=(64, 48))[0]
+    assert mv.render_config(sun="200,30").sun == (200.0, 30.0)
+    assert mv.render_config({"tau": 2.0}, frames=3).tau == 2.0 and mv.render_config({"tau": 2.0}, frames=3).frames == 3
+    res = mv.render(scene, cam, config={"tau": 2})
+    assert res.summary["frames"] == 1
+    assert repr(res).startswith("RenderResult(1 frames, 64x48, 1 ranks") and len(repr(res)) < 200  # (printed every pixel)
+    with pytest.raises(ConfigError, match="frame 5 of a 1-frame result"):
+        mv.show(res, frame=5)

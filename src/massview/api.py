@@ -154,6 +154,8 @@ def scene_bounds(spec: str, kind: str, system: str = "auto") -> tuple[np.ndarray
 
 def open_scene(spec: str | Path | Scene) -> Scene:
     """Open a terrain store folder or ``builtin:objects[?n=COUNT&seed=S]`` (a :class:`Scene` is returned as is)."""
+    if not isinstance(spec, (str, Path, Scene)):
+        raise ConfigError(f"open_scene(): give a store folder (str or Path), builtin:objects or a Scene, got {type(spec).__name__} {spec!r}")
     return spec if isinstance(spec, Scene) else Scene(spec)
 
 
@@ -192,11 +194,16 @@ def camera(scene: Scene | str | None = None, *, position, look_at=None, orientat
            size=(1280, 1024), near: float | None = None, far: float | None = None) -> Camera:
     """A camera at ``position`` (world metres) looking at ``look_at`` (or with a unit quaternion
     ``orientation`` (w, x, y, z)). ``near``/``far`` default to clip planes fitted to the scene."""
-    pos = np.asarray(position, np.float64)
+    pos = _vector(position, 3, "position", "(x, y, z)")
     if orientation is None:
         if look_at is None:
             raise ConfigError("camera(): give look_at=(x, y, z) or orientation=(w, x, y, z)")
-        orientation = look_at_quaternion(pos, np.asarray(look_at, np.float64))
+        target = _vector(look_at, 3, "look_at", "(x, y, z)")
+        if np.allclose(target, pos):
+            raise ConfigError("camera(): look_at is the position itself; look at another point")
+        orientation = look_at_quaternion(pos, target)
+    else:
+        orientation = _vector(orientation, 4, "orientation", "(w, x, y, z)")
     if near is None or far is None:
         if scene is None:
             raise ConfigError("camera(): give the scene (to fit the clip planes) or near= and far=")
@@ -206,18 +213,43 @@ def camera(scene: Scene | str | None = None, *, position, look_at=None, orientat
     return Camera(tuple(pos), tuple(orientation), fovy=fovy, near=near, far=far, width=w, height=h)
 
 
+def _vector(v, n: int, name: str, form: str) -> np.ndarray:
+    """``v`` as n finite float64 numbers; ConfigError naming ``name`` otherwise."""
+    try:
+        a = np.asarray(v, np.float64)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or a.shape != (n,) or not np.all(np.isfinite(a)):
+        raise ConfigError(f"camera(): {name} must be {n} finite numbers {form}, got {v!r}")
+    return a
+
+
+def _count(v, name: str) -> int:
+    """A whole number ≥ 1 (``frames``, ``ranks``): ConfigError naming ``name`` otherwise."""
+    import numbers
+
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not float(v).is_integer() or v < 1:
+        raise ConfigError(f"{name} must be a whole number ≥ 1, got {v!r}")
+    return int(v)
+
+
 def path(name_or_file: str | Path, scene: Scene | str, frames: int = 10, size=(1280, 1024)) -> list[Camera]:
     """``frames`` cameras along a built-in path (``turn``, ``zoom``, ``forward``, ``orbit``,
     ``flyover``, ``walkthrough``, fitted to the scene; ``walkthrough`` walks round its objects)
     or a keyframe ``.json`` file (clip planes fitted to the
     scene unless the file gives ``near``/``far``)."""
     w, h = _size(size)
-    return _fitted_path(str(name_or_file), scene).cameras(int(frames), w, h)
+    return _fitted_path(str(name_or_file), scene).cameras(_count(frames, "frames"), w, h)
 
 
 def render_config(config: RenderConfig | None = None, **options) -> RenderConfig:
     """A :class:`RenderConfig` from ``config`` (default: environment + offline defaults) and
-    keyword overrides; an unknown keyword is a :class:`ConfigError` listing the known ones."""
+    keyword overrides; an unknown keyword is a :class:`ConfigError` listing the known ones.
+    ``config`` may also be a dict of options (the keywords win over it)."""
+    if isinstance(config, dict):
+        options, config = {**config, **options}, None
+    elif config is not None and not isinstance(config, RenderConfig):
+        raise ConfigError(f"config= takes a RenderConfig (massview.render_config(...)) or a dict of options, got {type(config).__name__}")
     known = {f.name for f in fields(RenderConfig)}
     bad = sorted(set(options) - known)
     if bad:
@@ -250,6 +282,12 @@ class RenderResult:
     def __len__(self) -> int:
         return int(self.summary.get("frames", len(self.images or [])))
 
+    def __repr__(self) -> str:  # (the dataclass's own would print every pixel)
+        size = f"{self.images[0].shape[1]}x{self.images[0].shape[0]}" if self.images else "no images"
+        fps = self.summary.get("fps")
+        return (f"RenderResult({len(self)} frames, {size}, {self.summary.get('ranks', 1)} ranks"
+                + (f", {fps:.1f} fps" if isinstance(fps, (int, float)) else "") + (f", out={str(self.out)!r}" if self.out else "") + ")")
+
     def _repr_png_(self) -> bytes | None:
         return show(self.images[0]).png() if self.images else None
 
@@ -259,7 +297,10 @@ def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
         return [what], "camera"
     if isinstance(what, (str, Path)):
         return _fitted_path(str(what), scene).cameras(cfg.frames, cfg.width, cfg.height), str(what)
-    cams = list(what)
+    try:
+        cams = list(what)
+    except TypeError:
+        cams = []
     if not cams or not all(isinstance(c, Camera) for c in cams):
         raise ConfigError("render(): give a path name, a keyframe .json file, a Camera or a list of Cameras")
     if len({(c.width, c.height) for c in cams}) != 1:
@@ -286,7 +327,7 @@ def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camer
 
         if what is None or isinstance(what, (str, Path)):
             w, h = _size(size) if size is not None else (cfg.width, cfg.height)
-            cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": int(frames or cfg.frames)})
+            cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": cfg.frames if frames is None else _count(frames, "frames")})
         spec = scene.spec if isinstance(scene, Scene) else str(scene)
         return render_reliefboards(spec, what, cfg, ranks, out, images, depth, reliefboards, result=RenderResult)
     owned = not isinstance(scene, Scene)
@@ -302,13 +343,12 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
     from .app.outputs import check_output_dir
     from .parallel.runtime import in_mpi_job, world
 
-    nranks = world().Get_size() if in_mpi_job() else int(ranks or 1)
-    if nranks < 1:
-        raise ConfigError(f"ranks must be at least 1, got {ranks}")
+    nranks = world().Get_size() if in_mpi_job() else (1 if ranks is None else _count(ranks, "ranks"))
     what = cfg.path if what is None else what
     if isinstance(what, (str, Path)):  # size and frame count first: check everything before any work
         w, h = _size(size) if size is not None else (cfg.width, cfg.height)
-        cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": int(frames or cfg.frames), "path": str(what)})
+        cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": cfg.frames if frames is None else _count(frames, "frames"),
+                              "path": str(what)})
         load_path(str(what), [0, 0, 0], [1, 1, 1])  # a bad name or file is reported now
     out = Path(out) if out is not None else None
     validate(scene.spec, cfg, nranks)
@@ -431,6 +471,8 @@ def show(img, frame: int = 0) -> Frame:
     if isinstance(img, RenderResult):
         if not img.images:
             raise ConfigError("show(): this result holds no images (rendered with images=False)")
+        if not (isinstance(frame, int) and -len(img.images) <= frame < len(img.images)):
+            raise ConfigError(f"show(): frame {frame!r} of a {len(img.images)}-frame result (frames 0..{len(img.images) - 1})")
         img = img.images[frame]
     elif isinstance(img, (str, Path)):
         from PIL import Image as PILImage

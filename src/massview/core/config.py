@@ -79,6 +79,9 @@ class RenderConfig:
     id_check: bool = False  # dmmr: clients also render an ID buffer of their sub-frustum ("idbuffer_ids", "idbuffer_missed")
 
     def __post_init__(self) -> None:
+        self._check_types()
+        if self.compositor not in COMPOSITOR_NAMES:
+            raise ConfigError(f"--compositor must be one of {', '.join(COMPOSITOR_NAMES)}, got {self.compositor!r}")
         if self.frames < 1:
             raise ConfigError(f"--frames must be at least 1, got {self.frames}")
         if self.codec not in CODEC_NAMES:
@@ -107,6 +110,41 @@ class RenderConfig:
         object.__setattr__(self, "layers", tuple(self.layers))
         self._check_shading()
         self._check_dmmr()
+
+    def _check_types(self) -> None:
+        """Each scalar option of the type its field declares (the Python API passes anything):
+        a whole number for ``int`` fields (not a bool, not 2.5), a number for ``float`` ones, a
+        string, a bool; ``None`` where the field allows it. Numbers are stored as plain Python
+        ``int``/``float``. ``sun`` also takes the CLI's "AZIMUTH,ALTITUDE" string."""
+        import numbers
+
+        import numpy as np
+
+        if isinstance(self.sun, str):
+            object.__setattr__(self, "sun", parse_sun(self.sun))
+        for f in fields(self):
+            kind, v = str(f.type).replace(" ", ""), getattr(self, f.name)
+            base, optional = (kind[:-5], True) if kind.endswith("|None") else (kind, False)
+            if v is None and optional:
+                continue
+            flag = f"--{f.name.replace('_', '-')} ({f.name}=)"
+            if base == "int":
+                ok = isinstance(v, numbers.Integral) and not isinstance(v, bool)
+                if not ok and isinstance(v, numbers.Real) and not isinstance(v, bool) and float(v).is_integer():
+                    ok = True
+                if not ok:
+                    raise ConfigError(f"{flag} must be a whole number, got {v!r}")
+                object.__setattr__(self, f.name, int(v))
+            elif base == "float":
+                if not isinstance(v, numbers.Real) or isinstance(v, bool):
+                    raise ConfigError(f"{flag} must be a number, got {v!r}")
+                object.__setattr__(self, f.name, float(v))
+            elif base == "str" and not isinstance(v, str):
+                raise ConfigError(f"{flag} must be a string, got {v!r}")
+            elif base == "bool":
+                if not isinstance(v, (bool, np.bool_)):
+                    raise ConfigError(f"{flag} must be True or False, got {v!r}")
+                object.__setattr__(self, f.name, bool(v))
 
     def _check_shading(self) -> None:
         if not (math.isfinite(self.exaggeration) and self.exaggeration > 0):
