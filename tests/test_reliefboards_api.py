@@ -40,3 +40,29 @@ def test_api_refuses_one_rank_and_unknown_options():
         mv.render(SCENE, "forward", ranks=2, frames=1, system="reliefboards", reliefboards={"tnz": 5})
     with pytest.raises(ConfigError, match="depth"):
         mv.render(SCENE, "forward", ranks=2, frames=1, system="reliefboards", depth=True)
+
+
+def test_settings_that_leave_no_board_to_draw_are_warned_before_the_run(tmp_path):
+    """A run that cannot draw a board says so (the README's M2 examples ran whole runs with none:
+    a small plant with no feasible cluster, and a 10-frame orbit turning 36° a frame, past E)."""
+    from massview.core.paths import load_path
+    from massview.systems.boardscene import open_board_objects
+    from massview.systems.reliefboards_job import board_options, board_warnings
+
+    opts = board_options(OPTS)
+    objects = open_board_objects(SCENE, opts.cluster_params(240, 45.0))
+    assert objects.feasible.sum() > 0
+
+    def warned(path, frames):
+        return board_warnings(objects, load_path(path, *objects.bounds).cameras(frames, 320, 240), opts.policy)
+
+    assert len(warned("orbit", 10)) == 1 and "per frame about the feasible objects" in warned("orbit", 10)[0]
+    assert warned("orbit", 60) == [] and warned("forward", 6) == []
+    none = open_board_objects(SCENE, board_options({**OPTS, "min_triangles": 10**9}).cluster_params(240, 45.0))
+    assert none.feasible.sum() == 0
+    (w,) = board_warnings(none, None, opts.policy)
+    assert "no object of this scene can get a board" in w
+    proc = run_cli("render", SCENE, "--system", "reliefboards", "--ranks", 2, "--frames", 10, "--size", "160x120", "--tnz", 5000,
+                   "--board-px", 32, "--min-triangles", 100, "--out", tmp_path)
+    assert "massview: warning: the path moves" in proc.stderr
+    assert len(__import__("json").loads((tmp_path / "summary.json").read_text())["warnings"]) == 1

@@ -53,3 +53,16 @@ def test_prepare_stores_clusters_and_m2_renders_them(plant, tmp_path):
 def test_prepare_names_a_missing_store(tmp_path):
     proc = run_cli("prepare", "reliefboards", tmp_path / "nope.zarr", check=False)
     assert proc.returncode != 0 and "not found" in proc.stderr and "generate scene" in proc.stderr
+
+
+def test_prepare_warns_when_no_cluster_is_feasible(plant, tmp_path):
+    """0 feasible clusters (the README's old small-plant example) is said, with what to change."""
+    import shutil
+
+    store = tmp_path / "p.zarr"
+    shutil.copytree(plant, store)
+    proc = run_cli("prepare", "reliefboards", store, "--min-triangles", 10**9)
+    assert "0 feasible" in proc.stdout
+    assert "warning: no cluster is feasible" in proc.stderr and "--min-triangles" in proc.stderr
+    ok = run_cli("prepare", "reliefboards", store, "--tnz", 20000, "--board-px", 32, "--size", "320x240", "--min-triangles", 100)
+    assert "warning" not in ok.stderr

@@ -77,12 +77,30 @@ def cmd_render(args, argv, cfg: RenderConfig) -> int:
     comm = world()
     summary = guarded(comm, run, comm, args.scene, cfg, opts, args.out, args.quiet)
     if summary is not None and not args.quiet:
-        keys = ("mean_frame_ms", "frame_ms_p99", "requests", "answered", "response_ms", "angle_error_deg", "ms_to_complete_view",
-                "loads_per_backend")
-        for k in keys:
-            print(f"{k}: {summary.get(k)}", file=sys.stdout)
+        print(summary_lines(summary))
         print(f"wrote {args.out}/summary.json, {args.out}/stats.jsonl and the frames")
     return 0
+
+
+def _dist(d, unit: str) -> str:
+    """A {count, min, median, max, ...} summary as one phrase."""
+    if not isinstance(d, dict) or not d.get("count"):
+        return "none"
+    return f"median {d['median']:.4g} {unit} ({d['min']:.4g}–{d['max']:.4g}) over {d['count']}"
+
+
+def summary_lines(s: dict) -> str:
+    """The M2 run's figures for the terminal (summary.json has them all)."""
+    done = s.get("ms_to_complete_view")
+    rows = [("frame", f"mean {s.get('mean_frame_ms', 0):.1f} ms, 99th percentile {s.get('frame_ms_p99', 0):.1f} ms"),
+            ("objects", f"{s.get('objects')} ({s.get('feasible')} feasible for boards)"),
+            ("board requests", f"{s.get('requests', 0)}, answered {s.get('answered', 0)}; loads per backend {s.get('loads_per_backend')}"),
+            ("response time", _dist(s.get("response_ms"), "ms")),
+            ("angle error of boards drawn", _dist(s.get("angle_error_deg"), "°")),
+            ("complete view (every far object a board)", "not reached in this run" if done is None else f"after {done:.0f} ms")]
+    if "max_abs_diff" in s:
+        rows.append(("against the all-original reference", f"max abs diff {s['max_abs_diff']}, {100 * s.get('diff_fraction', 0):.2f} % of pixels"))
+    return "\n".join(f"{k}: {v}" for k, v in rows)
 
 
 def cmd_view(args, argv, cfg: RenderConfig) -> int:
@@ -136,6 +154,12 @@ def cmd_prepare(args) -> int:
     if not args.quiet:
         print(f"{args.scene}: {len(tris)} objects -> {len(cl.status)} clusters: {counts[0]} feasible, {counts[1]} too large "
               f"(> sl_c = {cl.sl_c:.4g}), {counts[2]} with fewer than {params.board_triangles} triangles; d_nz = {cl.d_nz:.4g}")
+    if counts[0] == 0:
+        print(f"massview: warning: no cluster is feasible, so `render --system reliefboards` will draw every object as geometry "
+              f"(no boards): {counts[1]} clusters are longer than sl_c = {cl.sl_c:.4g} (the near zone of t_nz = {params.t_nz:,} "
+              f"triangles is only d_nz = {cl.d_nz:.4g} deep) and {counts[2]} have fewer triangles than a board "
+              f"({params.board_triangles:,}, --min-triangles). M2 pays off on large scenes (the paper's plant: 12.4 M triangles, "
+              f"`generate scene plant --size 1.5`); on this one try a lower --min-triangles", file=sys.stderr)
     if args.picture is not None:
         write_cluster_picture(args.scene, args.picture, params, parse_size(args.size))
         if not args.quiet:

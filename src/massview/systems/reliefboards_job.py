@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import pickle
 import shutil
+import sys
 import tempfile
 from dataclasses import fields
 from pathlib import Path
@@ -93,6 +94,10 @@ def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool
         cameras = load_path(cfg.path, *objects.bounds).cameras(cfg.frames, cfg.width, cfg.height)
     if rank == 0 and cameras and abs(cameras[0].fovy - fovy) > 1e-9:
         raise ConfigError(f"--path {cfg.path}: the reliefboards system classifies objects for fovy {fovy}, the path has {cameras[0].fovy}")
+    warnings = board_warnings(objects, cameras, opts.policy) if rank == 0 else []
+    if rank == 0 and not quiet:
+        for w in warnings:
+            print(f"massview: warning: {w}", file=sys.stderr, flush=True)
     stats_file = None
     if rank == 0 and out is not None:
         out.mkdir(parents=True, exist_ok=True)
@@ -113,9 +118,36 @@ def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool
     if res is None:
         return None
     summary = _summary(res, scene, cfg, opts, objects, comm.Get_size() - 1)
+    summary["warnings"] = warnings
     if out is not None:
         (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def board_warnings(objects, cameras, policy) -> list[str]:
+    """What will keep this run from drawing boards, said before it starts: no feasible object
+    (every object drawn as geometry: §4's clusters are too large or too small for this scene
+    and t_nz), or a path that turns so fast about the objects that a board, which arrives a
+    frame or more after its request, is already past the angle error E when it could be drawn
+    (the median over feasible objects of the angle between consecutive eyes ≥ E/2)."""
+    out = []
+    feasible = np.flatnonzero(objects.feasible)
+    if len(feasible) == 0:
+        out.append(f"no object of this scene can get a board ({objects.count} objects, 0 feasible at t_nz = {policy.t_nz:,}): "
+                   "every object is drawn as geometry. A scene store's clusters (`massview prepare reliefboards`) say why; "
+                   "a larger scene, or a lower --tnz (and --min-triangles) for both commands, gives feasible ones")
+    elif cameras is not None and len(cameras) > 1:
+        eyes = np.array([c.position for c in cameras], np.float64)
+        c = objects.centers[feasible]
+        d = eyes[None, :, :] - c[:, None, :]
+        d /= np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-12)
+        step = np.degrees(np.arccos(np.clip(np.sum(d[:, 1:] * d[:, :-1], axis=2), -1.0, 1.0)))
+        typical = float(np.median(step))
+        if typical >= policy.max_error_deg / 2:
+            out.append(f"the path moves {typical:.0f}° per frame about the feasible objects (median); a board is drawn only within "
+                       f"E = {policy.max_error_deg:g}° of the view it was made for and arrives a frame or more after its request, "
+                       "so few or no boards will be drawn: give more --frames")
+    return out
 
 
 def _summary(res, scene: str, cfg: RenderConfig, opts, objects, backends: int) -> dict:

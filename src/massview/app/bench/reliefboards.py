@@ -148,13 +148,19 @@ def _run_one(scene: Path, path, nb: int, frames: int, args, out: Path, extra=(),
     return s
 
 
+def _complete(s) -> str:
+    """When every far object first had its board (or that it never did in the run)."""
+    comp = s.get("ms_to_complete_view")
+    return "complete view not reached" if comp is None else f"complete view after {comp:.0f} ms"
+
+
 def _row(item, nb, s) -> None:
     rt, ae = s["response_ms"], s["angle_error_deg"]
     print(f"{item:8s} {nb:2d} | draw+read boards {s['boards_ms']:7.0f} ms vs all-original {s['ref_ms']:7.0f} ms (x{s['speedup']:.2f}; "
           f"second half x{s['speedup_second_half']:.2f}; board transfer {s['transfer_ms_mean']:.0f} ms a frame) | "
           f"response mean {rt.get('mean', float('nan')):6.0f} max {rt.get('max', float('nan')):6.0f} ms | angle min/q1/med/q3/max/mean "
           f"{ae.get('min', 0):.1f}/{ae.get('q1', 0):.1f}/{ae.get('median', 0):.1f}/{ae.get('q3', 0):.1f}/{ae.get('max', 0):.1f}/"
-          f"{ae.get('mean', 0):.1f} | complete after {s['ms_to_complete_view']} ms | loads {s['loads_per_backend']} | {s['wall_s']} s",
+          f"{ae.get('mean', 0):.1f} | {_complete(s)} | loads {s['loads_per_backend']} | {s['wall_s']} s",
           flush=True)
 
 
@@ -293,7 +299,7 @@ def _paper_table(res: dict) -> None:
             mean = s["response_ms"].get("mean")
             comp = s["ms_to_complete_view"]
             ratio = f"{comp / mean:.1f}x mean response" if comp and mean else "n/a"
-            print(f"{item} {nb} backends: complete view after {comp} ms = {ratio} (paper: ~1x on the plant, ~2x on the forest); "
+            print(f"{item} {nb} backends: {_complete(s)} = {ratio} (paper: ~1x on the plant, ~2x on the forest); "
                   f"angle error mean {s['angle_error_deg'].get('mean')}° (paper Fig. 11: mean 16° at 28 nodes)")
     if "tie" in it:
         t = it["tie"]
