@@ -260,7 +260,10 @@ def cmd_report(args) -> int:
             for path in write_collection_report(args.dir):
                 print(f"wrote {path}")
             return 0
-    summary, records = load_run(args.dir)
+    notes: list = []
+    summary, records = load_run(args.dir, notes)
+    for n in notes:
+        print(f"massview: note: {n}", file=sys.stderr)
     print_summary(summary)
     path = write_report(args.dir, records, summary)
     print(f"wrote {path}")

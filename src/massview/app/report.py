@@ -14,12 +14,38 @@ from ..core.stats import read_stats, summarize
 __all__ = ["print_summary", "write_report"]
 
 
-def load_run(out: Path) -> tuple[dict, list[dict]]:
+def load_run(out: Path, notes: list | None = None) -> tuple[dict, list[dict]]:
+    """(summary, records) of a render's --out folder. A last line of ``stats.jsonl`` cut short
+    (a run killed while writing it) is left out, and a ``summary.json`` that does not parse
+    is recomputed from the records, each with a line in ``notes``; a bad line before the last
+    is a ConfigError naming the file and line."""
     sfile, jfile = out / "summary.json", out / "stats.jsonl"
+    notes = notes if notes is not None else []
     if not jfile.exists():
         raise ConfigError(f"{out}: no stats.jsonl here; give the --out folder of a `massview render` run")
-    records = read_stats(jfile)
-    summary = json.loads(sfile.read_text()) if sfile.exists() else summarize(records)
+    lines = [(n, line) for n, line in enumerate(jfile.read_text(errors="replace").splitlines(), 1) if line.strip()]
+    records = []
+    for k, (n, line) in enumerate(lines):
+        try:
+            rec = json.loads(line)
+            if not (isinstance(rec, dict) and {"frame", "rank"} <= set(rec)):
+                raise ValueError("not a frame record")
+        except ValueError as e:
+            if k == len(lines) - 1:
+                notes.append(f"{jfile}: line {n} is cut short (the run stopped while writing it); left out")
+                break
+            raise ConfigError(f"{jfile}: line {n} is not a frame record ({e}); the file is damaged") from None
+        records.append(rec)
+    if not records:
+        raise ConfigError(f"{jfile}: no frame records; the run wrote none (see its output)")
+    summary = None
+    if sfile.exists():
+        try:
+            summary = json.loads(sfile.read_text())
+        except ValueError:
+            notes.append(f"{sfile} does not parse (the run did not finish?); the figures below are recomputed from stats.jsonl")
+    if not isinstance(summary, dict):
+        summary = summarize(records)
     return summary, records
 
 
@@ -31,7 +57,23 @@ def print_summary(summary: dict, console=None) -> None:
     t = Table(title="massview run", show_header=True)
     t.add_column("figure")
     t.add_column("value", justify="right")
-    for key in ("scene", "decomposition", "compositor", "ranks", "frames", "size", "mean_frame_ms", "fps",
+    if summary.get("system") == "reliefboards":  # M2: its records are the visualization rank's frames
+        from .reliefboards_cmds import summary_lines
+
+        b = summary.get("backends")
+        for key in ("scene", "frames", "size", "fps", "renderer"):
+            if summary.get(key) is not None:
+                t.add_row(key, "x".join(map(str, summary[key])) if key == "size" else str(summary[key]))
+        if b is not None:
+            t.add_row("ranks", f"{b + 1} (1 visualization + {b} backends)")
+        for line in summary_lines(summary).splitlines():
+            k, _, v = line.partition(": ")
+            t.add_row(k, v)
+        for w in summary.get("warnings", []):
+            t.add_row("warning", w)
+        console.print(t)
+        return
+    for key in ("scene", "decomposition", "compositor", "ranks", "wall", "frames", "size", "mean_frame_ms", "fps",
                 "triangles_per_frame", "imbalance", "bytes_per_frame", "max_abs_diff", "diff_fraction", "renderer"):
         if key in summary and summary[key] is not None:
             v = summary[key]
@@ -67,17 +109,25 @@ def write_report(out: Path, records: list[dict], summary: dict) -> Path:
         i, j = frames.index(r["frame"]), ranks.index(r["rank"])
         total[i, j] = r["times_ms"].get("total", 0.0)
         tri[i, j] = r["triangles"]
+    from matplotlib.ticker import MaxNLocator
+
+    mark = dict(marker="o", ms=4 if len(frames) < 30 else 0)  # (one frame: a line of one point shows nothing)
     fig, (a, b) = plt.subplots(2, 1, figsize=(9, 6.5), sharex=True)
-    a.plot(frames, total.max(axis=1), "k-", lw=2, label="frame (max over ranks)")
+    a.plot(frames, total.max(axis=1), "-", color="0.75", lw=5, label="frame (max over ranks)", **mark)  # under the ranks' lines
     for j, rk in enumerate(ranks):
-        a.plot(frames, total[:, j], lw=1, alpha=0.6, label=f"rank {rk}")
+        a.plot(frames, total[:, j], lw=1.2, label=f"rank {rk}", **mark)
     a.set_ylabel("time (ms)")
     a.legend(fontsize=7, ncol=3)
     a.set_title(f"{summary.get('scene', '')} · {summary.get('decomposition', '')} · {summary.get('compositor', '')} · {len(ranks)} ranks")
     for j, rk in enumerate(ranks):
-        b.plot(frames, tri[:, j] / 1e3, lw=1.5, label=f"rank {rk}")
+        b.plot(frames, tri[:, j] / 1e3, lw=1.5, label=f"rank {rk}", **mark)
     b.set_ylabel("triangles per rank (k)")
     b.set_xlabel("frame")
+    b.xaxis.set_major_locator(MaxNLocator(integer=True))
+    a.set_ylim(bottom=0)  # from 0: a 0.03 % spread between ranks is not drawn as the whole height
+    b.set_ylim(bottom=0)
+    if len(frames) == 1:
+        b.set_xlim(frames[0] - 1, frames[0] + 1)
     b.legend(fontsize=7, ncol=4)
     fig.tight_layout()
     path = out / "report.png"
