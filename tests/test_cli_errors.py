@@ -105,3 +105,14 @@ def test_a_dash_value_reaches_its_option():
     assert _negative_values(["render", "s", "--size", "-5x10", "--frames", "-3", "-q"]) == ["render", "s", "--size=-5x10", "--frames=-3", "-q"]
     assert _negative_values(["render", "s", "--size=1x1", "-3"]) == ["render", "s", "--size=1x1", "-3"]  # (already joined)
     assert _negative_values(["--", "-3"]) == ["--", "-3"]
+
+
+def test_bench_help_lines_are_whole_sentences():
+    """`massview bench --help` gave first docstring lines cut mid-sentence, with reST markup."""
+    from massview.app.bench import BENCHES
+    from massview.app.cli import _doc_summary
+
+    for name, mod in BENCHES.items():
+        h = _doc_summary(mod.__doc__, name)
+        assert "``" not in h and h.endswith((".", ")")), (name, h)
+    assert _doc_summary("A thing (Smith et al. 2010) does x.\n\nMore.", "x") == "A thing (Smith et al. 2010) does x."

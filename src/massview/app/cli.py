@@ -125,7 +125,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     v.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     v.set_defaults(size="960x540", out=None, loading="async")
     rep = sub.add_parser("report", help="summary table and report.png of a render folder")
-    rep.add_argument("dir", type=Path)
+    rep.add_argument("dir", type=Path, help="the --out folder of a `massview render` run (its stats.jsonl and summary.json); "
+                                            "report.png is written there. A folder of M2 runs gets the figures across backend counts")
     dm = sub.add_parser("demo", help="the main job on built-in data: terrain flyover on local ranks, video and report")
     dm.add_argument("--ranks", type=_positive, default=2, help="local ranks (default 2)")
     dm.add_argument("--frames", type=_positive, default=90, help="frames of the flyover (default 90: 3 s of video)")
@@ -175,20 +176,28 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
     _reliefboard_parsers(psub)
     inf = sub.add_parser("info", help="levels, blocks, size on disk, compression, georeference of a store")
-    inf.add_argument("store")
-    inf.add_argument("--json", action="store_true")
+    inf.add_argument("store", help="a terrain store or a scene store folder")
+    inf.add_argument("--json", action="store_true", help="print the figures as JSON instead of a table")
     ver = sub.add_parser("verify", help="check that every block decodes and the metadata is consistent")
-    ver.add_argument("store")
-    ver.add_argument("--quiet", "-q", action="store_true")
+    ver.add_argument("store", help="a terrain store or a scene store folder")
+    ver.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     b = sub.add_parser("bench", help="benchmarks (figures as ratios against a baseline measured in the same run)")
     bsub = b.add_subparsers(dest="bench", required=True, metavar="WHAT")
     if argv is None or argv[:1] == ["bench"]:
         from .bench import BENCHES
 
         for name, mod in BENCHES.items():
-            mod.add_arguments(bsub.add_parser(name, help=(mod.__doc__ or name).strip().splitlines()[0]))
+            mod.add_arguments(bsub.add_parser(name, help=_doc_summary(mod.__doc__, name)))
     upgrade_cmds.add_parsers(sub)
     return ap
+
+
+def _doc_summary(doc: str | None, name: str) -> str:
+    """A bench module's help: its docstring's first paragraph, without reST markup, up to its
+    first full stop (the first line alone stopped mid-sentence)."""
+    text = " ".join((doc or name).strip().split("\n\n")[0].split()).replace("``", "").replace("`", "")
+    m = re.search(r"(?<! al)(?<! e\.g)\.(\s|$)", text)
+    return text[: m.start() + 1] if m else text
 
 
 def render_config(args) -> RenderConfig:

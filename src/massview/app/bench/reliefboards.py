@@ -81,7 +81,8 @@ def add_arguments(p) -> None:
                         "arc (around it at 1.1 half-diagonals) or flyover")
     p.add_argument("--plant-scale", type=float, default=1.0,
                    help="triangle scale of the plant, its t_nz and its too-few-triangles rule (default 1: the paper's 12.4 M triangles "
-                        "and t_nz 3.5 M — the only scale at which a board's triangles against its cluster's are the paper's, see above)")
+                        "and t_nz 3.5 M — the only scale at which a board's triangles against its cluster's are the paper's: "
+                        "see the module's docstring, massview/app/bench/reliefboards.py)")
     p.add_argument("--plant-frames", type=int, default=30, help="frames along the plant's path, its first steps (default 30)")
     p.add_argument("--plant-steps", type=int, default=600,
                    help="steps of the plant's whole loop (default 600: the paper's 6000 at this machine's 10x lower triangle rate, "
