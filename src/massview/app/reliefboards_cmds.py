@@ -206,5 +206,27 @@ def write_cluster_picture(scene: str, path: Path, params, size=(1024, 768)) -> P
     meshes.release()
     view.release()
     path.parent.mkdir(parents=True, exist_ok=True)
-    PILImage.fromarray(img.color[..., :3]).save(path, optimize=True)
+    pic = PILImage.fromarray(np.ascontiguousarray(img.color[..., :3]))
+    _legend(pic, [((230, 25, 20), f"feasible: gets boards ({int((obj.status == FEASIBLE).sum())})"),
+                  ((50, 215, 50), f"too large, longer than sl_c = {obj.sl_c:.3g} ({int((obj.status == TOO_LARGE).sum())}; wireframe)"),
+                  ((90, 140, 210), f"too few triangles for a board ({int(((obj.status != FEASIBLE) & (obj.status != TOO_LARGE)).sum())})")])
+    pic.save(path, optimize=True)
     return path
+
+
+def _legend(pic, rows: list[tuple[tuple[int, int, int], str]]) -> None:
+    """A box of colour swatches and labels in the picture's top-left corner."""
+    from PIL import ImageDraw, ImageFont
+
+    draw = ImageDraw.Draw(pic)
+    try:
+        font = ImageFont.load_default(size=max(12, pic.height // 48))
+    except TypeError:  # Pillow < 10.1: one bitmap size
+        font = ImageFont.load_default()
+    line = max(16, pic.height // 32)
+    width = max(draw.textlength(t, font=font) for _, t in rows) + line * 2
+    draw.rectangle([6, 6, 14 + width, 12 + line * len(rows)], fill=(12, 14, 20))
+    for k, (rgb, text) in enumerate(rows):
+        y = 10 + k * line
+        draw.rectangle([12, y + 2, 12 + line - 6, y + line - 4], fill=rgb)
+        draw.text((12 + line, y), text, fill=(235, 235, 235), font=font)
