@@ -22,6 +22,8 @@ def test_clear_run_outputs_removes_only_a_runs_files(tmp_path):
     assert clear_run_outputs(tmp_path) == len(made)
     assert not any((tmp_path / rel).exists() for rel in made)
     assert all((tmp_path / rel).exists() for rel in kept)
+    gone = ["depth", "wall_depth/r1c0", "wall_depth", "wall/r0c1"]  # emptied: removed (a depth-less run left an empty depth/)
+    assert not any((tmp_path / d).exists() for d in gone) and (tmp_path / "frames").is_dir() and (tmp_path / "wall").is_dir()
     assert clear_run_outputs(tmp_path) == 0  # (nothing left to remove; a missing folder is no error)
     assert clear_run_outputs(tmp_path / "none") == 0
 

@@ -65,8 +65,9 @@ def clear_run_outputs(out) -> int:
     there: first its ``summary.json`` (so a new run that is interrupted never leaves a folder
     that looks finished), then ``stats.jsonl`` and the numbered frames and depth arrays in
     ``frames/``, ``depth/``, ``wall/…/`` and ``wall_depth/…/`` (a 2-frame run after a 5-frame
-    one left frames 2–4 of the old run beside the new ones). Nothing else is touched: files
-    of other names, other folders. Returns how many files were removed."""
+    one left frames 2–4 of the old run beside the new ones), and those folders where that
+    leaves them empty. Nothing else is touched: files of other names, other folders. Returns
+    how many files were removed."""
     out = os.fspath(out)
     removed = 0
     for name in ("summary.json", "stats.jsonl"):
@@ -87,6 +88,11 @@ def clear_run_outputs(out) -> int:
             if _FRAME_FILE.match(name) and os.path.isfile(os.path.join(d, name)):
                 os.unlink(os.path.join(d, name))
                 removed += 1
+    for d in folders + [os.path.join(out, w) for w in ("wall", "wall_depth")]:  # (tiles first, then their parents)
+        try:
+            os.rmdir(d)  # only where it is empty now: a run without depth left an old empty depth/ beside its frames
+        except OSError:
+            pass
     return removed
 
 
