@@ -193,3 +193,36 @@ def test_loopback_refuses_foreign_origins_and_hosts_and_one_browser_steers(terra
             browser.close()
     finally:
         stop_viewer(proc)
+
+
+def _cpu_seconds(port: int) -> dict:
+    """CPU seconds (user + system) of every process whose command line has ``--port port``."""
+    out, tick = {}, os.sysconf("SC_CLK_TCK")
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                cmd = f.read().split(b"\0")
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if b"--port" in cmd and str(port).encode() in cmd and b"view" in cmd:
+            out[pid] = (int(fields[11]) + int(fields[12])) / tick
+    return out
+
+
+def test_with_no_page_open_the_ranks_render_nothing_and_do_not_spin(terrain_store):
+    """Nobody watching: no frame is rendered, and the ranks wait without spinning a core (they
+    rendered on at 40–75 % CPU each; an MPI bcast busy-polls)."""
+    url, port, proc = start_viewer(terrain_store)
+    try:
+        time.sleep(3.0)  # (start-up work done)
+        before = _cpu_seconds(port)
+        time.sleep(4.0)
+        after = _cpu_seconds(port)
+    finally:
+        os.killpg(proc.pid, signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    assert "viewer stopped after 0 frames" in out, out[-2000:]
+    used = {p: after[p] - before[p] for p in before if p in after}
+    assert len(used) >= 2 and max(used.values()) < 1.0, used  # a spinning rank would take ~4 CPU-s (2 at least on 2 busy cores)

@@ -4,8 +4,10 @@ Rank 0 serves the page (127.0.0.1 unless ``--host`` says otherwise; off loopback
 token in the printed URL is required, see :mod:`.viewer.server`) and holds the camera and
 settings the browser controls; every frame it broadcasts them, all ranks render the frame
 with the chosen decomposition and compositor, and rank 0 streams the composited image as JPEG
-with per-frame figures (fps, triangles per rank, imbalance, bytes per frame). Closing the page
-does not stop the job; Ctrl-C (SIGINT to the ranks) stops every rank at the next frame.
+with per-frame figures (fps, triangles per rank, imbalance, bytes per frame). With no page
+open the ranks render nothing and wait without spinning (they kept rendering at 40–75 % CPU
+each). Closing the page does not stop the job; Ctrl-C (SIGINT to the ranks) stops every rank
+at the next frame.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from .viewer.state import VIEWER_COLORMAPS
 from ..core.paths import load_path
 from ..parallel.composite import COMPOSITORS
 from ..parallel.decompose import SORT_FIRST_LAYOUTS, parse_decomposition
-from ..parallel.exchange import any_rank
+from ..parallel.exchange import any_rank, polite_bcast
 from ..systems import render_frame
 
 __all__ = ["run_view"]
@@ -79,10 +81,17 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
     frame = 0
     try:
         while True:
-            snap = state.snapshot() if rank == 0 else None
-            snap = comm.bcast(snap, root=0)
+            snap = None
+            if rank == 0:
+                snap = state.snapshot()
+                snap["idle"] = server.clients == 0
+                if snap["idle"]:
+                    time.sleep(0.1)  # nobody watching: render nothing, answer a new client within 0.1 s
+            snap = polite_bcast(comm, snap)  # (the other ranks wait without spinning a core)
             if any_rank(comm, stop["flag"] or snap["stop"]):
                 break
+            if snap["idle"]:
+                continue
             fcfg = RenderConfig(**{**cfg.to_json(), **snap["settings"], "grid": cfg.grid})
             t0 = time.perf_counter()
             res = render_frame(comm, system, fcfg, snap["camera"], frame)
@@ -97,8 +106,6 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
                     "decomposition": fcfg.decomposition, "compositor": fcfg.compositor, "tau": fcfg.tau,
                     "color_by_rank": fcfg.color_by_rank, "position": state.position(), "rejected": state.rejected,
                     "clients": server.clients, "panel": system.panel(recs) if hasattr(system, "panel") else None})
-                if server.clients == 0:
-                    time.sleep(0.05)  # nobody watching: keep the ranks idle-ish, stay responsive
             frame += 1
     finally:
         scene.close()

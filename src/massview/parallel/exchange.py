@@ -260,3 +260,31 @@ def agree_all(comm, flags: np.ndarray) -> np.ndarray:
 
 def any_rank(comm, flag: bool) -> bool:
     return bool(comm.allreduce(bool(flag), op=MPI.LOR))
+
+
+_POLITE_TAG = 7707
+
+
+def polite_bcast(comm, obj=None, root: int = 0, longest_sleep: float = 0.01):
+    """``comm.bcast(obj, root)`` without spinning: the root sends the pickled object to every
+    rank, the others test for it and sleep between tests, from 0.2 ms up to ``longest_sleep``
+    (an MPI bcast busy-polls a core for as long as the root takes to come: a viewer with nobody
+    watching kept its ranks at 40–75 % CPU). For loops whose root may be slow to come."""
+    if comm.Get_size() == 1:
+        return obj
+    if comm.Get_rank() == root:
+        reqs = [comm.isend(obj, dest=r, tag=_POLITE_TAG) for r in range(comm.Get_size()) if r != root]
+        nap = 2e-4
+        while reqs:
+            reqs = [r for r in reqs if not r.Test()]
+            if reqs:
+                time.sleep(nap)
+                nap = min(nap * 2, longest_sleep)
+        return obj
+    req, nap = comm.irecv(source=root, tag=_POLITE_TAG), 2e-4
+    while True:
+        done, value = req.test()
+        if done:
+            return value
+        time.sleep(nap)
+        nap = min(nap * 2, longest_sleep)
