@@ -143,3 +143,36 @@ def test_sigterm_to_the_view_launcher_frees_the_port_and_leaves_no_ranks(tmp_pat
     finally:
         if proc.poll() is None or _alive(tree):
             _kill_all(proc, tree)
+
+
+_API_CALLER = """
+import sys
+from massview import api
+try:
+    api.render("builtin:objects", ranks=2, frames=500, size="320x240", out=sys.argv[1], images=False)
+except KeyboardInterrupt:
+    print("caught KeyboardInterrupt", flush=True)
+    sys.exit(5)
+print("render finished", flush=True)
+"""
+
+
+def test_keyboardinterrupt_in_an_api_caller_stops_its_rank_job(tmp_path):
+    """``massview.api.render(ranks=2)`` in a process that gets SIGINT (a notebook's interrupt):
+    the caller sees KeyboardInterrupt once the job is gone, and the job's folder is removed."""
+    out, log, tmp = tmp_path / "out", tmp_path / "log.txt", tmp_path / "tmp"
+    tmp.mkdir()
+    with open(log, "w") as f:
+        proc = subprocess.Popen([sys.executable, "-c", _API_CALLER, str(out)], stdout=f, stderr=subprocess.STDOUT,
+                                env=clean_env(TMPDIR=str(tmp)), start_new_session=True)
+    tree: dict[int, int] = {}
+    try:
+        _wait_for(lambda: (out / "stats.jsonl").exists(), proc, log, "frame written")
+        tree = _job_tree(proc.pid)
+        assert len(tree) >= 3, f"expected mpiexec and two ranks below the caller, found {tree}"
+        rc = _stop_and_check(proc, tree, signal.SIGINT, log)
+        assert rc == 5 and "caught KeyboardInterrupt" in log.read_text(), log.read_text()[-3000:]
+        assert not list(tmp.glob("massview-job-*")), "the job's temporary folder is left behind"
+    finally:
+        if proc.poll() is None or _alive(tree):
+            _kill_all(proc, tree)

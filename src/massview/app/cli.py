@@ -24,7 +24,7 @@ from ..core.config import COMPOSITOR_NAMES, RenderConfig, parse_size, parse_sun
 from ..core.errors import ConfigError, MassviewError, StoreError
 from ..core.paths import BUILTIN_PATHS
 from ..parallel.codec import CODEC_CHOICES
-from ..parallel.runtime import reuse_freed_memory
+from ..parallel.runtime import in_mpi_job, interrupt_on_sigterm, reuse_freed_memory
 from . import upgrade_cmds
 from .dmmr_cmds import add_dmmr_args
 
@@ -330,6 +330,8 @@ def main(argv: list[str] | None = None) -> int:
         _EXIT_HANDLER.append(atexit.register(_no_final_collection))
     _report_peak_rss()
     reuse_freed_memory()  # per-frame images reuse freed pages (issue 20)
+    if in_mpi_job():
+        interrupt_on_sigterm()  # a rank stopped by SIGTERM says so and aborts the job like Ctrl-C
     if argv[:1] == ["__job"] and len(argv) == 2:  # a rank of a job started by massview.api.render
         from .render_job import run_job
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from ..core.errors import MassviewError, ParallelError
 from .launcher import run_job
 
-__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env", "local_cores"]
+__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env", "local_cores", "interrupt_on_sigterm"]
 
 _JOB_VARS = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "HYDRA_CONTROL_FD", "MASSVIEW_UNDER_MPI")
 
@@ -57,6 +57,18 @@ def relaunch(argv: list[str], nranks: int) -> int:
     cmd = [find_mpiexec(), "-n", str(nranks), sys.executable, "-m", "massview", *argv]
     env = launch_env(nranks, dict(os.environ, MASSVIEW_UNDER_MPI="1"))
     return run_job(cmd, env)
+
+
+def interrupt_on_sigterm() -> None:
+    """In a rank: SIGTERM (what ``mpiexec`` forwards when its launcher is told to stop, and what
+    a batch system sends first) raises KeyboardInterrupt as SIGINT does, so the rank ends through
+    :func:`guarded` (one "interrupted" line, every rank aborted) instead of dying mid-frame and
+    leaving ``mpiexec``'s "BAD TERMINATION" banner. Left alone where SIGTERM is not at its default
+    (a command that handles it itself, as the viewer does, installs its handler later)."""
+    import signal
+
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
 
 
 def world():
