@@ -232,6 +232,9 @@ def cmd_view(args, argv) -> int:
         raise ConfigError(f"--port must be in 0..65535, got {args.port}")
     if not in_mpi_job():
         from ..api import validate
+        from .viewer.server import check_port
+
+        check_port(args.host, args.port)  # before the scene is loaded or any rank starts
         from ..core.paths import load_path
 
         validate(args.scene, cfg, args.ranks or 1)
