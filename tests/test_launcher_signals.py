@@ -176,3 +176,29 @@ def test_keyboardinterrupt_in_an_api_caller_stops_its_rank_job(tmp_path):
     finally:
         if proc.poll() is None or _alive(tree):
             _kill_all(proc, tree)
+
+
+_STUBBORN = """
+import os, sys
+from massview.parallel.launcher import run_job
+from massview.parallel.runtime import find_mpiexec
+rank = "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); print('up', flush=True); time.sleep(600)"
+run_job([find_mpiexec(), "-n", "2", sys.executable, "-c", rank], dict(os.environ), grace=3)
+"""
+
+
+def test_a_job_that_ignores_the_signal_is_killed_after_the_grace_period(tmp_path):
+    log = tmp_path / "log.txt"
+    with open(log, "w") as f:
+        proc = subprocess.Popen([sys.executable, "-c", _STUBBORN], stdout=f, stderr=subprocess.STDOUT, env=clean_env(),
+                                start_new_session=True)
+    tree: dict[int, int] = {}
+    try:
+        _wait_for(lambda: log.read_text().count("up") == 2, proc, log, "ranks up", limit=120)
+        tree = _job_tree(proc.pid)
+        assert len(tree) >= 3, tree
+        assert _stop_and_check(proc, tree, signal.SIGTERM, log) == 143
+        assert "did not stop within 3 s of SIGTERM; killing it" in log.read_text()
+    finally:
+        if proc.poll() is None or _alive(tree):
+            _kill_all(proc, tree)

@@ -23,12 +23,13 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import sys
 import threading
 import time
 
 __all__ = ["run_job", "STOP_GRACE_S", "descendants"]
 
-STOP_GRACE_S = 15.0  # a frame in progress ends first: the viewer stops at the next frame, a render raises at once
+STOP_GRACE_S = 30.0  # the viewer stops at the next frame, a render at once; a loaded machine can take several seconds
 _STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
 
 
@@ -121,6 +122,8 @@ def run_job(cmd: list[str], env: dict[str, str], grace: float = STOP_GRACE_S) ->
             if got and deadline is None:
                 deadline = time.monotonic() + grace
             if deadline is not None and time.monotonic() > deadline:
+                print(f"massview: the job did not stop within {grace:g} s of {signal.Signals(got[0]).name}; killing it",
+                      file=sys.stderr, flush=True)
                 _kill_tree(proc)
                 deadline = float("inf")
     except BaseException:  # KeyboardInterrupt where no handler could be installed, or anything else: no job left behind
