@@ -24,7 +24,7 @@ from ..core.config import COMPOSITOR_NAMES, RenderConfig, parse_size, parse_sun
 from ..core.errors import ConfigError, MassviewError, StoreError
 from ..core.paths import BUILTIN_PATHS
 from ..parallel.codec import CODEC_CHOICES
-from ..parallel.runtime import reuse_freed_memory
+from ..parallel.runtime import in_mpi_job, interrupt_on_sigterm, reuse_freed_memory
 from . import upgrade_cmds
 from .dmmr_cmds import add_dmmr_args
 
@@ -241,6 +241,9 @@ def cmd_view(args, argv) -> int:
         raise ConfigError(f"--port must be in 0..65535, got {args.port}")
     if not in_mpi_job():
         from ..api import validate
+        from .viewer.server import check_port
+
+        check_port(args.host, args.port)  # before the scene is loaded or any rank starts
         from ..core.paths import load_path
 
         validate(args.scene, cfg, args.ranks or 1)
@@ -342,6 +345,8 @@ def main(argv: list[str] | None = None) -> int:
         _EXIT_HANDLER.append(atexit.register(_no_final_collection))
     _report_peak_rss()
     reuse_freed_memory()  # per-frame images reuse freed pages (issue 20)
+    if in_mpi_job():
+        interrupt_on_sigterm()  # a rank stopped by SIGTERM says so and aborts the job like Ctrl-C
     if argv[:1] == ["__job"] and len(argv) == 2:  # a rank of a job started by massview.api.render
         from .render_job import run_job
 

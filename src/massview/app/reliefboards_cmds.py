@@ -112,6 +112,9 @@ def cmd_view(args, argv, cfg: RenderConfig) -> int:
     if not (0 <= args.port <= 65535):
         raise ConfigError(f"--port must be in 0..65535, got {args.port}")
     if not in_mpi_job():
+        from .viewer.server import check_port
+
+        check_port(args.host, args.port)  # before any rank starts
         if (args.ranks or 1) < 2:
             raise ConfigError("--system reliefboards needs a visualization rank and at least one backend: give --ranks 2 or more")
         return relaunch(argv, args.ranks)

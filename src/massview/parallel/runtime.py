@@ -6,7 +6,8 @@
   environment): every rank runs the command and uses all the ranks it was given;
 * **standalone**: with N > 1 the command re-executes itself as
   ``mpiexec -n N python -m massview ...`` with the ``mpiexec`` installed beside the Python
-  interpreter (the ``mpich`` wheel's) or on PATH, and returns its exit status.
+  interpreter (the ``mpich`` wheel's) or on PATH, and returns its exit status; stop signals
+  sent to the launching process are forwarded to the job (:mod:`.launcher`).
 
 ``guarded(comm, fn)`` runs a rank's work; an exception on any rank prints that rank's error
 once and calls ``MPI_Abort`` so that every rank ends and ``mpiexec`` exits non-zero — a
@@ -17,14 +18,14 @@ from __future__ import annotations
 
 import os
 import shutil
-import subprocess
 import sys
 import traceback
 from pathlib import Path
 
 from ..core.errors import MassviewError, ParallelError
+from .launcher import run_job
 
-__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env", "local_cores"]
+__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env", "local_cores", "interrupt_on_sigterm"]
 
 _JOB_VARS = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "HYDRA_CONTROL_FD", "MASSVIEW_UNDER_MPI")
 
@@ -48,15 +49,26 @@ def find_mpiexec() -> str:
 
 
 def relaunch(argv: list[str], nranks: int) -> int:
-    """Run ``python -m massview argv...`` on ``nranks`` local ranks; returns the exit status."""
+    """Run ``python -m massview argv...`` on ``nranks`` local ranks; returns the exit status.
+    SIGINT, SIGTERM and SIGHUP sent to this process stop the job (see :mod:`.launcher`): the
+    ranks get the signal, a job still running after a grace period is killed, and the signal
+    then reaches the caller (KeyboardInterrupt for SIGINT, ``SystemExit(143)`` for SIGTERM)
+    unless the job stopped cleanly on it (status 0, as the viewer does)."""
     cmd = [find_mpiexec(), "-n", str(nranks), sys.executable, "-m", "massview", *argv]
     env = launch_env(nranks, dict(os.environ, MASSVIEW_UNDER_MPI="1"))
-    proc = subprocess.Popen(cmd, env=env)
-    while True:
-        try:
-            return proc.wait()
-        except KeyboardInterrupt:  # mpiexec got the Ctrl-C too and forwards it: let the ranks finish
-            continue
+    return run_job(cmd, env)
+
+
+def interrupt_on_sigterm() -> None:
+    """In a rank: SIGTERM (what ``mpiexec`` forwards when its launcher is told to stop, and what
+    a batch system sends first) raises KeyboardInterrupt as SIGINT does, so the rank ends through
+    :func:`guarded` (one "interrupted" line, every rank aborted) instead of dying mid-frame and
+    leaving ``mpiexec``'s "BAD TERMINATION" banner. Left alone where SIGTERM is not at its default
+    (a command that handles it itself, as the viewer does, installs its handler later)."""
+    import signal
+
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
 
 
 def world():

@@ -28,6 +28,7 @@ told by a ``role`` message; ``hello`` carries each browser's initial role).
 from __future__ import annotations
 
 import asyncio
+import errno
 import hmac
 import importlib.resources
 import ipaddress
@@ -39,9 +40,10 @@ import threading
 from http.cookies import SimpleCookie
 from urllib.parse import parse_qs, urlsplit
 
+from ...core.errors import ConfigError
 from .state import MAX_MESSAGE, MessageError, ViewerState
 
-__all__ = ["ViewerServer", "is_loopback"]
+__all__ = ["ViewerServer", "is_loopback", "check_port"]
 
 log = logging.getLogger("massview.viewer")
 
@@ -61,6 +63,35 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(h).is_loopback
     except ValueError:
         return False
+
+
+def _port_in_use(host: str, port: int) -> ConfigError:
+    return ConfigError(f"port {port} on {host} is in use; pass --port another (e.g. --port 0 picks a free one)")
+
+
+def check_port(host: str, port: int) -> None:
+    """Raise ConfigError (one line: which port, what to pass instead) when ``port`` on ``host``
+    cannot be bound because something holds it; checked before a scene is loaded or ranks are
+    started. Binds as the server does: every address ``host`` resolves to, SO_REUSEADDR (so a
+    closed connection's TIME_WAIT does not count), IPv6 sockets v6-only. Port 0 always binds;
+    other bind failures (no such address) are left to the server to report."""
+    if port == 0:
+        return
+    try:
+        infos = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror:
+        return
+    for family, kind, proto, _, addr in infos:
+        with socket.socket(family, kind, proto) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if family == socket.AF_INET6:
+                s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+            try:
+                s.bind(addr)
+            except OSError as e:
+                if e.errno == errno.EADDRINUSE:
+                    raise _port_in_use(host, port) from None
+                return
 
 
 def _host_name(host_header: str) -> str:
@@ -97,6 +128,8 @@ class ViewerServer:
     def start(self) -> None:
         self._thread.start()
         self._started.wait(30)
+        if isinstance(self._error, OSError) and self._error.errno == errno.EADDRINUSE:  # taken since check_port
+            raise _port_in_use(self.host, self.port) from None
         if self._error is not None:
             raise self._error
 
