@@ -19,6 +19,15 @@ def terrain(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    from massview.data.generators.scenes import generate_scene
+
+    out = tmp_path_factory.mktemp("vscene") / "city.scene"
+    generate_scene("city", out, size=0.1)
+    return out
+
+
 def _copy(src, tmp_path):
     dst = tmp_path / src.name
     shutil.copytree(src, dst)
@@ -35,8 +44,9 @@ def _fails(store, *named, cmd=("verify",)):
     return err
 
 
-def test_undamaged_stores_verify_ok(terrain):
+def test_undamaged_stores_verify_ok(terrain, scene):
     assert "OK" in run_cli("verify", terrain, "-q").stdout
+    assert "OK" in run_cli("verify", scene, "-q").stdout
 
 
 def test_terrain_missing_shading_chunk(terrain, tmp_path):
@@ -81,3 +91,35 @@ def test_terrain_block_size_attribute_edited(terrain, tmp_path):
     (st / "zarr.json").write_text(json.dumps(doc))
     err = _fails(st, "its attributes (M 257", "129×129 chunks", "--overwrite")
     assert "does not open" not in err
+
+
+def test_scene_array_zarr_json_does_not_parse(scene, tmp_path):
+    st = _copy(scene, tmp_path)
+    (st / "geometry/crc/zarr.json").write_text("{\n")
+    for cmd in (("verify",), ("info",), ("render", "--frames", 1, "--size", "64x48", "-o", tmp_path / "r", "-q")):
+        _fails(st, "geometry/crc", "JSONDecodeError", "massview prepare scene", "--overwrite", cmd=cmd)
+
+
+def test_scene_missing_shard_is_reported_once(scene, tmp_path):
+    st = _copy(scene, tmp_path)
+    shard = st / "geometry/data/0/c/0"
+    shard.unlink()
+    err = _fails(st, "missing file", "geometry/data/0/c/0")
+    assert err.count("missing file") == 1 and "checksum mismatch" not in err, err
+
+
+def test_scene_truncated_shard_names_the_file(scene, tmp_path):
+    st = _copy(scene, tmp_path)
+    shard = st / "geometry/data/0/c/0"
+    shard.write_bytes(shard.read_bytes()[:100000])
+    err = _fails(st, "geometry/data/0/c/0", "truncated")
+    assert "MemoryError" not in err and "OverflowError" not in err and err.count("massview: verify:") == 1, err
+
+
+def test_scene_object_count_attribute_edited(scene, tmp_path):
+    st = _copy(scene, tmp_path)
+    doc = json.loads((st / "zarr.json").read_text())
+    n = doc["attributes"]["objects"]
+    doc["attributes"]["objects"] = n + 2
+    (st / "zarr.json").write_text(json.dumps(doc))
+    _fails(st, f"objects {n + 2}", f"hold {n}", "zarr.json")
