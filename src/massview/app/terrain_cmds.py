@@ -191,5 +191,6 @@ def cmd_verify(args) -> int:
         for p in problems:
             print(f"massview: verify: {p}", file=sys.stderr)
         raise StoreError(f"{args.store}: {len(problems)} problem(s) found")
-    print(f"{args.store}: OK — every block decodes, metadata matches the data, errors are saturated")
+    print(f"{args.store}: OK — every array has its layout's shape, every block (heights, shading, colour) and the Röttger table "
+          "decode, metadata and the table match the data, errors are saturated")
     return 0

@@ -43,7 +43,12 @@ class ParallelError(MassviewError, RuntimeError):
 
 
 class StoreError(MassviewError, OSError):
-    """A store on disk is missing, incomplete or inconsistent."""
+    """A store on disk is missing, incomplete or inconsistent; ``file``, where given, is the
+    file at fault (so a caller can report a file once for the many records in it)."""
+
+    def __init__(self, *args, file=None):
+        super().__init__(*args)
+        self.file = file
 
 
 class BlockNotFoundError(StoreError, KeyError):

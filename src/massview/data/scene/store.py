@@ -110,17 +110,52 @@ class ShardReader:
         except (KeyError, IndexError, TypeError):
             return False
 
+    def shard_file(self, s: int) -> Path:
+        return self.root / "c" / str(s)
+
     def _shard_index(self, s: int) -> np.ndarray | None:
+        """Shard ``s``'s index of (offset, nbytes) pairs; None where its file is absent; a
+        :class:`CorruptBlockError` naming the file where the index is cut short, fails its
+        crc32c or points past the file's end (a truncated shard)."""
         if s not in self._index:
-            f = self.root / "c" / str(s)
-            if not f.exists():
+            f = self.shard_file(s)
+            try:
+                self._index[s] = self._read_index(f)
+            except FileNotFoundError:
                 self._index[s] = None
-            else:
-                n = self.per * 16 + 4
-                with open(f, "rb") as fh:
-                    fh.seek(-n, 2)
-                    self._index[s] = np.frombuffer(fh.read(n)[:-4], "<u8").reshape(self.per, 2)
-        return self._index[s]
+            except CorruptBlockError as e:
+                self._index[s] = e
+        idx = self._index[s]
+        if isinstance(idx, CorruptBlockError):
+            raise CorruptBlockError(str(idx), file=idx.file)
+        return idx
+
+    def _read_index(self, f: Path) -> np.ndarray:
+        n = self.per * 16 + 4
+        with open(f, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            if size < n:
+                raise CorruptBlockError(f"the shard file {f} is {size} bytes, shorter than its {n}-byte index: it is truncated", file=f)
+            fh.seek(-n, 2)
+            raw = fh.read(n)
+        idx = np.frombuffer(raw[:-4], "<u8").reshape(self.per, 2)
+        try:
+            import google_crc32c  # (zarr's own crc32c; absent: the bounds below still catch a cut file)
+
+            ok = google_crc32c.value(raw[:-4]) == int.from_bytes(raw[-4:], "little")
+        except ImportError:
+            ok = True
+        used = idx[:, 0] != 2**64 - 1
+        if not ok or np.any(idx[used, 0] + idx[used, 1] > size - n):
+            raise CorruptBlockError(f"the shard file {f} ({size} bytes) is truncated or damaged: its chunk index "
+                                    f"{'fails its checksum' if not ok else 'points past its end'}", file=f)
+        return idx
+
+    def missing(self, off: int, nb: int) -> list[Path]:
+        """The shard files that bytes [off, off+nb) lie in and that do not exist."""
+        c0, c1 = off // self.cb, -(-(off + nb) // self.cb)
+        shards = range(c0 // self.per, (c1 - 1) // self.per + 1) if c1 > c0 else ()
+        return [self.shard_file(s) for s in shards if not self.shard_file(s).is_file()]
 
     def read(self, off: int, nb: int) -> np.ndarray:
         from numcodecs import blosc
@@ -140,6 +175,13 @@ class ShardReader:
             out[(c - c0) * self.cb:(c - c0 + 1) * self.cb] = chunk
         a = off - c0 * self.cb
         return out[a:a + nb]
+
+
+REBUILD = "re-run `massview prepare scene` / `massview generate scene` with --overwrite"
+
+
+def _why(e: BaseException) -> str:
+    return f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
 
 
 def is_scene_store(path) -> bool:
@@ -177,17 +219,34 @@ class SceneStore:
         if require_complete and not self.attrs.get("complete"):
             raise StoreError(f"{self.path}: scene store is incomplete (its build was interrupted); re-run the same "
                              "`massview prepare scene` / `generate scene` command to finish it")
-        self.levels_max = int(self.attrs["levels_max"])
-        g = self.group_
         try:
-            self.tables = {k: np.asarray(g[f"geometry/{k}"][...]) for k in GEOMETRY_TABLES}
-            self._data = [g[f"geometry/data/{lv}"] for lv in range(self.levels_max)]
-            self._direct = [self._shard_reader(lv) for lv in range(self.levels_max)]
-            if self.attrs.get("complete"):
-                self.skeleton = Skeleton(**{k: np.asarray(g[f"skeleton/{k}"][...]) for k in SKELETON_FIELDS})
-                self.groups = GroupTree(**{k: np.asarray(g[f"groups/{k}"][...]) for k in GROUP_FIELDS})
-        except KeyError as e:
-            raise StoreError(f"{self.path}: array {e} is missing; the store is damaged — rebuild it with --overwrite") from None
+            self.levels_max = int(self.attrs["levels_max"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise StoreError(f"{self.path}: its attributes (zarr.json) have no valid levels_max ({type(e).__name__}: {e}); "
+                             f"the store is damaged — {REBUILD}") from None
+        self.tables = {k: self.read(f"geometry/{k}") for k in GEOMETRY_TABLES}
+        self._data = [self.array(f"geometry/data/{lv}") for lv in range(self.levels_max)]
+        self._direct = [self._shard_reader(lv) for lv in range(self.levels_max)]
+        if self.attrs.get("complete"):
+            self.skeleton = Skeleton(**{k: self.read(f"skeleton/{k}") for k in SKELETON_FIELDS})
+            self.groups = GroupTree(**{k: self.read(f"groups/{k}") for k in GROUP_FIELDS})
+
+    def array(self, name: str):
+        """The store's zarr array ``name``; a StoreError naming it where it is missing or its
+        ``zarr.json`` does not parse."""
+        try:
+            return self.group_[name]
+        except Exception as e:  # noqa: BLE001 - KeyError, JSONDecodeError, zarr's own errors
+            raise StoreError(f"{self.path}: the array {name} does not open ({_why(e)}); the store is damaged — {REBUILD}") from None
+
+    def read(self, name: str) -> np.ndarray:
+        """The whole array ``name`` (a table: small), a StoreError naming it where it does not
+        open or decode."""
+        arr = self.array(name)
+        try:
+            return np.asarray(arr[...])
+        except Exception as e:  # noqa: BLE001 - codec errors come in many types
+            raise StoreError(f"{self.path}: the array {name} does not decode ({_why(e)}); the store is damaged — {REBUILD}") from None
 
     def _shard_reader(self, lv: int) -> ShardReader | None:
         import json
@@ -234,14 +293,21 @@ class SceneStore:
         if not (0 <= lv < int(self.tables["levels"][gid])):
             raise BlockNotFoundError(f"{self.path}: geometry {gid} has {int(self.tables['levels'][gid])} levels, not {lv + 1}")
         off, nb = int(self.tables["offset"][gid, lv]), int(self.tables["nbytes"][gid, lv])
+        d = self._direct[lv]
         try:
-            d = self._direct[lv]
             buf = d.read(off, nb) if d is not None else np.asarray(self._data[lv][off:off + nb])
+        except CorruptBlockError as e:  # the shard reader named the file
+            raise CorruptBlockError(f"{self._where(gid, lv)} does not decode: {e}; the store is damaged — {REBUILD}",
+                                    file=e.file) from None
         except Exception as e:  # noqa: BLE001 - codec errors come in many types
-            raise CorruptBlockError(f"{self._where(gid, lv)} does not decode ({type(e).__name__}: {e}); "
-                                    "the store is damaged — rebuild it with --overwrite") from None
+            raise CorruptBlockError(f"{self._where(gid, lv)} does not decode ({_why(e)}); "
+                                    f"the store is damaged — {REBUILD}") from None
         if crc32(buf) != int(self.tables["crc"][gid, lv]):
-            raise CorruptBlockError(f"{self._where(gid, lv)}: checksum mismatch; the store is damaged — rebuild it with --overwrite")
+            miss = d.missing(off, nb) if d is not None else []
+            if miss:  # (read as the fill value: a record that is not there)
+                raise BlockNotFoundError(f"{self._where(gid, lv)}: missing file {miss[0]}; the store is damaged — {REBUILD}",
+                                         file=miss[0])
+            raise CorruptBlockError(f"{self._where(gid, lv)}: checksum mismatch; the store is damaged — {REBUILD}")
         return buf
 
     def get_mesh(self, geometry_id: int, level: int) -> Mesh:

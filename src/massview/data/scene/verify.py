@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ...core.errors import StoreError
+from ...core.errors import BlockNotFoundError, StoreError
 from .mesh import record_size
-from .store import SceneStore
+from .store import GEOMETRY_TABLES, GROUP_FIELDS, REBUILD, SKELETON_FIELDS, SceneStore
 from .writer import _skeleton
 
 __all__ = ["scene_info", "verify_scene"]
@@ -52,7 +52,7 @@ def _who(st: SceneStore, owners: dict, gid: int) -> str:
     return f"object {objs[0]}" if len(objs) == 1 else f"geometry {gid} (objects {objs[:4]})"
 
 
-def _check_geometry(st: SceneStore, gid: int, who: str) -> list[str]:
+def _check_geometry(st: SceneStore, gid: int, who: str, by_file: dict) -> list[str]:
     t, out = st.tables, []
     nlev = int(t["levels"][gid])
     err = t["error"][gid, :nlev]
@@ -66,7 +66,10 @@ def _check_geometry(st: SceneStore, gid: int, who: str) -> list[str]:
         try:
             m = st.get_mesh(gid, lv)
         except StoreError as e:
-            out.append(f"{who}, level {lv}: {e}")
+            if e.file is not None:  # a file missing or damaged: reported once, with the records it holds
+                by_file.setdefault(str(e.file), []).append((f"{who}, level {lv}", e))
+            else:
+                out.append(f"{who}, level {lv}: {e}")
             continue
         if n and int(m.indices.max()) >= v:
             out.append(f"{who}, level {lv}: a triangle refers to vertex {int(m.indices.max())} of {v}")
@@ -94,10 +97,20 @@ def verify_scene(path, progress=None) -> list[str]:
     owners: dict[int, list[int]] = {}
     for o, g in enumerate(sk.geometry.tolist()):
         owners.setdefault(g, []).append(o)
-    problems = []
+    problems = _check_counts(st)
+    if problems:  # tables of the wrong length: what follows would index past them
+        return problems
+    by_file: dict[str, list] = {}
     for gid in range(st.geometry_count):
-        problems += _check_geometry(st, gid, _who(st, owners, gid))
+        problems += _check_geometry(st, gid, _who(st, owners, gid), by_file)
         prog("verify", 1, st.geometry_count)
+    for f, hits in by_file.items():
+        first, e = hits[0]
+        more = f" (and {len(hits) - 1} more records in that file)" if len(hits) > 1 else ""
+        if isinstance(e, BlockNotFoundError):
+            problems.append(f"missing file {f}: it held {len(hits)} record(s), the first {first}; the store is damaged — {REBUILD}")
+        else:
+            problems.append(f"{first}: {e}{more}")
     xf = np.asarray(st.group_["objects/transform"][...])
     want = _skeleton(st.tables, sk.geometry, xf)
     for k in ("center", "radius", "box_lo", "box_hi", "triangles", "level_error", "level_bytes", "levels"):
@@ -107,6 +120,36 @@ def verify_scene(path, progress=None) -> list[str]:
             problems.append(f"object {int(bad[0])}: skeleton {k} disagrees with its geometry ({len(bad)} objects affected)")
     problems += _check_groups(st)
     return problems
+
+
+def _check_counts(st: SceneStore) -> list[str]:
+    """The root attributes' counts (objects, geometries, groups, triangles, levels_max)
+    against the arrays' lengths, and every table's length against its family's."""
+    a, out = st.attrs, []
+    n, G, L = st.skeleton.count, st.geometry_count, st.levels_max
+    fam = {"skeleton": (n, SKELETON_FIELDS), "objects": (n, ("geometry", "transform", "path")),
+           "groups": (st.groups.count, GROUP_FIELDS), "geometry": (G, GEOMETRY_TABLES)}
+    for key, have in (("objects", n), ("geometries", G), ("groups", st.groups.count)):
+        if key in a and a[key] != have:
+            out.append(f"its attributes say {key} {a[key]} but its arrays hold {have} ({key if key != 'geometries' else 'geometry'}/); "
+                       f"its {st.path / 'zarr.json'} is damaged — {REBUILD}")
+    for grp, (count, names) in fam.items():
+        for k in names:
+            try:
+                shape = tuple(st.array(f"{grp}/{k}").shape)
+            except StoreError as e:
+                out.append(str(e))
+                continue
+            wide = k in {"skeleton": ("triangles", "level_error", "level_bytes"),
+                         "geometry": ("offset", "nbytes", "vertices", "triangles", "error", "crc")}.get(grp, ())
+            if shape[:1] != (count,) or (wide and shape[1:2] != (L,)):
+                want = f"{count}" + (f" × {L} (levels_max)" if wide else "")
+                out.append(f"the array {grp}/{k} has shape {list(shape)}, not {want} as the store's other arrays; "
+                           f"its {st.path / grp / k / 'zarr.json'} is damaged — {REBUILD}")
+    if not out and "triangles" in a and a["triangles"] != int(st.skeleton.triangles[:, 0].sum()):
+        out.append(f"its attributes say triangles {a['triangles']} but its objects hold {int(st.skeleton.triangles[:, 0].sum())}; "
+                   f"its {st.path / 'zarr.json'} is damaged — {REBUILD}")
+    return out
 
 
 def _check_groups(st: SceneStore) -> list[str]:

@@ -25,7 +25,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from ...core.errors import StoreError
+from ...core.errors import CorruptBlockError, StoreError
 from .store import TerrainStore
 
 __all__ = ["C_RANGE", "k_factor", "local_d2", "propagate_into", "DEFAULT_C_MIN", "compute_table", "write_table",
@@ -338,13 +338,36 @@ class RoettgerTable:
         meta = store.attrs["roettger"]
         self.C_min, self.K = float(meta["C_min"]), float(meta["K"])
         self.depths = int(meta["depths"])
-        self._arrays = [store.group[f"roettger/d2/{t}"] for t in range(self.depths)]
+        self._arrays = [store.array(f"roettger/d2/{t}") for t in range(self.depths)]
+        self.path = store.path
         self.bytes_read = 0
+
+    def _bad_chunk(self, t: int, r0: int, r1: int, c0: int, c1: int, err: Exception) -> str:
+        """The message for a window that does not decode: the first of its chunks that does not."""
+        arr = self._arrays[t]
+        ch, where = tuple(arr.chunks), None
+        for ci in range(r0 // ch[0], -(-r1 // ch[0])):
+            for cj in range(c0 // ch[1], -(-c1 // ch[1])):
+                try:
+                    arr[ci * ch[0]:(ci + 1) * ch[0], cj * ch[1]:(cj + 1) * ch[1]]
+                except Exception as e:  # noqa: BLE001
+                    where, err = (ci, cj), e
+                    break
+            if where:
+                break
+        why = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
+        f = self.path / "roettger" / "d2" / str(t) / arr.metadata.encode_chunk_key(where) if where else None
+        return (f"{self.path}: the Röttger table array roettger/d2/{t} does not decode "
+                f"{f'at chunk {where} ({why}); the file {f} is damaged' if f else f'({why}); the store is damaged'} — "
+                f"re-run `massview prepare roettger {self.path}` (or prepare with --overwrite)")
 
     def window(self, t: int, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         """d2 of depth ``t`` rows r0..r1-1, cols c0..c1-1 (clipped to the grid)."""
         N = 2**t
         r0, r1, c0, c1 = max(r0, 0), min(r1, N), max(c0, 0), min(c1, N)
-        a = np.asarray(self._arrays[t][r0:r1, c0:c1])
+        try:
+            a = np.asarray(self._arrays[t][r0:r1, c0:c1])
+        except Exception as e:  # noqa: BLE001 - codec errors come in many types: name the chunk file
+            raise CorruptBlockError(self._bad_chunk(t, r0, r1, c0, c1, e)) from None
         self.bytes_read += a.nbytes
         return a

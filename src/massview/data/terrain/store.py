@@ -343,11 +343,87 @@ class TerrainStore:
         except (KeyError, TypeError, ValueError) as e:
             raise StoreError(f"{self.path}: its attributes (zarr.json) have no valid layout ({type(e).__name__}: {e}); the store is "
                              "damaged — re-run `massview prepare terrain` with --overwrite") from None
+        self._check_attrs_against_arrays()
         self._heights = [self.array(f"heights/{lv}") for lv in range(self.layout.levels)]
+        for lv, h in enumerate(self._heights):
+            self.check_array(f"heights/{lv}", h, raise_=True)
         self._blosc = None  # the heights' blosc codec for direct chunk reads (False: not blosc)
         self.has_color = "color" in self.group and self.attrs.get("color") == "orthophoto"
         self.has_shade = "shade" in self.group and not upgrading
         self._color = [self.group[f"color/{lv}"] for lv in range(self.layout.levels)] if self.has_color else None
+
+    def _check_attrs_against_arrays(self) -> None:
+        """The root attributes' layout (M, rows, cols, levels, padded) must agree with itself and
+        with ``heights/0``'s block size and block count; a StoreError naming both where not (an
+        edited or damaged root ``zarr.json`` otherwise surfaced as "heights/3 does not open")."""
+        lay, a = self.layout, self.attrs
+        said = f"M {lay.M}, levels {a.get('levels', '?')}, padded {a.get('padded', '?')}, rows {lay.rows}, cols {lay.cols}"
+        try:
+            h0 = self.group["heights/0"]
+            shape, chunks = tuple(h0.shape), tuple(h0.chunks)
+        except Exception:  # noqa: BLE001 - heights/0 itself damaged: named when it is opened below
+            return
+        own = (a.get("levels", lay.levels) == lay.levels and a.get("padded", lay.S) == lay.S)
+        if own and len(shape) == 4 and chunks[2:] == (lay.M, lay.M):
+            return  # the attributes agree with heights/0's blocks (its shape is checked, and named, as an array's)
+        have = (f"heights/0 is {'×'.join(map(str, shape[:2]))} blocks in {'×'.join(map(str, chunks[2:]))} chunks"
+                if len(shape) == 4 and len(chunks) == 4 else f"heights/0 has shape {list(shape)}")
+        raise StoreError(f"{self.path}: its attributes ({said}) do not match its arrays ({have}; the attributes make "
+                         f"{lay.blocks(0)}×{lay.blocks(0)} blocks of {lay.M}×{lay.M} in {lay.levels} levels); its "
+                         f"{self.path / 'zarr.json'} is damaged — re-run `massview prepare terrain` with --overwrite")
+
+    def expected(self, name: str) -> tuple[tuple, tuple | None, str] | None:
+        """(shape, chunk shape or None when not fixed, dtype) that the layout gives the array
+        ``name`` (as :func:`create_store`, ``write_metadata`` and the Röttger table make them),
+        or None for a name this layout does not know."""
+        lay, parts = self.layout, name.split("/")
+        M = lay.M
+        try:
+            if parts[0] in ("heights", "shade", "color") and len(parts) == 2:
+                nb = lay.blocks(int(parts[1]))
+                tail = () if parts[0] == "heights" else (3,)
+                dt = {"heights": "float32", "shade": "float16", "color": "uint8"}[parts[0]]
+                return (nb, nb, M, M) + tail, (1, 1, M, M) + tail, dt
+            if parts[0] == "blocks" and len(parts) == 3:
+                nb = lay.blocks(int(parts[1]))
+                return {"minmax": ((nb, nb, 2), None, "float32"), "error": ((nb, nb), None, "float32"),
+                        "done": ((nb, nb), None, "uint8")}.get(parts[2])
+            if parts[0] == "lod" and len(parts) == 3:
+                j = int(parts[2])
+                if parts[1] == "edge_error":
+                    return (2, 2**j + 1, 2**j + 1), None, "float32"
+                return (2**j, 2**j), None, "float32"
+            if parts[:2] == ["roettger", "d2"] and len(parts) == 3:
+                t = int(parts[2])
+                return (2**t, 2**t), None, "float32"
+        except (ValueError, IndexError):
+            return None
+        return None
+
+    def check_array(self, name: str, arr, raise_: bool = False) -> str | None:
+        """A problem (naming the array, its ``zarr.json`` and what to do) when the open array
+        ``arr`` has another shape, chunk shape or dtype than :meth:`expected` says; None when it
+        agrees. ``raise_``: raise it as a StoreError instead."""
+        want = self.expected(name)
+        if want is None:
+            return None
+        shape, chunks, dtype = want
+        have = (tuple(arr.shape), tuple(arr.chunks), str(np.dtype(arr.dtype)))
+        bad = []
+        if have[0] != shape:
+            bad.append(f"shape {list(have[0])}, not {list(shape)}")
+        if chunks is not None and have[1] != chunks:
+            bad.append(f"chunks {list(have[1])}, not {list(chunks)}")
+        if have[2] != dtype:
+            bad.append(f"dtype {have[2]}, not {dtype}")
+        if not bad:
+            return None
+        msg = (f"the array {name} has {' and '.join(bad)} (what the store's attributes, M {self.layout.M} and "
+               f"{self.layout.levels} levels, give); its {self.path / name / 'zarr.json'} is damaged — "
+               "re-run `massview prepare terrain` with --overwrite")
+        if raise_:
+            raise StoreError(f"{self.path}: {msg}")
+        return msg
 
     def array(self, name: str):
         """The store's zarr array ``name`` (e.g. ``blocks/0/minmax``); StoreError naming it where
@@ -377,7 +453,7 @@ class TerrainStore:
             raise BlockNotFoundError(f"{self.path}: block (level {level}, {i}, {j}) is outside the pyramid ({self.layout.levels} levels)")
 
     def chunk_path(self, level: int, i: int, j: int, what: str = "heights") -> Path:
-        tail = "/0/0/0" if what == "color" else "/0/0"
+        tail = "/0/0/0" if what in ("color", "shade") else "/0/0"
         return self.path / what / str(level) / "c" / f"{i}/{j}{tail}"
 
     def get_block(self, level: int, i: int, j: int) -> np.ndarray:

@@ -1,4 +1,7 @@
-"""``verify``: every block decodes, metadata agrees with the data, errors are saturated."""
+"""``verify``: every array has the shape its layout gives, every chunk of the heights, the
+shading (and colour) pyramid and the Röttger table decodes, metadata agrees with the data, errors
+are saturated and the table is the one the heights give. Chunks are read one at a time, so
+memory stays bounded (the table is recomputed a depth at a time, as ``prepare`` makes it)."""
 
 from __future__ import annotations
 
@@ -7,6 +10,7 @@ import numpy as np
 from ...core.errors import StoreError
 from .ingest import compute_metadata
 from .meta import reduce_max
+from .roettger import has_table, iter_table
 from .store import TerrainStore
 
 __all__ = ["verify_store"]
@@ -27,7 +31,11 @@ def verify_store(path, progress=None) -> list[str]:
             problems.append(f"level {lv}: block ({i}, {j}) and {int((done == 0).sum()) - 1} more never finished writing")
     if problems and not store.attrs.get("complete"):  # blocks are missing because the prepare stopped: resumable, say so
         return problems                                 # (reading them would name each as "missing, re-run with --overwrite")
-    meta = compute_metadata(store, progress or (lambda *a: None))
+    prog = progress or (lambda *a: None)
+    problems += _check_shapes(store)
+    if problems:  # arrays of the wrong shape: decoding them would only repeat it
+        return problems
+    meta = compute_metadata(store, prog)
     try:
         stored_sq, stored_dg, stored_zmin, stored_zmax = store.lod_arrays()
         stored_mm = [store.block_minmax(lv) for lv in range(lay.levels)]
@@ -53,4 +61,109 @@ def verify_store(path, progress=None) -> list[str]:
     for j in range(lay.J + 1):
         if not (np.array_equal(stored_zmin[j], meta.zmin[j]) and np.array_equal(stored_zmax[j], meta.zmax[j])):
             problems.append(f"patch level {j}: stored height ranges differ from the data")
+    problems += _check_pyramid_chunks(store, "shade", prog)
+    if store.has_color:
+        problems += _check_pyramid_chunks(store, "color", prog)
+    problems += _check_roettger(store, prog)
     return problems
+
+
+def _names(store: TerrainStore) -> list[str]:
+    """Every array the store should hold."""
+    lay = store.layout
+    out = [f"{a}/{lv}" for lv in range(lay.levels) for a in ("heights", "shade", *(("color",) if store.has_color else ()))]
+    out += [f"blocks/{lv}/{k}" for lv in range(lay.levels) for k in ("minmax", "error", "done")]
+    out += [f"lod/{k}/{j}" for j in range(lay.J) for k in ("square_error", "edge_error")]
+    out += [f"lod/{k}/{j}" for j in range(lay.J + 1) for k in ("zmin", "zmax")]
+    if has_table(store):
+        out += [f"roettger/d2/{t}" for t in range(int(store.attrs["roettger"]["depths"]))]
+    return out
+
+
+def _check_shapes(store: TerrainStore) -> list[str]:
+    """Each array's shape, chunk shape and dtype against what the layout gives (one problem
+    per array, naming its zarr.json)."""
+    out = []
+    for name in _names(store):
+        try:
+            arr = store.array(name)
+        except StoreError as e:
+            out.append(str(e))
+            continue
+        p = store.check_array(name, arr)
+        if p:
+            out.append(p)
+    return out
+
+
+MAX_PER_ARRAY = 5  # problems named per array (then a count)
+
+
+def _check_pyramid_chunks(store: TerrainStore, what: str, prog) -> list[str]:
+    """Every chunk (one block each) of ``shade/<l>`` or ``color/<l>`` is there and decodes to
+    a block, read one at a time (a missing chunk file would render as the fill value)."""
+    lay, out = store.layout, []
+    label = {"shade": "shading", "color": "colour"}[what]
+    total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
+    for lv in range(lay.levels):
+        arr, nb, bad = store.array(f"{what}/{lv}"), lay.blocks(lv), []
+        for i in range(nb):
+            for j in range(nb):
+                f = store.chunk_path(lv, i, j, what)
+                if not f.is_file():
+                    bad.append(f"{label} block (level {lv}, {i}, {j}) is missing ({f}); re-run prepare with --overwrite")
+                    continue
+                try:
+                    np.asarray(arr[i, j])
+                except Exception as e:  # noqa: BLE001 - codec errors come in many types
+                    bad.append(f"{label} block (level {lv}, {i}, {j}) does not decode ({_why(e)}); the file {f} is damaged — "
+                               "re-run prepare with --overwrite")
+            prog(f"verify {what}", nb, total)
+        out += _capped(bad, f"{what}/{lv}")
+    return out
+
+
+def _check_roettger(store: TerrainStore, prog) -> list[str]:
+    """T2's table: every chunk of ``roettger/d2/<t>`` decodes and holds what the heights give
+    (recomputed a depth at a time; a chunk file may be absent only where the table is 0 there,
+    as zarr leaves such chunks unwritten)."""
+    meta = store.attrs.get("roettger")
+    if not meta:
+        return []
+    if not has_table(store):
+        return [f"its Röttger table attribute {meta} does not match the layout ({store.layout.n - 1} depths); "
+                f"re-run `massview prepare roettger {store.path}`"]
+    fix = f"re-run `massview prepare roettger {store.path}` (or prepare with --overwrite)"
+    out = []
+    for t, want in iter_table(store, float(meta["C_min"]), lambda *a: prog("verify roettger", *a[1:])):
+        name = f"roettger/d2/{t}"
+        arr, bad = store.array(name), []
+        ch = tuple(arr.chunks)
+        root = store.path / "roettger" / "d2" / str(t)
+        for ci in range(-(-want.shape[0] // ch[0])):
+            for cj in range(-(-want.shape[1] // ch[1])):
+                sl = (slice(ci * ch[0], (ci + 1) * ch[0]), slice(cj * ch[1], (cj + 1) * ch[1]))
+                f = root / arr.metadata.encode_chunk_key((ci, cj))
+                if not f.is_file():
+                    if np.any(want[sl] != 0):
+                        bad.append(f"{name}: chunk ({ci}, {cj}) is missing ({f}); {fix}")
+                    continue
+                try:
+                    have = np.asarray(arr[sl])
+                except Exception as e:  # noqa: BLE001
+                    bad.append(f"{name}: chunk ({ci}, {cj}) does not decode ({_why(e)}); the file {f} is damaged — {fix}")
+                    continue
+                if not np.allclose(have, want[sl], rtol=1e-6, atol=0):
+                    bad.append(f"{name}: chunk ({ci}, {cj}) ({f}) differs from the roughness the heights give; {fix}")
+        out += _capped(bad, name)
+    return out
+
+
+def _why(e: Exception) -> str:
+    return f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+
+
+def _capped(bad: list[str], name: str) -> list[str]:
+    if len(bad) > MAX_PER_ARRAY:
+        return bad[:MAX_PER_ARRAY] + [f"{name}: {len(bad) - MAX_PER_ARRAY} more problems like these"]
+    return bad
