@@ -43,3 +43,12 @@ def test_the_server_says_the_same_when_the_port_is_taken_after_the_check(held_po
     with pytest.raises(ConfigError) as e:
         ViewerServer(None, "127.0.0.1", held_port).start()
     assert str(e.value) == _message(held_port)[len("massview: error: "):]
+
+
+def test_render_only_options_given_to_view_are_named_as_ignored(held_port):
+    """view accepts render's flags (one parser) but writes nothing and steers its own camera:
+    --out, --frames, --path ... given to it are named, not silently dropped."""
+    proc = run_cli("view", SMALL_SCENE, "--port", held_port, "--frames", 3, "-o", "xx", "--reference", check=False, timeout=120)
+    assert "massview: note: view ignores -o, --frames, --reference" in proc.stderr, proc.stderr
+    quiet = run_cli("view", SMALL_SCENE, "--port", held_port, "--size", "320x240", check=False, timeout=120)
+    assert "note" not in quiet.stderr

@@ -229,6 +229,9 @@ def cmd_render(args) -> int:
     return 0
 
 
+_VIEW_IGNORES = ("--out", "-o", "--frames", "--path", "--reference", "--pipeline")  # render's options that view accepts and does not use
+
+
 def cmd_view(args, argv) -> int:
     from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
 
@@ -242,6 +245,11 @@ def cmd_view(args, argv) -> int:
     if not in_mpi_job():
         from ..api import validate
         from .viewer.server import check_port
+
+        ignored = [f for f in _VIEW_IGNORES if any(a == f or a.startswith(f + "=") for a in argv)]
+        if ignored:
+            print(f"massview: note: view ignores {', '.join(ignored)} (render's options: the browser steers the camera, "
+                  "and nothing is written)", file=sys.stderr)
 
         check_port(args.host, args.port)  # before the scene is loaded or any rank starts
         from ..core.paths import load_path
