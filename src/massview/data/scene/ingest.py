@@ -15,11 +15,12 @@ keep float32 precision relative to the object instead of ~0.25 m steps at 4e6.
 
 Every object is a *unit* for the :class:`SceneWriter`: its level-0 mesh (redundant vertices
 and faces removed, also those that become so only in float32 local coordinates; normals from
-the file or area-weighted), its LOD levels (:mod:`.simplify`), then its placement (the
-translation to its origin). With ``instance``, structured objects that share a geometry (glTF
-nodes of one mesh) store it once, in its own frame, with their transforms composed with that
-translation. Re-running an interrupted prepare with the same arguments skips the units already
-written; ``complete`` is set last.
+the file, or area-weighted and split where faces meet at more than ``crease_angle`` degrees),
+its LOD levels (:mod:`.simplify`), then its placement (the translation to its origin). With
+``instance``, structured objects that share a geometry (glTF nodes of one mesh) store it once,
+in its own frame, with their transforms composed with that translation. Re-running an
+interrupted prepare with the same arguments skips the units already written; ``complete`` is
+set last.
 """
 
 from __future__ import annotations
@@ -33,7 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from ...core.errors import IngestError
-from .mesh import Mesh, vertex_normals
+from .mesh import Mesh
+from .normals import CREASE_ANGLE
 from .plystream import PlyLayout
 from .simplify import build_levels
 from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_soup, split_dense
@@ -54,6 +56,7 @@ class IngestParams:
     stream_bytes: int = 256 << 20  # binary PLY at least this large is streamed
     face_chunk: int = 1 << 18  # faces per streamed read
     vertex_block: int = 1 << 20  # vertices per streamed vertex read (15-40 MB)
+    crease_angle: float = CREASE_ANGLE  # meshes without normals: split normals at sharper edges (degrees)
 
     def split(self) -> SplitParams:
         return SplitParams(self.object_triangles, self.object_size, self.cell_triangles)
@@ -75,11 +78,12 @@ def _translation(o: np.ndarray) -> np.ndarray:
 def _mesh(p: np.ndarray, col: np.ndarray, nrm: np.ndarray | None, f: np.ndarray) -> tuple[Mesh, np.ndarray]:
     """(the object's mesh in its own frame, float32 positions relative to the origin; the
     origin (3,) f8). Vertices that become equal in float32 are merged again and faces that
-    become degenerate dropped, so the stored mesh has no zero-length edges."""
+    become degenerate dropped, so the stored mesh has no zero-length edges. Without file
+    normals the mesh's normals are a placeholder: :func:`build_levels` splits them."""
     o = local_frame(p)
     q = (np.asarray(p, np.float64) - o).astype(np.float32)
     q, col, nrm, f = clean_soup(Corners(q[f], col[f], None if nrm is None else nrm[f]))
-    n = vertex_normals(q, f) if nrm is None else nrm.astype(np.float32)
+    n = np.zeros((len(q), 3), np.float32) if nrm is None else nrm.astype(np.float32)
     return Mesh(q, n, col.astype(np.uint8), f.astype(np.uint32)), o
 
 
@@ -94,12 +98,14 @@ class _Run:
     def pending(self) -> bool:
         return self.unit >= self.w.geometries_done
 
-    def write(self, mesh: Mesh, placements: list[np.ndarray | None]) -> None:
-        """Write one unit: ``mesh`` (local frame) placed by each of ``placements`` (4x4 f8)."""
+    def write(self, mesh: Mesh, placements: list[np.ndarray | None], crease: bool = False) -> None:
+        """Write one unit: ``mesh`` (local frame) placed by each of ``placements`` (4x4 f8);
+        ``crease``: the file brought no normals, split them at the crease angle."""
         if mesh.triangle_count == 0:  # every face collapsed (degenerate at float32 in its own frame)
             return
         if self.pending():
-            levels, errors = build_levels(mesh, self.prm.max_levels, backend=self.prm.simplifier)
+            levels, errors = build_levels(mesh, self.prm.max_levels, backend=self.prm.simplifier,
+                                          crease=self.prm.crease_angle if crease else None)
             gid = self.w.add_geometry(levels, errors)
             for xf in placements:
                 self.w.add_object(gid, (), xf)
@@ -119,14 +125,14 @@ def _structured(run: _Run, objs: list[StructuredObject]) -> None:
         for group in keys.values():  # the geometry in its own frame, each instance's transform composed with it
             p, col, nrm, f = clean_soup(group[0].corners)
             mesh, origin = _mesh(p, col, nrm, f)
-            run.write(mesh, [np.asarray(o.transform, np.float64) @ _translation(origin) for o in group])
+            run.write(mesh, [np.asarray(o.transform, np.float64) @ _translation(origin) for o in group], nrm is None)
         return
     for o in objs:
         c = o.corners
         p = np.einsum("ij,tkj->tki", o.transform[:3, :3], c.positions.astype(np.float64)) + o.transform[:3, 3]
         p, col, nrm, f = clean_soup(Corners(p, c.colors, None))
         mesh, origin = _mesh(p, col, nrm, f)
-        run.write(mesh, [_translation(origin)])
+        run.write(mesh, [_translation(origin)], True)
 
 
 def _cells_of_memory(soup: MemorySoup, prm: IngestParams):
@@ -218,7 +224,7 @@ def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bo
             for corners in split_dense(cell, prm.cell_triangles):
                 for p, col, nrm, f in cell_objects(corners, prm.split()):
                     mesh, origin = _mesh(p, col, nrm, f)
-                    run.write(mesh, [_translation(origin)])
+                    run.write(mesh, [_translation(origin)], nrm is None)
     attrs = w.finish({"ingest_seconds": round(time.perf_counter() - t0, 3)})
     shutil.rmtree(out / "_spill", ignore_errors=True)
     return {**attrs, "seconds": time.perf_counter() - t0, "input_bytes": sum(p.stat().st_size for p in paths), "resumed": resumed}
