@@ -7,11 +7,20 @@ appended to one spill file per cell under ``SCENE/_spill/`` (removed at the end)
 cells are processed one at a time. A small soup goes through the very same cells in RAM, so
 the streamed and the in-memory ingest write the same store.
 
+Positions stay float64 from the file through cleaning (redundant vertices merged and
+degenerate faces found at float64 precision) and object cutting. Each object is then stored
+in its own frame: float32 coordinates relative to an origin at its box centre, which its
+transform (float64) puts back, so georeferenced inputs (UTM-like coordinates in the millions)
+keep float32 precision relative to the object instead of ~0.25 m steps at 4e6.
+
 Every object is a *unit* for the :class:`SceneWriter`: its level-0 mesh (redundant vertices
-and faces removed, normals from the file or area-weighted), its LOD levels (:mod:`.simplify`),
-then its placement. With ``instance``, structured objects that share a geometry (glTF nodes
-of one mesh) store it once, with their transforms. Re-running an interrupted prepare with the
-same arguments skips the units already written; ``complete`` is set last.
+and faces removed, also those that become so only in float32 local coordinates; normals from
+the file, or area-weighted and split where faces meet at more than ``crease_angle`` degrees),
+its LOD levels (:mod:`.simplify`), then its placement (the translation to its origin). With
+``instance``, structured objects that share a geometry (glTF nodes of one mesh) store it once,
+in its own frame, with their transforms composed with that translation. Re-running an
+interrupted prepare with the same arguments skips the units already written; ``complete`` is
+set last.
 """
 
 from __future__ import annotations
@@ -25,7 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from ...core.errors import IngestError
-from .mesh import Mesh, vertex_normals
+from .mesh import Mesh
+from .normals import CREASE_ANGLE
 from .plystream import PlyLayout
 from .simplify import build_levels
 from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_soup, split_dense
@@ -46,14 +56,35 @@ class IngestParams:
     stream_bytes: int = 256 << 20  # binary PLY at least this large is streamed
     face_chunk: int = 1 << 18  # faces per streamed read
     vertex_block: int = 1 << 20  # vertices per streamed vertex read (15-40 MB)
+    crease_angle: float = CREASE_ANGLE  # meshes without normals: split normals at sharper edges (degrees)
 
     def split(self) -> SplitParams:
         return SplitParams(self.object_triangles, self.object_size, self.cell_triangles)
 
 
-def _mesh(p: np.ndarray, col: np.ndarray, nrm: np.ndarray | None, f: np.ndarray) -> Mesh:
-    n = vertex_normals(p, f) if nrm is None else nrm.astype(np.float32)
-    return Mesh(p.astype(np.float32), n, col.astype(np.uint8), f.astype(np.uint32))
+def local_frame(p: np.ndarray) -> np.ndarray:
+    """The origin (3,) f8 of an object's frame: its box centre, rounded to float32 (so even a
+    float32 copy of the translation is exact)."""
+    p = np.asarray(p, np.float64)
+    return ((p.min(axis=0) + p.max(axis=0)) / 2).astype(np.float32).astype(np.float64)
+
+
+def _translation(o: np.ndarray) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, 3] = o
+    return t
+
+
+def _mesh(p: np.ndarray, col: np.ndarray, nrm: np.ndarray | None, f: np.ndarray) -> tuple[Mesh, np.ndarray]:
+    """(the object's mesh in its own frame, float32 positions relative to the origin; the
+    origin (3,) f8). Vertices that become equal in float32 are merged again and faces that
+    become degenerate dropped, so the stored mesh has no zero-length edges. Without file
+    normals the mesh's normals are a placeholder: :func:`build_levels` splits them."""
+    o = local_frame(p)
+    q = (np.asarray(p, np.float64) - o).astype(np.float32)
+    q, col, nrm, f = clean_soup(Corners(q[f], col[f], None if nrm is None else nrm[f]))
+    n = np.zeros((len(q), 3), np.float32) if nrm is None else nrm.astype(np.float32)
+    return Mesh(q, n, col.astype(np.uint8), f.astype(np.uint32)), o
 
 
 class _Run:
@@ -67,9 +98,14 @@ class _Run:
     def pending(self) -> bool:
         return self.unit >= self.w.geometries_done
 
-    def write(self, mesh: Mesh, placements: list[np.ndarray | None]) -> None:
+    def write(self, mesh: Mesh, placements: list[np.ndarray | None], crease: bool = False) -> None:
+        """Write one unit: ``mesh`` (local frame) placed by each of ``placements`` (4x4 f8);
+        ``crease``: the file brought no normals, split them at the crease angle."""
+        if mesh.triangle_count == 0:  # every face collapsed (degenerate at float32 in its own frame)
+            return
         if self.pending():
-            levels, errors = build_levels(mesh, self.prm.max_levels, backend=self.prm.simplifier)
+            levels, errors = build_levels(mesh, self.prm.max_levels, backend=self.prm.simplifier,
+                                          crease=self.prm.crease_angle if crease else None)
             gid = self.w.add_geometry(levels, errors)
             for xf in placements:
                 self.w.add_object(gid, (), xf)
@@ -86,21 +122,23 @@ def _structured(run: _Run, objs: list[StructuredObject]) -> None:
         keys: dict[str, list[StructuredObject]] = {}
         for o in objs:
             keys.setdefault(o.geometry_key, []).append(o)
-        for group in keys.values():
+        for group in keys.values():  # the geometry in its own frame, each instance's transform composed with it
             p, col, nrm, f = clean_soup(group[0].corners)
-            run.write(_mesh(p, col, nrm, f), [o.transform for o in group])
+            mesh, origin = _mesh(p, col, nrm, f)
+            run.write(mesh, [np.asarray(o.transform, np.float64) @ _translation(origin) for o in group], nrm is None)
         return
     for o in objs:
         c = o.corners
         p = np.einsum("ij,tkj->tki", o.transform[:3, :3], c.positions.astype(np.float64)) + o.transform[:3, 3]
-        p, col, nrm, f = clean_soup(Corners(p.astype(np.float32), c.colors, None))
-        run.write(_mesh(p, col, nrm, f), [None])
+        p, col, nrm, f = clean_soup(Corners(p, c.colors, None))
+        mesh, origin = _mesh(p, col, nrm, f)
+        run.write(mesh, [_translation(origin)], True)
 
 
 def _cells_of_memory(soup: MemorySoup, prm: IngestParams):
-    lo, hi = soup.positions.min(axis=0).astype(float), soup.positions.max(axis=0).astype(float)
+    lo, hi = soup.positions.min(axis=0), soup.positions.max(axis=0)
     dims = cell_grid(lo, hi, len(soup.faces), prm.cell_triangles)
-    cent = soup.positions[soup.faces].astype(np.float64).mean(axis=1)
+    cent = soup.positions[soup.faces].mean(axis=1)
     cell = cell_of(cent, lo, hi, dims)
     order = np.argsort(cell, kind="stable")
     cuts = np.nonzero(np.diff(cell[order]))[0] + 1
@@ -112,13 +150,15 @@ def _spill(lay: PlyLayout, spill: Path, prm: IngestParams, progress) -> int:
     """Stream the PLY's triangles into per-cell spill files; returns the cell count."""
     done = spill / "done.json"
     if done.exists():
-        return int(json.loads(done.read_text())["cells"])
+        d = json.loads(done.read_text())
+        if d.get("positions") == "f8":  # (spill files of an older massview held float32 positions: spill again)
+            return int(d["cells"])
     shutil.rmtree(spill, ignore_errors=True)
     spill.mkdir(parents=True)
     lo, hi = stream_bounds(lay, prm.vertex_block)
     dims = cell_grid(lo, hi, lay.n_faces, prm.cell_triangles)
     for _, c in stream_corners(lay, prm.face_chunk, prm.vertex_block):
-        cell = cell_of(c.positions.astype(np.float64).mean(axis=1), lo, hi, dims)
+        cell = cell_of(c.positions.mean(axis=1), lo, hi, dims)
         order = np.argsort(cell, kind="stable")
         cuts = np.nonzero(np.diff(cell[order]))[0] + 1
         for sel in np.split(order, cuts):
@@ -126,12 +166,12 @@ def _spill(lay: PlyLayout, spill: Path, prm: IngestParams, progress) -> int:
                 fh.write(_pack(c, sel).tobytes())
         progress("read", c.count, lay.n_faces)
     n = int(np.prod(dims))
-    done.write_text(json.dumps({"cells": n}))
+    done.write_text(json.dumps({"cells": n, "positions": "f8"}))
     return n
 
 
 def _record_dtype(normals: bool) -> np.dtype:
-    fields = [("p", "<f4", (3, 3)), ("c", "u1", (3, 4))]
+    fields = [("p", "<f8", (3, 3)), ("c", "u1", (3, 4))]
     return np.dtype(fields + ([("n", "<f4", (3, 3))] if normals else []))
 
 
@@ -183,7 +223,8 @@ def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bo
         for cell in cells:
             for corners in split_dense(cell, prm.cell_triangles):
                 for p, col, nrm, f in cell_objects(corners, prm.split()):
-                    run.write(_mesh(p, col, nrm, f), [None])
+                    mesh, origin = _mesh(p, col, nrm, f)
+                    run.write(mesh, [_translation(origin)], nrm is None)
     attrs = w.finish({"ingest_seconds": round(time.perf_counter() - t0, 3)})
     shutil.rmtree(out / "_spill", ignore_errors=True)
     return {**attrs, "seconds": time.perf_counter() - t0, "input_bytes": sum(p.stat().st_size for p in paths), "resumed": resumed}

@@ -8,7 +8,9 @@ fixed size, so faces are read with ``np.fromfile`` at computed offsets, a chunk 
 
 A chunk's corners are gathered from the vertex section block by block (``vertex_block``
 vertices per read, only the blocks the chunk refers to), so peak memory is one face chunk
-plus one vertex block, whatever the file size.
+plus one vertex block, whatever the file size. Positions are read as float64 (a float or
+double PLY alike), so georeferenced coordinates keep their precision until each object is
+expressed in its own frame (:mod:`.ingest`).
 """
 
 from __future__ import annotations
@@ -128,7 +130,7 @@ def face_chunks(lay: PlyLayout, chunk: int):
 
 
 def _fields(rec: np.ndarray, lay: PlyLayout) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    p = np.stack([rec["x"], rec["y"], rec["z"]], 1).astype(np.float32)
+    p = np.stack([rec["x"], rec["y"], rec["z"]], 1).astype(np.float64)
     if lay.has_colors:
         a = rec["alpha"] if "alpha" in rec.dtype.names else np.full(len(rec), 255)
         c = np.stack([rec["red"], rec["green"], rec["blue"], a], 1).astype(np.uint8)
@@ -142,7 +144,7 @@ def gather_corners(lay: PlyLayout, tri: np.ndarray, block: int) -> Corners:
     """Corner attributes of triangles ``tri`` (m,3), read from the vertex section one block
     of ``block`` vertices at a time (only the blocks ``tri`` refers to)."""
     m = len(tri)
-    pos = np.empty((m * 3, 3), np.float32)
+    pos = np.empty((m * 3, 3), np.float64)
     col = np.empty((m * 3, 4), np.uint8)
     nrm = np.empty((m * 3, 3), np.float32) if lay.has_normals else None
     flat = tri.ravel()

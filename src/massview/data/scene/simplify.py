@@ -7,7 +7,10 @@ Simplification; ``massview bench scene-ingest`` measures the two. Levels stop wh
 no longer removes 20 % of the triangles or fewer than ``min_triangles`` would remain.
 
 Colours of the new vertices are those of the nearest level-0 vertex; normals are recomputed
-from the simplified surface. A level's error is the symmetric Hausdorff distance between
+from the simplified surface. With ``crease`` (a mesh whose file brought no normals), every
+level's normals are split at edges sharper than ``crease`` degrees (:mod:`.normals`): the
+levels are simplified from the welded surface and split afterwards, so the simplifier never
+sees the hard edges as borders. A level's error is the symmetric Hausdorff distance between
 it and level 0, estimated on the vertices (each vertex's exact distance to the nearest of the
 4 triangles whose centroids are nearest; at most 1024 vertices, evenly strided), made non-decreasing over the levels, plus the
 16-bit quantization step — the renderer picks a level from its projected size in pixels.
@@ -18,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from .mesh import Mesh, quantization_error, vertex_normals
+from .normals import crease_split
 
 __all__ = ["build_levels", "is_closed", "simplify_once", "BACKENDS", "surface_distance", "surface_index"]
 
@@ -118,12 +122,19 @@ def _sample(p: np.ndarray) -> np.ndarray:
     return p[::step]
 
 
+def _split(p: np.ndarray, colors: np.ndarray, f: np.ndarray, crease: float) -> Mesh:
+    src, n, tri = crease_split(p, f, crease)
+    return Mesh(np.asarray(p, np.float32)[src], n, colors[src], tri.astype(np.uint32))
+
+
 def build_levels(mesh: Mesh, max_levels: int = 8, min_triangles: int = 64, backend: str = "fast-simplification",
-                 ) -> tuple[list[Mesh], list[float]]:
-    """Level meshes (level 0 = ``mesh`` itself) and their errors (object units, level 0: 0.0)."""
+                 crease: float | None = None) -> tuple[list[Mesh], list[float]]:
+    """Level meshes (level 0 = ``mesh`` itself) and their errors (object units, level 0: 0.0).
+    With ``crease`` (degrees), ``mesh.normals`` are ignored and every level gets normals split
+    at edges sharper than that (level 0 = ``mesh`` with vertices duplicated along them)."""
     from scipy.spatial import cKDTree
 
-    levels, errors = [mesh], [0.0]
+    levels, errors = [mesh if crease is None else _split(mesh.positions, mesh.colors, mesh.indices, crease)], [0.0]
     if mesh.triangle_count == 0:
         return levels, errors
     p0 = mesh.positions.astype(np.float64)
@@ -143,6 +154,7 @@ def build_levels(mesh: Mesh, max_levels: int = 8, min_triangles: int = 64, backe
         index0 = index0 or surface_index(mesh.positions, mesh.indices.astype(np.int64))
         err = max(surface_distance(_sample(p0), q, f), surface_distance(_sample(q), mesh.positions, mesh.indices, index=index0))
         errors.append(max(errors[-1], err + qerr))
-        levels.append(Mesh(q, vertex_normals(q, f), mesh.colors[near], f.astype(np.uint32)))
+        levels.append(Mesh(q, vertex_normals(q, f), mesh.colors[near], f.astype(np.uint32)) if crease is None
+                      else _split(q, mesh.colors[near], f, crease))
         p, t = q, f
     return levels, errors

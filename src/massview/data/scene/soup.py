@@ -39,7 +39,8 @@ class SplitParams:
 
 @dataclass(frozen=True)
 class Corners:
-    """A soup as triangle corners: positions f32 (m,3,3), colours u8 (m,3,4), normals f32 (m,3,3) or None."""
+    """A soup as triangle corners: positions f8 (m,3,3) (absolute: float64 keeps georeferenced
+    coordinates), colours u8 (m,3,4), normals f32 (m,3,3) or None."""
 
     positions: np.ndarray
     colors: np.ndarray
@@ -86,9 +87,10 @@ def split_dense(c: Corners, limit: int) -> list[Corners]:
 
 
 def clean_soup(c: Corners) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
-    """Shared vertices of a corner soup: (positions f32 (v,3), colours u8 (v,4), normals or
-    None, faces i8 (t,3)), redundant vertices merged, degenerate and repeated faces dropped
-    (the first occurrence is kept, in input order)."""
+    """Shared vertices of a corner soup: (positions (v,3) of the corners' dtype, colours u8
+    (v,4), normals or None, faces i8 (t,3)), redundant vertices merged, degenerate and repeated
+    faces dropped (the first occurrence is kept, in input order). Vertices are equal when their
+    bits are, so float64 corners are merged (and faces found degenerate) at float64 precision."""
     m = c.count
     parts = [c.positions.reshape(-1, 3).view(np.uint32), c.colors.reshape(-1, 4).view(np.uint32)[:, :1]]
     if c.normals is not None:

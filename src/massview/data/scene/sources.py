@@ -4,10 +4,12 @@ An input is either *structured* — objects from the file's own structure (glTF 
 their world transforms, OBJ ``o``/``g`` groups) — or one unstructured *soup* (PLY, STL, OFF,
 an OBJ without groups, a glTF with one mesh node) that :mod:`.soup` splits into objects. A
 binary triangle PLY is read with :mod:`.plystream` (streamed when it is large, whole when it
-is small: the same reader either way); everything else goes through trimesh. Inputs are
-checked before anything is written: a directory, an unknown suffix, a file trimesh cannot
-parse, an empty mesh, NaN/infinite coordinates or face indices out of range raise
-:class:`IngestError` naming the file.
+is small: the same reader either way); everything else goes through trimesh. Positions are
+float64 throughout (georeferenced coordinates keep their precision; :mod:`.ingest` expresses
+each object in float32 relative to its own origin). Inputs are checked before anything is
+written: a directory, an unknown suffix, a file trimesh cannot parse, an empty mesh,
+NaN/infinite coordinates or face indices out of range raise :class:`IngestError` naming the
+file.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ class StructuredObject:
 
 @dataclass(frozen=True)
 class MemorySoup:
-    """A soup held in RAM: positions f32 (v,3), colours u8 (v,4) or corner colours u8 (t,3,4),
+    """A soup held in RAM: positions f8 (v,3), colours u8 (v,4) or corner colours u8 (t,3,4),
     normals f32 (v,3) or None, faces i8 (t,3)."""
 
     path: Path
@@ -98,7 +100,7 @@ def _corners_of(m, path: Path, what: str) -> Corners:
     f = np.asarray(m.faces, np.int64).reshape(-1, 3)
     _validate(path, p, f, what)
     col = _trimesh_colors(m)
-    return Corners(p.astype(np.float32)[f], col if col.ndim == 3 else col[f], None)
+    return Corners(p[f], col if col.ndim == 3 else col[f], None)
 
 
 def _obj_groups(path: Path) -> np.ndarray | None:
@@ -153,9 +155,9 @@ def _scene_objects(path: Path, scene) -> list[StructuredObject] | MemorySoup:
         raise IngestError(f"{path}: the scene has no triangle meshes; nothing to ingest")
     if len(out) == 1:
         c = out[0].corners
-        p = np.einsum("ij,tkj->tki", out[0].transform[:3, :3], c.positions.astype(np.float64)) + out[0].transform[:3, 3]
+        p = np.einsum("ij,tkj->tki", out[0].transform[:3, :3], c.positions) + out[0].transform[:3, 3]
         t = np.arange(c.count * 3).reshape(-1, 3)
-        return MemorySoup(path, p.reshape(-1, 3).astype(np.float32), c.colors, None, t)
+        return MemorySoup(path, p.reshape(-1, 3), c.colors, None, t)
     return out
 
 
@@ -184,7 +186,7 @@ def open_input(path: Path, stream_bytes: int) -> list[StructuredObject] | Memory
     p = np.asarray(m.vertices, np.float64)
     f = np.asarray(m.faces, np.int64).reshape(-1, 3)
     _validate(path, p, f)
-    return MemorySoup(path, p.astype(np.float32), _trimesh_colors(m), None, f)
+    return MemorySoup(path, p, _trimesh_colors(m), None, f)
 
 
 def _read_whole_ply(lay: PlyLayout) -> MemorySoup:

@@ -8,9 +8,10 @@ Layout (readable with plain zarr; n objects, G geometries, L = ``levels_max``)::
            checkpoint {geometries, objects, cursor[L]} (ingest progress)
     skeleton/center (n,3) f8, radius (n,) f8, box_lo, box_hi (n,3) f8   world space
     skeleton/levels (n,) i1; triangles, level_bytes (n,L) i8; level_error (n,L) f4
-    skeleton/occluder (n,) bool; group (n,) i4; geometry (n,) i4; transform (n,4,4) f4
+    skeleton/occluder (n,) bool; group (n,) i4; geometry (n,) i4; transform (n,4,4) f8
     groups/parent (g,) i4 (-1: root), box_lo, box_hi (g,3) f8, depth (g,) i2
-    objects/geometry (n,) i4, objects/transform (n,4,4) f4, objects/path (n,D) i4
+    objects/geometry (n,) i4, objects/transform (n,4,4) f8 (f4 in older stores, read
+                 alike), objects/path (n,D) i4
     geometry/offset, nbytes, vertices, triangles (G,L) i8; error (G,L) f4; crc (G,L) u4
     geometry/qlo, qhi (G,3) f8 (level-0 box = quantization box, local); closed (G,) bool;
     geometry/levels (G,) i1; radius (G,) f8 (bounding sphere about the box centre, local)
@@ -20,7 +21,10 @@ Layout (readable with plain zarr; n objects, G geometries, L = ``levels_max``)::
                        few and reading it touches nothing else
 
 ``skeleton/`` and ``groups/`` are derived from ``objects/`` and ``geometry/`` when the ingest
-finishes; ``complete`` is set after them. Level 0 is the input geometry exactly (float32);
+finishes; ``complete`` is set after them. Level 0 is the input geometry to float32 precision
+in the geometry's local frame: ``prepare scene`` puts each object's origin at its box centre
+and its transform translates it back (in float64), so positions far from the world origin
+(georeferenced data) keep float32 precision relative to the object;
 ``level_error`` is a geometric distance in world units (0 at level 0), non-decreasing with the
 level. Groups are the culling hierarchy: every object's ``group`` is a leaf, every group's box
 holds its children's.
@@ -58,7 +62,7 @@ class Skeleton:
     occluder: np.ndarray  # (n,) bool
     group: np.ndarray  # (n,) i4 leaf group
     geometry: np.ndarray  # (n,) i4 geometry id (== object id unless instanced)
-    transform: np.ndarray  # (n,4,4) f4 local -> world (identity unless instanced)
+    transform: np.ndarray  # (n,4,4) f8 local -> world (f4 in older stores)
 
     @property
     def count(self) -> int:

@@ -104,7 +104,7 @@ class SceneWriter:
                 "closed": ((), "bool"), "levels": ((), "int8"), "radius": ((), "float64")}
         for k, (tail, dt) in spec.items():
             g.create_array(f"geometry/{k}", shape=(0, *tail), chunks=(_ROWS, *tail), dtype=dt, fill_value=0)
-        for k, (tail, dt) in {"geometry": ((), "int32"), "transform": ((4, 4), "float32"), "path": ((max(self.D, 1),), "int32")}.items():
+        for k, (tail, dt) in {"geometry": ((), "int32"), "transform": ((4, 4), "float64"), "path": ((max(self.D, 1),), "int32")}.items():
             g.create_array(f"objects/{k}", shape=(0, *tail), chunks=(_ROWS, *tail), dtype=dt, fill_value=0)
 
     # -- producing ------------------------------------------------------------------------
@@ -133,10 +133,11 @@ class SceneWriter:
         return self.n_geom - 1
 
     def add_object(self, geometry: int, path=(), transform: np.ndarray | None = None) -> int:
-        """Place ``geometry`` (local -> world ``transform`` 4x4, identity by default) as a new
-        object at hierarchy ``path`` (``path_depth`` ints); returns the object id."""
+        """Place ``geometry`` (local -> world ``transform`` 4x4, identity by default; kept in
+        float64, so a translation to georeferenced coordinates is exact) as a new object at
+        hierarchy ``path`` (``path_depth`` ints); returns the object id."""
         self.rows["o_geometry"].append(int(geometry))
-        self.rows["o_transform"].append(np.eye(4, dtype=np.float32) if transform is None else np.asarray(transform, np.float32))
+        self.rows["o_transform"].append(np.eye(4) if transform is None else np.asarray(transform, np.float64))
         p = np.zeros(max(self.D, 1), np.int32)
         p[: len(path)] = path
         self.rows["o_path"].append(p)
@@ -241,5 +242,5 @@ def _skeleton(tab: dict, geom: np.ndarray, xf: np.ndarray) -> dict:
         "level_error": (tab["error"][geom] * scale[:, None]).astype(np.float32),
         "level_bytes": decoded_bytes(tab["vertices"][geom], tri).astype(np.int64),
         "occluder": occluder_flags(tab["radius"][geom] * scale, tri[:, 0], tab["closed"][geom]),
-        "geometry": geom.astype(np.int32), "transform": xf.astype(np.float32),
+        "geometry": geom.astype(np.int32), "transform": xf.astype(np.float64),
     }
