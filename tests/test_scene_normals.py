@@ -104,3 +104,14 @@ def test_rendered_cube_faces_are_one_colour_each_and_a_sphere_is_shaded_smoothly
         share[name] = np.sort(counts)[::-1][:3].sum() / len(px)  # at most 3 faces of a cube are seen
     assert share["box.obj"] > 0.97, f"cube faces are not flat: their 3 commonest colours cover {share['box.obj']:.1%}"
     assert share["ball.ply"] < 0.2, f"the sphere is faceted: 3 colours cover {share['ball.ply']:.1%}"
+
+
+def test_weld_gives_np_unique_rows_ids():
+    """normals._weld (a column lexsort) gives np.unique(p, axis=0)'s inverse ids, faster."""
+    from massview.data.scene.normals import _weld
+
+    rng = np.random.default_rng(5)
+    p = rng.integers(0, 6, (5000, 3)).astype(np.float64) * 0.37  # many repeated rows
+    _, want = np.unique(p, axis=0, return_inverse=True)
+    assert np.array_equal(_weld(p), want.reshape(-1))
+    assert len(_weld(np.zeros((0, 3)))) == 0

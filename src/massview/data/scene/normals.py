@@ -18,6 +18,18 @@ __all__ = ["CREASE_ANGLE", "crease_split"]
 CREASE_ANGLE = 50.0  # degrees: hexagonal prisms (60°) and boxes are faceted, octagons (45°) and finer smooth
 
 
+def _weld(p: np.ndarray) -> np.ndarray:
+    """(v,) i8: the same id for vertices at the same position (``np.unique(p, axis=0,
+    return_inverse=True)``'s ids, in its order, ~3× faster: a lexsort of the columns)."""
+    if len(p) == 0:
+        return np.zeros(0, np.int64)
+    o = np.lexsort((p[:, 2], p[:, 1], p[:, 0]))
+    ps = p[o]
+    ids = np.empty(len(p), np.int64)
+    ids[o] = np.cumsum(np.concatenate([[False], np.any(ps[1:] != ps[:-1], axis=1)]))
+    return ids
+
+
 def crease_split(p: np.ndarray, tri: np.ndarray, angle: float = CREASE_ANGLE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(source vertex (v',) i8, unit normals f32 (v',3), triangles (t,3) i8 into the new
     vertices) of the mesh (p (v,3), tri (t,3)) with normals split at edges sharper than
@@ -34,8 +46,7 @@ def crease_split(p: np.ndarray, tri: np.ndarray, angle: float = CREASE_ANGLE) ->
     ln = np.linalg.norm(fn, axis=1)
     un = fn / np.maximum(ln, 1e-300)[:, None]
     flat = ln <= 0  # degenerate faces take any neighbour's group (they weigh nothing)
-    _, weld = np.unique(p, axis=0, return_inverse=True)
-    w = weld.reshape(-1)[tri]
+    w = _weld(p)[tri]
     # every edge of every face: welded ends (a, b) and the corners (3k+i) holding them
     i0, i1 = np.array([0, 1, 2]), np.array([1, 2, 0])
     ea, eb = w[:, i0].ravel(), w[:, i1].ravel()
@@ -43,7 +54,7 @@ def crease_split(p: np.ndarray, tri: np.ndarray, angle: float = CREASE_ANGLE) ->
     cb = (np.arange(t)[:, None] * 3 + i1).ravel()
     face = np.repeat(np.arange(t), 3)
     lo, hi = np.minimum(ea, eb), np.maximum(ea, eb)
-    order = np.lexsort((hi, lo))
+    order = np.argsort(lo * (int(w.max()) + 1) + hi, kind="stable")  # (one int64 key: faster than lexsort((hi, lo)), same order)
     same = (lo[order][1:] == lo[order][:-1]) & (hi[order][1:] == hi[order][:-1])
     e1, e2 = order[:-1][same], order[1:][same]  # consecutive uses of one edge (2 on a manifold)
     f1, f2 = face[e1], face[e2]
