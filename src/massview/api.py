@@ -168,16 +168,15 @@ def _bounds(scene) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _fitted_path(name: str, scene):
-    """The path ``name`` fitted to a Scene or a spec: its box and, for ``walkthrough``, its
-    objects' boxes (what the CLI's render gives it)."""
-    if name != "walkthrough":
-        return load_path(name, *_bounds(scene))
+    """The path ``name`` fitted to a Scene or a spec (opened and closed again): its box and, for
+    ``walkthrough``, the way round its objects (what the CLI's render gives it)."""
+    if not isinstance(scene, Scene):
+        with Scene(scene) as s:
+            return _fitted_path(name, s)
     from .lod.walk import plan_walk
 
-    if isinstance(scene, Scene):
-        return load_path(name, *scene.bounds, route=plan_walk(name, *scene.bounds, scene.obstacles))
-    with Scene(scene) as s:
-        return load_path(name, *s.bounds, route=plan_walk(name, *s.bounds, s.obstacles))
+    route = plan_walk(name, *scene.bounds, scene.obstacles) if name == "walkthrough" else None
+    return load_path(name, *scene.bounds, route=route)
 
 
 def _size(size) -> tuple[int, int]:

@@ -19,6 +19,7 @@ __all__ = [
     "IngestError",
     "OutputError",
     "RankJobError",
+    "describe",
 ]
 
 
@@ -77,3 +78,9 @@ class RankJobError(ParallelError):
     def __init__(self, message: str, returncode: int):
         super().__init__(message)
         self.returncode = returncode
+
+
+def describe(e: BaseException) -> str:
+    """``Type: message`` of an exception, or its type alone where the message is empty (a
+    codec's ``MemoryError()``), for messages that name what failed."""
+    return f"{type(e).__name__}: {e}" if str(e) else type(e).__name__

@@ -67,8 +67,9 @@ def walk_route(lo, hi, box_lo, box_hi, eye_z: float, cells: int = 256) -> np.nda
     clear = distance_transform_edt(~occ) * h if occ.any() else np.full(occ.shape, np.inf)
     walkable = clear >= max(h, 0.3 * body)
     cost = 1.0 + (4.0 * h / np.maximum(clear, 1e-9)) ** 2
+    edges = _edges(walkable, cost)
     for axis in (0, 1):  # west-east, then south-north
-        way = _cheapest_way(walkable, cost, axis)
+        way = _cheapest_way(walkable, edges, axis)
         if way is not None:
             pts = lo[:2] + (np.stack(np.unravel_index(way, walkable.shape), 1) + 0.5) * h
             return _smooth(pts, h, walkable, lo[:2])
@@ -86,12 +87,9 @@ def _footprints(blo: np.ndarray, bhi: np.ndarray, origin: np.ndarray, h: float, 
     return np.cumsum(np.cumsum(d, 0), 1)[:-1, :-1] > 0
 
 
-def _cheapest_way(walkable: np.ndarray, cost: np.ndarray, axis: int) -> np.ndarray | None:
-    """Flat cell indices of the cheapest 8-connected walkable way from the cells at 8–15 % of
-    ``axis`` to those at 85–92 %, or None."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import dijkstra
-
+def _edges(walkable: np.ndarray, cost: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(from, to, weight) of the 8-connected steps between walkable cells (flat indices; each
+    step once), weighted by its length × the mean cost of its two cells."""
     nx, ny = walkable.shape
     idx = np.arange(nx * ny).reshape(nx, ny)
     rows, cols, wts = [], [], []
@@ -103,10 +101,20 @@ def _cheapest_way(walkable: np.ndarray, cost: np.ndarray, axis: int) -> np.ndarr
         rows.append(idx[a][ok])
         cols.append(idx[b][ok])
         wts.append(w[ok])
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(wts)
+
+
+def _cheapest_way(walkable: np.ndarray, edges: tuple, axis: int) -> np.ndarray | None:
+    """Flat cell indices of the cheapest walkable way along :func:`_edges` from the cells at
+    8–15 % of ``axis`` to those at 85–92 %, or None."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    nx, ny = walkable.shape
     size, mid = walkable.shape[axis], (walkable.shape[1 - axis] - 1) / 2
     first, last = int(0.08 * size), int(0.92 * size)
-    along = np.arange(walkable.size) // ny if axis == 0 else np.arange(walkable.size) % ny
-    across = np.arange(walkable.size) % ny if axis == 0 else np.arange(walkable.size) // ny
+    i, j = np.divmod(np.arange(walkable.size), ny)
+    along, across = (i, j) if axis == 0 else (j, i)
     flat = walkable.reshape(-1)
     starts = np.flatnonzero(flat & (along >= first) & (along <= int(0.15 * size)))
     goals = np.flatnonzero(flat & (along >= int(0.85 * size)) & (along <= last))
@@ -117,7 +125,7 @@ def _cheapest_way(walkable: np.ndarray, cost: np.ndarray, axis: int) -> np.ndarr
     # can cost, so the walk spans 8–92 % wherever that is open), through one source joined to
     # the start cells and added to the goals' distances.
     src = nx * ny
-    r, c, w = np.concatenate(rows), np.concatenate(cols), np.concatenate(wts)
+    r, c, w = edges
     g = coo_matrix((np.concatenate([w, w, np.abs(across[starts] - mid) + _EDGE * (along[starts] - first) + 1.0]),
                     (np.concatenate([r, c, np.full(len(starts), src)]), np.concatenate([c, r, starts]))), shape=(src + 1,) * 2).tocsr()
     dist, pred = dijkstra(g, directed=True, indices=src, return_predecessors=True)

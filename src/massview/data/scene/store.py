@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...core.errors import BlockNotFoundError, CorruptBlockError, StoreError
+from ...core.errors import BlockNotFoundError, CorruptBlockError, StoreError, describe
 from .mesh import Mesh, crc32, decode_record
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "SceneStore", "Skeleton", "GroupTree", "Mesh", "is_scene_store"]
@@ -184,10 +184,6 @@ class ShardReader:
 REBUILD = "re-run `massview prepare scene` / `massview generate scene` with --overwrite"
 
 
-def _why(e: BaseException) -> str:
-    return f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
-
-
 def is_scene_store(path) -> bool:
     """True when ``path`` is a zarr group whose format attribute names a scene store."""
     import json
@@ -241,7 +237,7 @@ class SceneStore:
         try:
             return self.group_[name]
         except Exception as e:  # noqa: BLE001 - KeyError, JSONDecodeError, zarr's own errors
-            raise StoreError(f"{self.path}: the array {name} does not open ({_why(e)}); the store is damaged — {REBUILD}") from None
+            raise StoreError(f"{self.path}: the array {name} does not open ({describe(e)}); the store is damaged — {REBUILD}") from None
 
     def read(self, name: str) -> np.ndarray:
         """The whole array ``name`` (a table: small), a StoreError naming it where it does not
@@ -250,7 +246,7 @@ class SceneStore:
         try:
             return np.asarray(arr[...])
         except Exception as e:  # noqa: BLE001 - codec errors come in many types
-            raise StoreError(f"{self.path}: the array {name} does not decode ({_why(e)}); the store is damaged — {REBUILD}") from None
+            raise StoreError(f"{self.path}: the array {name} does not decode ({describe(e)}); the store is damaged — {REBUILD}") from None
 
     def _shard_reader(self, lv: int) -> ShardReader | None:
         import json
@@ -304,7 +300,7 @@ class SceneStore:
             raise CorruptBlockError(f"{self._where(gid, lv)} does not decode: {e}; the store is damaged — {REBUILD}",
                                     file=e.file) from None
         except Exception as e:  # noqa: BLE001 - codec errors come in many types
-            raise CorruptBlockError(f"{self._where(gid, lv)} does not decode ({_why(e)}); "
+            raise CorruptBlockError(f"{self._where(gid, lv)} does not decode ({describe(e)}); "
                                     f"the store is damaged — {REBUILD}") from None
         if crc32(buf) != int(self.tables["crc"][gid, lv]):
             miss = d.missing(off, nb) if d is not None else []

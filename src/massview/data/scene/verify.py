@@ -111,7 +111,7 @@ def verify_scene(path, progress=None) -> list[str]:
             problems.append(f"missing file {f}: it held {len(hits)} record(s), the first {first}; the store is damaged — {REBUILD}")
         else:
             problems.append(f"{first}: {e}{more}")
-    xf = np.asarray(st.group_["objects/transform"][...])
+    xf = st.read("objects/transform")
     want = _skeleton(st.tables, sk.geometry, xf)
     for k in ("center", "radius", "box_lo", "box_hi", "triangles", "level_error", "level_bytes", "levels"):
         bad = np.nonzero(~np.isclose(np.asarray(getattr(sk, k), float), np.asarray(want[k], float), rtol=1e-6, atol=1e-9)

@@ -25,7 +25,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from ...core.errors import CorruptBlockError, StoreError
+from ...core.errors import CorruptBlockError, StoreError, describe
 from .store import TerrainStore
 
 __all__ = ["C_RANGE", "k_factor", "local_d2", "propagate_into", "DEFAULT_C_MIN", "compute_table", "write_table",
@@ -355,7 +355,7 @@ class RoettgerTable:
                     break
             if where:
                 break
-        why = f"{type(err).__name__}: {err}" if str(err) else type(err).__name__
+        why = describe(err)
         f = self.path / "roettger" / "d2" / str(t) / arr.metadata.encode_chunk_key(where) if where else None
         return (f"{self.path}: the Röttger table array roettger/d2/{t} does not decode "
                 f"{f'at chunk {where} ({why}); the file {f} is damaged' if f else f'({why}); the store is damaged'} — "

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...core.errors import StoreError
+from ...core.errors import StoreError, describe
 from .ingest import compute_metadata
 from .meta import reduce_max
 from .roettger import has_table, iter_table
@@ -116,7 +116,7 @@ def _check_pyramid_chunks(store: TerrainStore, what: str, prog) -> list[str]:
                 try:
                     np.asarray(arr[i, j])
                 except Exception as e:  # noqa: BLE001 - codec errors come in many types
-                    bad.append(f"{label} block (level {lv}, {i}, {j}) does not decode ({_why(e)}); the file {f} is damaged — "
+                    bad.append(f"{label} block (level {lv}, {i}, {j}) does not decode ({describe(e)}); the file {f} is damaged — "
                                "re-run prepare with --overwrite")
             prog(f"verify {what}", nb, total)
         out += _capped(bad, f"{what}/{lv}")
@@ -151,16 +151,12 @@ def _check_roettger(store: TerrainStore, prog) -> list[str]:
                 try:
                     have = np.asarray(arr[sl])
                 except Exception as e:  # noqa: BLE001
-                    bad.append(f"{name}: chunk ({ci}, {cj}) does not decode ({_why(e)}); the file {f} is damaged — {fix}")
+                    bad.append(f"{name}: chunk ({ci}, {cj}) does not decode ({describe(e)}); the file {f} is damaged — {fix}")
                     continue
                 if not np.allclose(have, want[sl], rtol=1e-6, atol=0):
                     bad.append(f"{name}: chunk ({ci}, {cj}) ({f}) differs from the roughness the heights give; {fix}")
         out += _capped(bad, name)
     return out
-
-
-def _why(e: Exception) -> str:
-    return f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
 
 
 def _capped(bad: list[str], name: str) -> list[str]:
