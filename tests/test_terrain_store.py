@@ -285,6 +285,55 @@ def test_orthophoto_colours_the_pyramid(tmp_path):
         prepare_terrain(ArraySource(a, "x"), tmp_path / "bad.zarr", block=129, ortho=open_source(tmp_path / "d.npy"))
 
 
+def _geotiff(path, a, x0, y0, px, crs="EPSG:32632"):
+    """``a`` (h, w) float32 or (3, h, w) uint8 as a north-up GeoTIFF at (x0, y0) with ``px`` pixels."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    bands = a if a.ndim == 3 else a[None]
+    with rasterio.open(path, "w", driver="GTiff", width=bands.shape[2], height=bands.shape[1], count=bands.shape[0],
+                       dtype=bands.dtype, transform=from_origin(x0, y0, px, px), crs=crs) as ds:
+        ds.write(bands)
+    return path
+
+
+def test_orthophoto_is_placed_by_its_georeference(tmp_path):
+    """A georeferenced DEM and orthophoto: each sample takes the image pixel at its place (not the
+    image stretched over the DEM); an image covering half the DEM is used for that half, with a
+    note; an image of another place, or in another CRS, is an error that leaves no store."""
+    dem = synthetic_heights(0, 260, 0, 260, 260, 3).astype(np.float32)
+    _geotiff(tmp_path / "dem.tif", dem, 500000, 4000000, 10)  # 2600 m square
+    rng = np.random.default_rng(4)
+    fine = rng.integers(0, 256, (3, 520, 520), dtype=np.uint8)  # the same square at 5 m
+    _geotiff(tmp_path / "fine.tif", fine, 500000, 4000000, 5)
+    res = prepare_terrain(open_source(tmp_path / "dem.tif"), tmp_path / "f.zarr", block=129, ortho=open_source(tmp_path / "fine.tif"))
+    assert not any("cover" in w or "stretch" in w for w in res.warnings)
+    c = TerrainStore(tmp_path / "f.zarr").get_color(0, 1, 0)  # rows 128..256, cols 0..128
+    assert np.array_equal(c, np.moveaxis(fine, 0, -1)[256:514:2, 0:258:2])
+    # east half only: DEM columns 130..259 lie in the image, at its columns 0..129 (same 10 m pixels)
+    half = rng.integers(0, 256, (3, 260, 130), dtype=np.uint8)
+    _geotiff(tmp_path / "half.tif", half, 501300, 4000000, 10)
+    res = prepare_terrain(open_source(tmp_path / "dem.tif"), tmp_path / "h.zarr", block=129, ortho=open_source(tmp_path / "half.tif"))
+    assert any("covers 50% of the DEM" in w for w in res.warnings), res.warnings
+    s, img = TerrainStore(tmp_path / "h.zarr"), np.moveaxis(half, 0, -1)
+    assert np.array_equal(s.get_color(0, 0, 1)[:, 2:], img[0:129, 0:127])  # block column 1 = DEM cols 128..256
+    assert np.array_equal(s.get_color(0, 0, 1)[:, 0], img[0:129, 0])  # cols 128, 129: west of the image, its edge pixel
+    # another place, another CRS: errors before anything is written
+    _geotiff(tmp_path / "far.tif", half, 900000, 4000000, 10)
+    with pytest.raises(IngestError, match=r"far.tif does not cover the DEM dem.tif.*x 900000\.\.901300"):
+        prepare_terrain(open_source(tmp_path / "dem.tif"), tmp_path / "x.zarr", block=129, ortho=open_source(tmp_path / "far.tif"))
+    _geotiff(tmp_path / "utm33.tif", fine, 500000, 4000000, 5, crs="EPSG:32633")
+    with pytest.raises(IngestError, match=r"utm33.tif: its CRS \(EPSG:32633\) differs from the DEM's \(EPSG:32632\)"):
+        prepare_terrain(open_source(tmp_path / "dem.tif"), tmp_path / "x.zarr", block=129, ortho=open_source(tmp_path / "utm33.tif"))
+    assert not (tmp_path / "x.zarr").exists()
+    # a DEM with only a spacing (no place): the image is stretched, and prepare says so
+    np.save(tmp_path / "d.npy", dem)
+    res = prepare_terrain(open_source(tmp_path / "d.npy", spacing="10"), tmp_path / "s.zarr", block=129,
+                          ortho=open_source(tmp_path / "half.tif"))
+    assert any("d.npy has no georeference, so half.tif is stretched" in w for w in res.warnings), res.warnings
+    assert np.array_equal(TerrainStore(tmp_path / "s.zarr").get_color(0, 0, 0)[:, ::2][:, :5], np.moveaxis(half, 0, -1)[0:129, 0:5])
+
+
 def _interrupted_prepare(monkeypatch, dem, out, **kw):
     """A real prepare of the file ``dem`` stopped (KeyboardInterrupt) after its first two strips."""
     from massview.data.terrain import ingest

@@ -163,7 +163,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                     help="sample spacing for inputs without a georeference (.npy, .npz, raw, plain TIFF), in the CRS's units "
                          "(metres without --crs); default: FILE.json beside the input, else 1 m (with a warning)")
     pt.add_argument("--crs", default=None, help="CRS of an input without one, e.g. EPSG:32632 (anything rasterio understands)")
-    pt.add_argument("--color", default=None, help="orthophoto (RGB GeoTIFF covering the DEM) for the colour pyramid")
+    pt.add_argument("--color", default=None, help="orthophoto (RGB GeoTIFF) for the colour pyramid: placed by georeference when it and the DEM both have one (same CRS; an image of another place is an error), otherwise stretched over the DEM")
     pt.add_argument("--no-color", action="store_true", help="no colour pyramid")
     pt.add_argument("--overwrite", action="store_true", help="rebuild a complete store")
     pt.add_argument("--workers", type=int, default=0, help="worker threads (default 0: every core); the output does not depend on it")

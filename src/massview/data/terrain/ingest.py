@@ -59,7 +59,7 @@ from .colors import write_shading
 from .deviation import coarse_lattice
 from .layout import TerrainLayout
 from .metadata import Metadata, MetadataBuilder, compute_metadata, write_colors, write_metadata
-from .sources import RasterSource
+from .sources import RasterSource, place_ortho
 from .store import ChunkWriter, TerrainStore, block_view, create_store, wide_row
 from .workers import BufferPool, resolve_workers, run_ordered
 
@@ -203,6 +203,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
              "nodata": {"value": None if src.nodata is None else float(src.nodata), "filled": 0},
              "source": src.name, "source_stamp": src.stamp, "source_dtype": str(src.dtype), "color": None}
     workers = resolve_workers(workers)  # (a bad count is an error before the store exists)
+    place = place_ortho(src, ortho) if ortho is not None else None  # (so is an orthophoto of another place)
     restarted: list[str] = []
     g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite, restarted)
     prog = progress or (lambda phase, adv, total: None)
@@ -217,7 +218,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
             if not resumed:  # created by this run, nothing of value in it: leave no store behind
                 shutil.rmtree(out, ignore_errors=True)
             raise
-        meta = _shading_and_tables(g, out, lay, build, table, stages, prog, workers, ortho, vertical_scale, edges)
+        meta = _shading_and_tables(g, out, lay, build, table, stages, prog, workers, ortho, vertical_scale, edges, place)
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
@@ -225,6 +226,8 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     if restarted:
         res.warnings.append(f"{out}: an interrupted prepare was there, but its {', '.join(restarted)} differ from this run's; "
                             "it was started again from the beginning")
+    if place is not None and place.note:
+        res.warnings.append(place.note)
     if res.filled_fraction > 0.5:
         res.warnings.append(f"{src.name}: {res.filled_fraction:.0%} of the samples were nodata/NaN/inf and were filled from their "
                             "neighbours; check the nodata value (--nodata) and the extent")
@@ -267,7 +270,7 @@ def _stage(stages: dict, name: str):
 
 
 def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder, table, stages: dict, prog: Progress,
-                        workers: int, ortho, vertical_scale: float, edges: dict) -> Metadata:
+                        workers: int, ortho, vertical_scale: float, edges: dict, place=None) -> Metadata:
     """Phases 3–5 after the pyramid pass: the Röttger table, the shading pyramid (its level-0
     pass also computes the exact errors over lattice squares larger than a block, which need
     the coarse lattice of the finished pyramid), the orthophoto colour and the metadata arrays."""
@@ -296,7 +299,7 @@ def _shading_and_tables(g, out: Path, lay: TerrainLayout, build: MetadataBuilder
     with _stage(stages, "colour, metadata"):
         meta = build.finish()
         if ortho is not None:
-            write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog)
+            write_colors(store, lay, zlo, zhi, ortho, vertical_scale, prog, place)
         write_metadata(g, lay, meta)
     return meta
 

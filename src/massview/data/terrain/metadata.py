@@ -155,8 +155,16 @@ def compute_metadata(store: TerrainStore, prog: Progress, write_color: bool = Fa
     return meta
 
 
-def write_colors(store: TerrainStore, lay: TerrainLayout, zlo: float, zhi: float, ortho, vscale: float, prog: Progress) -> None:
+def write_colors(store: TerrainStore, lay: TerrainLayout, zlo: float, zhi: float, ortho, vscale: float, prog: Progress,
+                 place=None) -> None:
+    """The colour pyramid from the orthophoto ``ortho``, placed by ``place`` (None: stretched
+    over the DEM's extent)."""
     import zarr
+
+    if place is None:
+        from .sources import OrthoPlacement
+
+        place = OrthoPlacement(ortho.rows / lay.rows, 0.0, ortho.cols / lay.cols, 0.0, False)
 
     g = zarr.open_group(str(store.path), mode="r+")
     total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
@@ -164,19 +172,19 @@ def write_colors(store: TerrainStore, lay: TerrainLayout, zlo: float, zhi: float
         nb = lay.blocks(lv)
         dst = g[f"color/{lv}"]
         for i in range(nb):
-            dst[i] = np.stack([_ortho_block(ortho, lay, lv, i, j) for j in range(nb)])
+            dst[i] = np.stack([_ortho_block(ortho, lay, lv, i, j, place) for j in range(nb)])
             prog("colour", nb, total)
 
 
-def _ortho_block(ortho, lay: TerrainLayout, lv: int, i: int, j: int) -> np.ndarray:
-    """Orthophoto pixels for a block, resampled (nearest) from an image covering the DEM extent."""
+def _ortho_block(ortho, lay: TerrainLayout, lv: int, i: int, j: int, place) -> np.ndarray:
+    """Orthophoto pixels for a block, resampled (nearest) as ``place`` (a
+    :class:`sources.OrthoPlacement`) says: stretched over the DEM's extent, or by georeference."""
     M = lay.M
     step = 2**lv
     rows = (i * (M - 1) + np.arange(M)) * step
     cols = (j * (M - 1) + np.arange(M)) * step
-    fy, fx = ortho.rows / lay.rows, ortho.cols / lay.cols
-    ry = np.clip((np.minimum(rows, lay.rows - 1) * fy).astype(int), 0, ortho.rows - 1)
-    rx = np.clip((np.minimum(cols, lay.cols - 1) * fx).astype(int), 0, ortho.cols - 1)
+    ry = np.clip(np.floor(np.minimum(rows, lay.rows - 1) * place.sy + place.ty).astype(int), 0, ortho.rows - 1)
+    rx = np.clip(np.floor(np.minimum(cols, lay.cols - 1) * place.sx + place.tx).astype(int), 0, ortho.cols - 1)
     r0, r1, c0, c1 = ry.min(), ry.max() + 1, rx.min(), rx.max() + 1
     rgb = ortho.read_rgb(r0, r1, c0, c1)
     return rgb[np.ix_(ry - r0, rx - c0)]

@@ -21,13 +21,15 @@ from __future__ import annotations
 import math
 import re
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ...core.errors import IngestError
 
-__all__ = ["RasterSource", "open_source", "ArraySource", "crs_name", "sidecar_path", "write_sidecar", "parse_spacing"]
+__all__ = ["RasterSource", "open_source", "ArraySource", "crs_name", "sidecar_path", "write_sidecar", "parse_spacing",
+           "OrthoPlacement", "place_ortho"]
 
 
 class RasterSource:
@@ -39,6 +41,7 @@ class RasterSource:
     transform: tuple[float, ...] | None = None
     name: str = ""
     stamp: list | None = None  # a file input's [size, mtime_ns] (open_source): a resumed prepare checks it
+    anchored: bool = True  # the transform places the raster (False: only a spacing was given, origin 0, 0)
 
     def _raw(self, r0, r1, c0, c1) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -277,6 +280,7 @@ def _georeference(src: RasterSource, p: Path, spacing, crs) -> None:
                               "--spacing is for inputs without one")
         dx, dy = parse_spacing(spacing, what)
         src.transform = (0.0, dx, 0.0, 0.0, 0.0, -dy)
+        src.anchored = False
     if crs is not None:
         if src.crs is not None:
             raise IngestError(f"{p}: has its own CRS ({crs_name(src.crs)}); --crs is for inputs without one")
@@ -329,3 +333,78 @@ def open_source(path, *, nodata=None, array: str | None = None, shape: tuple[int
     st = p.stat()
     src.stamp = [st.st_size, st.st_mtime_ns]
     return src
+
+
+@dataclass(frozen=True)
+class OrthoPlacement:
+    """Which orthophoto pixel colours each DEM sample: image row ``floor(sy·r + ty)`` and column
+    ``floor(sx·c + tx)`` of DEM sample (r, c), clamped to the image (samples outside it take the
+    nearest edge pixel). ``georeferenced``: placed by both rasters' transforms; otherwise the
+    image is stretched over the DEM's extent. ``note``: what ``prepare`` should tell the user."""
+
+    sy: float
+    ty: float
+    sx: float
+    tx: float
+    georeferenced: bool
+    covered: float = 1.0
+    note: str | None = None
+
+
+def _north_up(t) -> bool:
+    return t is not None and t[2] == 0 and t[4] == 0 and t[1] != 0 and t[5] != 0
+
+
+def _bounds(src: RasterSource) -> str:
+    c, a, _, f, _, e = src.transform
+    xs, ys = sorted((c, c + a * src.cols)), sorted((f, f + e * src.rows))
+    return f"x {xs[0]:.10g}..{xs[1]:.10g}, y {ys[0]:.10g}..{ys[1]:.10g}"
+
+
+def _same_crs(a: str, b: str) -> bool:
+    try:
+        from rasterio.crs import CRS
+
+        return CRS.from_user_input(a) == CRS.from_user_input(b)
+    except Exception:  # noqa: BLE001 - unparsable: compare the text
+        return a.strip() == b.strip()
+
+
+def _axis_cover(s: float, t: float, n: int, size: int) -> float:
+    """Fraction of the DEM samples 0..n-1 of one axis whose image index ``s·i + t`` lies in [0, size)."""
+    idx = np.floor(s * np.arange(n) + t)
+    return float(np.count_nonzero((idx >= 0) & (idx < size))) / n
+
+
+def place_ortho(dem: RasterSource, ortho: RasterSource) -> OrthoPlacement:
+    """How ``ortho`` colours ``dem`` (see :class:`OrthoPlacement`). Where both rasters carry a
+    georeference from their files (north-up transforms, the same CRS), the image is placed by
+    it: an image of another place is an error, one covering part of the DEM a note. Otherwise
+    (either has none, or only a ``--spacing``) the image is stretched over the DEM, as before."""
+    stretch = OrthoPlacement(ortho.rows / dem.rows, 0.0, ortho.cols / dem.cols, 0.0, False)
+    dem_geo = dem.transform is not None and dem.anchored
+    ortho_geo = ortho.transform is not None and ortho.anchored
+    if not (dem_geo and ortho_geo):
+        if dem_geo != ortho_geo:
+            which, other = (ortho, dem) if ortho_geo else (dem, ortho)
+            return OrthoPlacement(**{**stretch.__dict__, "note": f"{other.name} has no georeference, so {ortho.name} is stretched "
+                                     f"over the DEM's extent ({which.name}'s georeference is not used)"})
+        return stretch
+    if dem.crs and ortho.crs and not _same_crs(dem.crs, ortho.crs):
+        raise IngestError(f"--color {ortho.name}: its CRS ({crs_name(ortho.crs)}) differs from the DEM's ({crs_name(dem.crs)}); "
+                          "reproject it to the DEM's CRS first (e.g. gdalwarp -t_srs)")
+    if not (_north_up(dem.transform) and _north_up(ortho.transform)):
+        raise IngestError(f"--color {ortho.name}: a rotated or sheared georeference is not supported; warp the image and the DEM "
+                          "to north-up grids first (e.g. gdalwarp)")
+    c, a, _, f, _, e = dem.transform
+    oc, oa, _, of, _, oe = ortho.transform
+    sy, ty, sx, tx = e / oe, (f - of) / oe, a / oa, (c - oc) / oa
+    cover = _axis_cover(sy, ty, dem.rows, ortho.rows) * _axis_cover(sx, tx, dem.cols, ortho.cols)
+    if cover == 0:
+        raise IngestError(f"--color {ortho.name} does not cover the DEM {dem.name}: the image spans {_bounds(ortho)}, the DEM "
+                          f"{_bounds(dem)}; give an orthophoto of the same area")
+    note = None
+    if cover < 0.999:
+        note = (f"{ortho.name} covers {cover:.0%} of the DEM {dem.name} (image {_bounds(ortho)}, DEM {_bounds(dem)}); "
+                "samples outside it take the colour of the image's nearest edge pixel")
+    return OrthoPlacement(sy, ty, sx, tx, True, cover, note)
