@@ -118,3 +118,32 @@ def test_a_generated_city_is_walked_through_its_streets(tmp_path):
     assert _clearance(eyes, blo[stands], bhi[stands]) > 0.3
     straight = np.array([c.position for c in load_path("walkthrough", lo, hi).cameras(12, 64, 48)])
     assert _clearance(straight, blo[stands], bhi[stands]) == 0.0  # (what the issue was)
+
+
+def test_walkthrough_on_a_terrain_walks_on_its_ground(terrain_store, tmp_path):
+    """On a terrain store ``walkthrough`` keeps the eye 1.7 units above the ground under it (it
+    stood 1.7 above the lowest sample of the whole DEM, under the surface almost everywhere, and
+    its frames showed the terrain from below), with a near plane inside that height; with
+    --exaggeration the ground is the exaggerated one. The frames show ground below, sky above."""
+    import massview as mv
+    from massview.data.terrain import TerrainStore
+    from tests.conftest import load_png, not_sky, run_cli
+
+    st = TerrainStore(terrain_store)
+    lay, (dx, dy), vs = st.layout, st.spacing, st.vertical_scale
+    cams = mv.path("walkthrough", str(terrain_store), frames=6, size=(160, 100))
+    for c in cams:
+        col, row = c.position[0] / dx, -c.position[1] / dy
+        r0, c0 = int(np.floor(row)), int(np.floor(col))
+        blk = st.get_block(0, r0 // (lay.M - 1), c0 // (lay.M - 1))
+        lr, lc = r0 % (lay.M - 1), c0 % (lay.M - 1)
+        ground = float(blk[lr:lr + 2, lc:lc + 2].max()) * vs
+        assert c.position[2] == pytest.approx(ground + 1.7, abs=1e-6)
+        assert c.near < 1.7
+    out = tmp_path / "w"
+    run_cli("render", terrain_store, "--path", "walkthrough", "--frames", 3, "--size", "160x100", "--exaggeration", 3,
+            "--out", out, "-q")
+    for k in range(3):
+        f = load_png(out / "frames" / f"{k:05d}.png")
+        assert not_sky(f[-10:]) == 10 * 160, f"frame {k}: sky below the eye (the eye is under the ground)"
+        assert not_sky(f[:10]) < 0.75 * 10 * 160, f"frame {k}: no sky in the top rows"

@@ -81,6 +81,21 @@ class Scene:
             return getattr(self._system, "obstacles", None)
         return scene_obstacles(self.spec, self.kind)
 
+    def ground(self, exaggeration: float = 1.0):
+        """The surface the ``walkthrough`` path walks on: a terrain's (``xy (n, 2) -> z (n,)``,
+        world units, at ``exaggeration``), from the store alone; None for other scenes."""
+        if self.kind != "terrain":
+            return None
+        from functools import partial
+
+        from .data.terrain import TerrainStore
+        from .lod.columns import heights
+        from .lod.walk import terrain_ground
+
+        st = TerrainStore(self.spec)
+        base = float(np.min(st.height_ranges(0)[0])) * st.vertical_scale  # (the hierarchy's base, as world_box has it)
+        return terrain_ground(st, partial(heights, base, st.vertical_scale, float(exaggeration)))
+
     def system(self, cfg: RenderConfig):
         """The in-process rendering system for ``cfg`` (reopened when budgets or loading change)."""
         from .systems import open_system
@@ -167,16 +182,18 @@ def _bounds(scene) -> tuple[np.ndarray, np.ndarray]:
         return s.bounds
 
 
-def _fitted_path(name: str, scene):
+def _fitted_path(name: str, scene, exaggeration: float = 1.0):
     """The path ``name`` fitted to a Scene or a spec (opened and closed again): its box and, for
-    ``walkthrough``, the way round its objects (what the CLI's render gives it)."""
+    ``walkthrough``, the way round its objects or the terrain it walks on (what the CLI's render
+    gives it)."""
     if not isinstance(scene, Scene):
         with Scene(scene) as s:
-            return _fitted_path(name, s)
+            return _fitted_path(name, s, exaggeration)
     from .lod.walk import plan_walk
 
-    route = plan_walk(name, *scene.bounds, scene.obstacles) if name == "walkthrough" else None
-    return load_path(name, *scene.bounds, route=route)
+    walk = name == "walkthrough"
+    route = plan_walk(name, *scene.bounds, scene.obstacles) if walk else None
+    return load_path(name, *scene.bounds, route=route, ground=scene.ground(exaggeration) if walk else None)
 
 
 def _size(size) -> tuple[int, int]:
@@ -234,7 +251,8 @@ def _count(v, name: str) -> int:
 
 def path(name_or_file: str | Path, scene: Scene | str, frames: int = 10, size=(1280, 1024)) -> list[Camera]:
     """``frames`` cameras along a built-in path (``turn``, ``zoom``, ``forward``, ``orbit``,
-    ``flyover``, ``walkthrough``, fitted to the scene; ``walkthrough`` walks round its objects)
+    ``flyover``, ``walkthrough``, fitted to the scene; ``walkthrough`` walks round its objects, or
+    at eye height on a terrain)
     or a keyframe ``.json`` file (clip planes fitted to the
     scene unless the file gives ``near``/``far``)."""
     w, h = _size(size)
@@ -295,7 +313,7 @@ def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
     if isinstance(what, Camera):
         return [what], "camera"
     if isinstance(what, (str, Path)):
-        return _fitted_path(str(what), scene).cameras(cfg.frames, cfg.width, cfg.height), str(what)
+        return _fitted_path(str(what), scene, cfg.exaggeration).cameras(cfg.frames, cfg.width, cfg.height), str(what)
     try:
         cams = list(what)
     except TypeError:

@@ -93,7 +93,8 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
         decomposition, compositor = system.split_label(cfg)
     if rank == 0 and cameras is None:
         route = plan_walk(cfg.path, *system.bounds, getattr(system, "obstacles", None))
-        cameras = load_path(cfg.path, *system.bounds, route=route).cameras(cfg.frames, cfg.width, cfg.height)
+        ground = system.ground(cfg) if cfg.path == "walkthrough" and hasattr(system, "ground") else None
+        cameras = load_path(cfg.path, *system.bounds, route=route, ground=ground).cameras(cfg.frames, cfg.width, cfg.height)
     nframes = comm.bcast(len(cameras) if rank == 0 else None, root=0)
     is_display = any(r == rank for r, _ in display_tiles(cfg, n))
     if rank == 0 and out is not None:

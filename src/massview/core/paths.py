@@ -27,6 +27,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -168,13 +169,15 @@ class ParametricPath(CameraPath):
     """One of the built-in paths, fitted to the box ``lo``..``hi`` (world units, +z up).
     ``route``: xy waypoints (k, 2) that ``walkthrough`` walks along at eye height (planned round
     a scene's objects by :func:`massview.lod.walk.plan_walk`); without one it walks the straight
-    swaying line."""
+    swaying line. ``ground`` (xy (n, 2) → z (n,), :func:`massview.lod.walk.terrain_ground`):
+    the surface ``walkthrough`` walks on — a terrain's — instead of the box's bottom."""
 
     name: str
     lo: np.ndarray
     hi: np.ndarray
     fovy: float = 45.0
     route: np.ndarray | None = field(default=None, compare=False, repr=False)
+    ground: Callable | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         if self.name not in BUILTIN_PATHS:
@@ -187,7 +190,10 @@ class ParametricPath(CameraPath):
         return float(max(np.linalg.norm((self.hi - self.lo)[:2]), 1e-9))
 
     def clip(self):
-        return scene_clip(self.lo, self.hi)
+        near, far = scene_clip(self.lo, self.hi)
+        if self.name == "walkthrough" and self.ground is not None:  # 1.7 units above a surface that reaches
+            near = min(near, 0.25 * _EYE)                       # up to the eye's feet: the near plane inside
+        return near, far                                          # the eye height, not 2e-4 of the whole box
 
     def cameras(self, frames: int, width: int, height: int) -> list[Camera]:
         """As :meth:`CameraPath.cameras`, except that the closed loops (``turn``, ``orbit``: a
@@ -273,6 +279,8 @@ class ParametricPath(CameraPath):
     def _walk(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Eye height through the scene, looking ahead (slightly down): along the route at
         constant speed, else along x swaying in y."""
+        if self.ground is not None:  # on a terrain: eye height above the ground under the eye
+            return self._walk_ground(t)
         ext = self.hi - self.lo
         z = walk_eye_z(self.lo, self.hi)
         route = self._route()
@@ -291,18 +299,48 @@ class ParametricPath(CameraPath):
         return eye, eye + d * 10.0 + np.array([0.0, 0.0, -0.6])
 
 
+    def _walk_ground(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """``walkthrough`` on a terrain: along the straight swaying line at eye height above the
+        ground under each point, looking ``_LOOK`` units ahead, a little down, and up or down by
+        half the ground's slope there (as a walker does: level on the flat, up a rise without
+        staring into it, down a descent without looking at the sky)."""
+        ext = self.hi - self.lo
+        span = 0.84 * ext[0]
+
+        def xy(u):
+            u = min(max(u, 0.0), 1.0)
+            return np.array([self.lo[0] + ext[0] * (0.08 + 0.84 * u),
+                             (self.lo[1] + self.hi[1]) / 2 + 0.12 * ext[1] * math.sin(2 * math.pi * u)])
+
+        p = xy(t)
+        d = xy(t + 0.02) - xy(t - 0.02)
+        d /= max(np.linalg.norm(d), 1e-12)
+        look = min(_LOOK, 0.05 * span) if span > 0 else _LOOK
+        ahead = p + d * look
+        gz = self.ground(np.stack([p, ahead]))
+        eye = np.array([p[0], p[1], gz[0] + _EYE])
+        tgt = np.array([ahead[0], ahead[1], eye[2] + 0.5 * (gz[1] - gz[0]) - 0.6])
+        return eye, tgt
+
+
+_EYE = 1.7  # walkthrough's eye height above the ground (world units: metres for georeferenced data)
+_LOOK = 30.0  # how far ahead a walker on a terrain looks (world units)
+
+
 def walk_eye_z(lo, hi) -> float:
     """``walkthrough``'s eye height: 1.7 units above the box's bottom, or 30 % of its height
     if that is lower."""
     return float(lo[2]) + min(1.7, 0.3 * (float(hi[2]) - float(lo[2])))
 
 
-def load_path(spec: str, lo, hi, route: np.ndarray | None = None) -> CameraPath:
+def load_path(spec: str, lo, hi, route: np.ndarray | None = None, ground: Callable | None = None) -> CameraPath:
     """A built-in path name fitted to the box lo..hi, or a keyframe ``.json`` file (its missing
     clip planes fitted to the box). ``route`` (xy waypoints, :func:`massview.lod.walk.plan_walk`):
-    the way ``walkthrough`` walks."""
+    the way ``walkthrough`` walks; ``ground`` (a terrain's surface,
+    :func:`massview.lod.walk.terrain_ground`): what it walks on."""
     if spec in BUILTIN_PATHS:
-        return ParametricPath(spec, lo, hi, route=route if spec == "walkthrough" else None)
+        walk = spec == "walkthrough"
+        return ParametricPath(spec, lo, hi, route=route if walk else None, ground=ground if walk else None)
     p = Path(spec)
     if p.suffix.lower() != ".json":
         raise ConfigError(f"--path {spec!r}: use one of {', '.join(BUILTIN_PATHS)} or a .json keyframe file")

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..core.paths import walk_eye_z
 
-__all__ = ["walk_route", "plan_walk"]
+__all__ = ["walk_route", "plan_walk", "terrain_ground"]
 
 _BAND = (0.3, 1.2)  # the walker's body, as fractions of the eye height above the box's bottom
 _EDGE = 25.0  # cost per cell an end lies inside the 8 % (92 %) line: above a diagonal step's most, √2 × (1 + 4²)
@@ -154,3 +154,33 @@ def _smooth(pts: np.ndarray, h: float, walkable: np.ndarray, origin: np.ndarray)
         keep = walkable[cell[:, 0], cell[:, 1]]
         out = np.where(keep[:, None], avg, out)
     return out
+
+
+def terrain_ground(store, z_of_h):
+    """``ground(xy (n, 2)) -> z (n,)``: the world height a walker stands on at each xy of a
+    terrain store's world (x = col·dx, y = −row·dy; points outside are clamped to the edge):
+    ``z_of_h`` (stored height → world z, e.g. the hierarchy's exaggeration) of the highest of
+    the four finest samples round the point — never below the full-resolution surface there.
+    Blocks are read as needed (one per point at most) and kept for the call."""
+    lay = store.layout
+    dx, dy = (float(v) for v in store.spacing)
+    step = lay.M - 1
+
+    def ground(xy) -> np.ndarray:
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        col = np.clip(xy[:, 0] / dx, 0, lay.cols - 1)
+        row = np.clip(-xy[:, 1] / dy, 0, lay.rows - 1)
+        blocks: dict = {}
+        out = np.empty(len(xy))
+        for k, (r, c) in enumerate(zip(row, col)):
+            best = -np.inf
+            for rr in {int(np.floor(r)), min(int(np.floor(r)) + 1, lay.rows - 1)}:
+                for cc in {int(np.floor(c)), min(int(np.floor(c)) + 1, lay.cols - 1)}:
+                    bi, bj = min(rr // step, lay.blocks(0) - 1), min(cc // step, lay.blocks(0) - 1)
+                    if (bi, bj) not in blocks:
+                        blocks[bi, bj] = store.get_block(0, bi, bj)
+                    best = max(best, float(blocks[bi, bj][rr - bi * step, cc - bj * step]))
+            out[k] = best
+        return np.asarray(z_of_h(out), np.float64)
+
+    return ground

@@ -168,6 +168,16 @@ class RoettgerSystem:
         los, his = zip(*(i.bounds() for i in infos))
         return np.min(los, axis=0), np.max(his, axis=0)
 
+    def ground(self, cfg: RenderConfig | None = None):
+        """The surface the ``walkthrough`` path walks on: the highest layer under each point, as
+        drawn (height · vertical scale + the layer's z offset)."""
+        from ..data.terrain import TerrainStore
+        from ..lod.walk import terrain_ground
+
+        grounds = [terrain_ground(TerrainStore(i.path), lambda h, i=i: np.asarray(h, np.float64) * i.vscale + i.zoffset)
+                   for i in (self.infos or self.layer_infos())]
+        return lambda xy: np.max([g(xy) for g in grounds], axis=0)
+
     @property
     def renderer(self) -> str:
         return self._drawer.renderer if self._drawer is not None else "computation rank (no GL)"

@@ -125,6 +125,17 @@ class TerrainSystem:
     def bounds(self):
         return self.h.bounds()
 
+    def ground(self, cfg: RenderConfig | None = None):
+        """The surface the ``walkthrough`` path walks on, at ``cfg``'s exaggeration
+        (:func:`massview.lod.walk.terrain_ground`; the hierarchy's world heights)."""
+        from functools import partial
+
+        from ..lod.columns import heights
+        from ..lod.walk import terrain_ground
+
+        Z = 1.0 if cfg is None else float(cfg.exaggeration)
+        return terrain_ground(self.store, partial(heights, self.h.base, self.h.vs, Z))
+
     def _renderers(self):
         if self._gl is None:
             ctx = create_context(self._egl_device)
