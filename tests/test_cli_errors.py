@@ -25,6 +25,9 @@ from conftest import run_cli
     (["render", "builtin:objects", "--size", "-5x10"], "--size -5x10: width and height must be between 1"),  # (was argparse's "expected one argument")
     (["generate", "terrain", "--size", "65"], "no output given"),
     (["generate", "terrain", "a.npy", "-o", "b.npy", "--size", "65"], "two outputs given"),
+    # larger than llvmpipe's 16384 (was GL's "framebuffer is not complete" in a 25-line traceback)
+    (["render", "builtin:objects", "--size=32768x8", "--frames", "1"], "draws frames of at most"),
+    (["render", "builtin:objects", "--size=32768x8", "--frames", "1", "--ranks", "2"], "draws frames of at most"),
 ])
 def test_bad_input_is_reported_plainly(args, needle, tmp_path):
     proc = run_cli(*args, "--out", tmp_path, check=False) if args[0] == "render" else run_cli(*args, check=False)
@@ -116,3 +119,13 @@ def test_bench_help_lines_are_whole_sentences():
         h = _doc_summary(mod.__doc__, name)
         assert "``" not in h and h.endswith((".", ")")), (name, h)
     assert _doc_summary("A thing (Smith et al. 2010) does x.\n\nMore.", "x") == "A thing (Smith et al. 2010) does x."
+
+
+def test_bare_sort_first_is_horizontal(tmp_path):
+    """``--decomposition sort-first`` (no layout) renders as sort-first:horizontal, as
+    ``sort-last`` alone takes the system's default mode (it was "not available for this scene")."""
+    from conftest import summary
+
+    run_cli("render", "builtin:objects", "--ranks", "2", "--decomposition", "sort-first", "--frames", "1", "--size", "64x48",
+            "--out", tmp_path, "-q")
+    assert summary(tmp_path)["decomposition"] == "sort-first:horizontal"

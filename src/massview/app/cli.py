@@ -58,7 +58,7 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", help="a terrain store, a scene store, or builtin:objects[?n=COUNT&seed=S]")
     p.add_argument("--ranks", type=_positive, default=None, help="local ranks to launch (default 1; ignored under an external mpiexec)")
     p.add_argument("--decomposition", default="sort-last", metavar="MODE",
-                   help=f"one of {', '.join(DECOMPOSITIONS)} (default sort-last; terrain: sort-last = sort-last:kpatch; scene: sort-last = sort-last:visible); "
+                   help=f"one of {', '.join(DECOMPOSITIONS)} (default sort-last; terrain: sort-last = sort-last:kpatch; scene: sort-last = sort-last:visible; sort-first = sort-first:horizontal); "
                         "'horizontal' = side-by-side columns, 'vertical' = stacked rows")
     p.add_argument("--compositor", default="binary-swap", choices=COMPOSITOR_NAMES, help="sort-last depth compositing (default binary-swap)")
     p.add_argument("--radix-k", type=int, default=None, help="k for radix-k (default 4)")

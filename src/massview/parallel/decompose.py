@@ -44,10 +44,11 @@ _CELL = 8
 
 
 def parse_decomposition(spec: str, sort_last_modes: tuple[str, ...] = ()) -> tuple[str, str]:
-    """``sort-first:LAYOUT`` or ``sort-last[:MODE]`` → (kind, layout-or-mode)."""
+    """``sort-first[:LAYOUT]`` or ``sort-last[:MODE]`` → (kind, layout-or-mode); a bare
+    ``sort-first`` is ``sort-first:horizontal``."""
     kind, _, sub = spec.partition(":")
-    if kind == "sort-first" and sub in SORT_FIRST_LAYOUTS:
-        return kind, sub
+    if kind == "sort-first" and (sub == "" or sub in SORT_FIRST_LAYOUTS):
+        return kind, sub or SORT_FIRST_LAYOUTS[0]
     if kind == "sort-last" and (sub == "" or sub in sort_last_modes):
         return kind, sub or (sort_last_modes[0] if sort_last_modes else "")
     choices = [f"sort-first:{s}" for s in SORT_FIRST_LAYOUTS] + (

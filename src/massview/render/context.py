@@ -14,7 +14,7 @@ import moderngl
 
 from ..core.errors import GLUnavailableError
 
-__all__ = ["create_context", "renderer_string", "load_shader", "finish"]
+__all__ = ["create_context", "renderer_string", "load_shader", "finish", "max_frame_size", "check_frame_size"]
 
 _INSTALL_HINT = (
     "massview renders headless through EGL. Install the EGL loader and an OpenGL driver: "
@@ -40,6 +40,25 @@ def create_context(device_index: int | None = None) -> moderngl.Context:
 def renderer_string(ctx: moderngl.Context) -> str:
     info = ctx.info
     return f"{info.get('GL_RENDERER', '?')} / {info.get('GL_VERSION', '?')}"
+
+
+def max_frame_size(ctx: moderngl.Context) -> int:
+    """The largest width and height of a render target this context takes: the least of its
+    renderbuffer, texture and viewport limits (16384 on llvmpipe, 32768 on recent NVIDIA)."""
+    info = ctx.info
+    dims = info.get("GL_MAX_VIEWPORT_DIMS", (1 << 30, 1 << 30))
+    return int(min(info.get("GL_MAX_RENDERBUFFER_SIZE", 1 << 30), info.get("GL_MAX_TEXTURE_SIZE", 1 << 30), *dims))
+
+
+def check_frame_size(ctx: moderngl.Context, width: int, height: int) -> None:
+    """A ConfigError naming ``--size`` and this renderer's limit when a ``width × height``
+    target is larger than it can make (instead of GL's "framebuffer is not complete")."""
+    from ..core.errors import ConfigError
+
+    limit = max_frame_size(ctx)
+    if width > limit or height > limit:
+        raise ConfigError(f"--size {width}x{height}: this renderer ({renderer_string(ctx)}) draws frames of at most "
+                          f"{limit}x{limit}; give a smaller --size")
 
 
 def load_shader(name: str) -> str:

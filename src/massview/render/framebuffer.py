@@ -21,6 +21,7 @@ import numpy as np
 
 from ..core.camera import Viewport
 from ..core.image import BACKGROUND_RGBA, Image
+from .context import check_frame_size
 
 __all__ = ["Framebuffer"]
 
@@ -29,6 +30,7 @@ class Framebuffer:
     def __init__(self, ctx: moderngl.Context, width: int, height: int):
         self.ctx = ctx
         self.width, self.height = int(width), int(height)
+        check_frame_size(ctx, self.width, self.height)
         self._color = ctx.renderbuffer((self.width, self.height), 4, dtype="f1")
         self._depth = ctx.depth_texture((self.width, self.height))
         self.fbo = ctx.framebuffer(color_attachments=[self._color], depth_attachment=self._depth)

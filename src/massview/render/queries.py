@@ -35,7 +35,7 @@ import moderngl
 import numpy as np
 
 from ..core.camera import Camera, Viewport
-from .context import load_shader
+from .context import check_frame_size, load_shader
 
 __all__ = ["QueryResult", "OcclusionQuerier", "IdBuffer", "SceneIdBuffer", "box_vertices"]
 
@@ -206,6 +206,7 @@ class IdBuffer:
 
     def visible(self, camera: Camera, vp: Viewport, items: np.ndarray) -> np.ndarray:
         """Sorted ids among ``items`` that own at least one pixel of ``vp``."""
+        check_frame_size(self.ctx, camera.width, camera.height)
         color = self.ctx.renderbuffer((camera.width, camera.height), 4, dtype="f1")
         depth = self.ctx.depth_renderbuffer((camera.width, camera.height))
         fbo = self.ctx.framebuffer(color_attachments=[color], depth_attachment=depth)
@@ -275,6 +276,7 @@ class SceneIdBuffer:
         ib, cb = ctx.buffer(inst.tobytes()), ctx.buffer(cmds.tobytes())
         vao = ctx.vertex_array(self.prog, [(self.pool.buffer, "3f 12x", "in_pos"), (ib, "4f 4f 4f 4f 1f/i", "in_m0", "in_m1", "in_m2", "in_m3", "in_id")],
                                index_buffer=self.pool.buffer, index_element_size=4)
+        check_frame_size(ctx, camera.width, camera.height)
         color = ctx.renderbuffer((camera.width, camera.height), 4, dtype="f1")
         depth = ctx.depth_renderbuffer((camera.width, camera.height))
         fbo = ctx.framebuffer(color_attachments=[color], depth_attachment=depth)
