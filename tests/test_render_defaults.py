@@ -64,3 +64,16 @@ def test_keyframes_without_clip_planes_do_not_clip_a_large_scene(tmp_path, large
     explicit = load_path(str(_keyframes(tmp_path / "e.json", {"near": 2.0, "far": 5e5})), lo, hi)
     assert explicit.clip() == (2.0, 5e5)  # given clip planes are kept
     scene.close()
+
+
+def test_a_far_back_orbit_still_shows_the_terrain_through_the_haze(terrain_store, tmp_path):
+    """The orbit fitted to a tall, narrow frame stands ~50 terrain diagonals away; haze measured
+    from the eye ("30 % across the diagonal") then faded the whole terrain into the sky (0 pixels
+    unlike the sky at 100x4000). Haze now starts one diagonal short of the terrain's box: the
+    terrain shows, and frames whose eye is within a diagonal of it (every default path, the
+    recorded draws in test_terrain_draw) are unchanged."""
+    from conftest import load_png, not_sky, run_cli
+
+    run_cli("render", terrain_store, "--frames", 1, "--size=60x1200", "--out", tmp_path, "-q")
+    f = load_png(tmp_path / "frames" / "00000.png")
+    assert not_sky(f) > 500, "the terrain faded into the sky"

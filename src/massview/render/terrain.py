@@ -172,6 +172,19 @@ class TerrainRenderer:
         u("u_sky_horizon", SKY_HORIZON)
         u("u_sky_zenith", SKY_ZENITH)
 
+    def haze_from(self, eye) -> float:
+        """How far from the eye haze starts: 0 while the terrain's box (at the shading's
+        exaggeration) is within one diagonal (``world_size``) of the eye — every default path, so
+        their frames are unchanged — else the distance beyond that. Haze is "30 % across the
+        diagonal": measured from the eye alone, an eye standing far back (the orbit fitted to a
+        tall narrow frame stands ~50 diagonals away) saw the whole terrain fade into the sky."""
+        ex, ey, ez = (float(v) for v in eye)
+        fx, fy = self._footprint
+        Z = float(getattr(getattr(self, "shading", None), "exaggeration", 1.0))
+        zhi = self.base + Z * (self.peak - self.base) if math.isfinite(self.peak) else math.inf
+        d = math.sqrt(max(-ex, 0.0, ex - fx) ** 2 + max(-fy - ey, 0.0, ey) ** 2 + max(self.base - ez, 0.0, ez - zhi) ** 2)
+        return max(d - self.world_size, 0.0)
+
     def _uniform(self, name: str, value) -> None:
         """Set a uniform in every program that has it (:class:`.terrain_programs.TerrainPrograms`)."""
         self.programs.set(name, value)
@@ -281,6 +294,7 @@ class TerrainRenderer:
         self._uniform("u_mvp", np.ascontiguousarray(mvp.T, dtype="f4").tobytes())
         self._uniform("u_tint", tuple(tint))
         self._uniform("u_eye", tuple(float(v) for v in eye))
+        self._uniform("u_haze_from", self.haze_from(eye))
         self.pool.shade.use(0)
         self.pool.ortho.use(1)
         self._pages.use(2)

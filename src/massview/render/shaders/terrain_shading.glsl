@@ -16,6 +16,7 @@ uniform vec3 u_sun;           // unit vector towards the sun
 uniform vec2 u_light;         // sky (ambient) and sun weights
 uniform vec3 u_eye;
 uniform float u_haze;         // extinction per world unit
+uniform float u_haze_from;    // haze starts this far from the eye (0 unless the eye stands far back)
 vec3 sky_color(vec3 dir);
 
 // shading maps (slope x, slope y, height fraction) and orthophoto colour at level lv or the
@@ -63,7 +64,7 @@ vec4 terrain_color(vec2 grid, float lod, float z) {
     float light = u_light.x * (0.5 + 0.5 * n.z) + u_light.y * max(dot(n, u_sun), 0.0);
     vec3 c = base * light;
     vec3 view = vec3(grid.x * u_spacing.x, -grid.y * u_spacing.y, z) - u_eye;
-    float fog = 1.0 - exp(-u_haze * length(view));
+    float fog = 1.0 - exp(-u_haze * max(length(view) - u_haze_from, 0.0));
     c = mix(c, sky_color(view), fog);
     return vec4(mix(c, u_tint.rgb, u_tint.a), 1.0);
 }
