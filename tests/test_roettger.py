@@ -362,3 +362,20 @@ def test_bench_reads_layer_counts_and_pairs_each_frame_with_its_sequential_basel
              "counters": {"reference_lod_ms": 40.0, "reference_ms": 90.0} if r == 0 else {}} for f in (0, 1) for r in range(3)]
     fr = per_frame(recs, 1)
     assert fr[1] == {"par_lod": 10.0, "frame": 31.0, "seq_lod": 40.0, "seq": 90.0}
+
+
+@pytest.mark.parametrize("opts", [[], ["--colormap", "viridis", "--exaggeration", "3", "--sun", "90,10", "--haze", "2"]])
+def test_t2_draws_with_t1s_shading_options(terrain_store, tmp_path, opts):
+    """T2 takes T1's --colormap, --exaggeration, --sun and --haze (it ignored all four: the
+    frames were byte-identical with and without them, in its own brown ramp and no haze): the
+    same store, camera and options give frames within ~1 level of T1's on average (the two LODs
+    differ), and T2's parallel frame still equals its serial reference."""
+    from conftest import load_png, run_cli, summary
+
+    size = ["--frames", "1", "--size", "160x100", "-q"]
+    run_cli("render", terrain_store, *opts, *size, "--out", tmp_path / "t1")
+    run_cli("render", terrain_store, "--system", "roettger", "--ranks", "2", "--compute-ranks", "1", "--reference", *opts, *size,
+            "--out", tmp_path / "t2")
+    t1, t2 = (load_png(tmp_path / d / "frames" / "00000.png").astype(int) for d in ("t1", "t2"))
+    assert np.abs(t1 - t2).mean() < 2.0
+    assert summary(tmp_path / "t2")["max_abs_diff"] == 0

@@ -15,13 +15,12 @@ from dataclasses import dataclass
 import moderngl
 import numpy as np
 
+from .colormaps import Shading
 from .context import load_shader
 from .meshes import _TINTS
 
 __all__ = ["LayerGeometry", "FanRenderer", "fan_triangles"]
 
-_LIGHT = np.array([-0.45, 0.35, 0.82])
-_LIGHT = (_LIGHT / np.linalg.norm(_LIGHT)).astype("f4")
 
 
 @dataclass(frozen=True)
@@ -52,12 +51,41 @@ def fan_triangles(lengths: np.ndarray) -> np.ndarray:
 
 
 class FanRenderer:
-    def __init__(self, ctx: moderngl.Context):
+    """Draws T2 layers with T1's shading options (:class:`.colormaps.Shading`: ramp, sun, haze;
+    exaggeration is the layers' vertical scale, see ``RoettgerSystem.layer_infos``)."""
+
+    def __init__(self, ctx: moderngl.Context, shading: Shading | None = None, world_size: float = 1.0):
+        from .colormaps import SKY_HORIZON, SKY_ZENITH
+
         self.ctx = ctx
-        self.prog = ctx.program(vertex_shader=load_shader("roettger.vert.glsl"), fragment_shader=load_shader("roettger.frag.glsl"))
-        self.prog["u_light"].value = tuple(_LIGHT)
+        self.prog = ctx.program(vertex_shader=load_shader("roettger.vert.glsl"),
+                                fragment_shader=load_shader("roettger.frag.glsl") + load_shader("sky.glsl"))
         self.prog["u_tints"].write(np.ascontiguousarray(_TINTS, "f4").tobytes())
+        self.prog["u_sky_horizon"].value = tuple(SKY_HORIZON)
+        self.prog["u_sky_zenith"].value = tuple(SKY_ZENITH)
+        self.prog["u_light"].value = (0.30, 0.95)  # as T1's terrain
+        self._ramp = ctx.texture((256, 1), 3, dtype="f1")
+        self._ramp.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        self._ramp.repeat_x = self._ramp.repeat_y = False
+        self.prog["u_ramp"].value = 0
+        self.world_size = float(world_size)
+        self.set_shading(shading or Shading())
         self._bufs: list = []
+
+    def set_shading(self, sh: Shading) -> None:
+        """Sun, colour ramp and haze of the next draws (``ortho`` and ``none``: uniform grey, as
+        T1 without an orthophoto; ``auto``: hypsometric)."""
+        from .colormaps import ramp
+
+        name = "hypsometric" if sh.colormap == "auto" else sh.colormap
+        self.prog["u_sun"].value = tuple(float(v) for v in sh.sun_vector())
+        self._ramp.write(ramp(name).tobytes())
+        self.prog["u_haze"].value = 0.35 * float(sh.haze) / max(self.world_size, 1e-9)  # haze 1: 30 % at the diagonal
+        self.shading = sh
+
+    def set_eye(self, eye, haze_from: float = 0.0) -> None:
+        self.prog["u_eye"].value = tuple(float(v) for v in eye)
+        self.prog["u_haze_from"].value = float(haze_from)
 
     def draw(self, geom: LayerGeometry, lengths: np.ndarray, index: np.ndarray, height: np.ndarray, rank: np.ndarray,
              mvp: np.ndarray, tint: bool = False) -> int:
@@ -78,6 +106,7 @@ class FanRenderer:
         p["u_extent"].value = (float(geom.extent[1] - 1), float(geom.extent[0] - 1))
         p["u_zrange"].value = (float(geom.zrange[0]), float(geom.zrange[1]))
         p["u_tint_on"].value = 1 if tint else 0
+        self._ramp.use(0)
         vao.render(moderngl.TRIANGLES)
         self._bufs.append((vao, vbo, ibo))
         return len(tris)
@@ -92,4 +121,5 @@ class FanRenderer:
 
     def release(self) -> None:
         self.end_frame()
+        self._ramp.release()
         self.prog.release()

@@ -40,7 +40,7 @@ from ..lod.cull import spheres_in_frustum
 from ..lod.fanstream import FanReceiver, FanSender
 from ..lod.roettger import RoettgerParams, default_c, partition_depth, portion_nodes, portion_owner
 from ..parallel.composite import deliver
-from ..render.colormaps import paint_sky
+from ..render.colormaps import Shading, paint_sky
 from ..parallel.decompose import parse_wall, sort_first_tiles
 from ..parallel.roles import Role, recv_bytes, send_bytes, split_roles
 from .frameloop import FrameResult, image_diff
@@ -125,8 +125,12 @@ class RoettgerSystem:
         """Each layer's metadata (store attributes only) with its z offset and index grid."""
         cfg = self.cfg
         infos = [LayerInfo.of(s) for s in self.specs]
+        Z = float(cfg.exaggeration)
+        if Z != 1.0:  # T1's exaggeration, base + Z·(h·vs − base) with base the lowest height: a vertical scale Z·vs
+            infos = [LayerInfo(**{**i.__dict__, "vscale": i.vscale * Z, "zoffset": (1.0 - Z) * i.zrange[0] * i.vscale})
+                     for i in infos]  # and an offset; the LOD sees it too (d2 is scaled by the vertical scale)
         span = (infos[0].zrange[1] - infos[0].zrange[0]) * infos[0].vscale
-        infos = [LayerInfo(**{**i.__dict__, "zoffset": -k * _LAYER_GAP * span}) for k, i in enumerate(infos)]
+        infos = [LayerInfo(**{**i.__dict__, "zoffset": i.zoffset - k * _LAYER_GAP * span}) for k, i in enumerate(infos)]
         if cfg.paper_partition:  # the overlapping portions index vertices in a wider grid
             infos = [LayerInfo(**{**i.__dict__, "dim": paper_layout(i.rows, i.cols, cfg.compute_ranks, i.S)[2]}) for i in infos]
         return infos
@@ -157,7 +161,8 @@ class RoettgerSystem:
             self.bytes_read = sum(p.bytes_read for p in self.portions)
             self.senders = {v: FanSender(len(self.infos)) for v in self.vis_ranks}
         else:
-            self._drawer = FanDrawer(self.infos, cfg.egl_device)
+            self._drawer = FanDrawer(self.infos, cfg.egl_device, Shading(cfg.exaggeration, tuple(cfg.sun),
+                                                                         cfg.colormap, cfg.haze))
             self.receivers = {c: FanReceiver(len(self.infos)) for c in self.comp_ranks}
         self._first = True
 

@@ -13,6 +13,7 @@ from ..core.camera import Camera, Viewport
 from ..core.image import Image
 from ..core.stats import FrameStats
 from ..lod.roettger import morton2
+from ..render.colormaps import Shading
 from ..render.context import create_context, renderer_string
 from ..render.roettger import FanRenderer, LayerGeometry
 from ..render.view import ViewRenderer
@@ -57,11 +58,20 @@ def gather_layers(held_by_rank: list, infos: list[LayerInfo]) -> list[Layer]:
 class FanDrawer:
     """GL context, fan renderer and framebuffers of a visualization rank."""
 
-    def __init__(self, infos: list[LayerInfo], egl_device: int | None = None):
+    def __init__(self, infos: list[LayerInfo], egl_device: int | None = None, shading: Shading | None = None):
         self.ctx = create_context(egl_device)
-        self.fans = FanRenderer(self.ctx)
+        los, his = zip(*(i.bounds() for i in infos))
+        self._lo, self._hi = np.min(los, axis=0), np.max(his, axis=0)
+        self._size = float(np.hypot(*(self._hi - self._lo)[:2]))  # the haze scale: the horizontal diagonal, as T1's
+        self.fans = FanRenderer(self.ctx, shading, self._size)
         self.view = ViewRenderer(self.ctx)
         self.geoms = [LayerGeometry(i.index_dim, i.spacing, i.vscale, (i.rows, i.cols), i.zrange, i.zoffset) for i in infos]
+
+    def haze_from(self, eye) -> float:
+        """Where haze starts (see ``TerrainRenderer.haze_from``): 0 within one diagonal of the
+        layers' box, else the distance beyond it."""
+        d = np.maximum(np.maximum(self._lo - np.asarray(eye, np.float64), np.asarray(eye, np.float64) - self._hi), 0.0)
+        return max(float(np.linalg.norm(d)) - self._size, 0.0)
 
     @property
     def renderer(self) -> str:
@@ -70,6 +80,8 @@ class FanDrawer:
     def draw(self, camera: Camera, vp: Viewport, layers: list[Layer], tint: bool, stats: FrameStats) -> Image:
         def draw(mvp):
             return sum(self.fans.draw(g, *layer, mvp, tint) for g, layer in zip(self.geoms, layers))
+
+        self.fans.set_eye(camera.position, self.haze_from(camera.position))
 
         try:
             return self.view.render(camera, vp, draw, stats)
