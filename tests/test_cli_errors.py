@@ -28,6 +28,7 @@ from conftest import run_cli
     # larger than llvmpipe's 16384 (was GL's "framebuffer is not complete" in a 25-line traceback)
     (["render", "builtin:objects", "--size=32768x8", "--frames", "1"], "draws frames of at most"),
     (["render", "builtin:objects", "--size=32768x8", "--frames", "1", "--ranks", "2"], "draws frames of at most"),
+    (["render", "/nonexistent/s.zarr", "--system", "reliefboards", "--ranks", "2"], "not found"),
 ])
 def test_bad_input_is_reported_plainly(args, needle, tmp_path):
     proc = run_cli(*args, "--out", tmp_path, check=False) if args[0] == "render" else run_cli(*args, check=False)
@@ -129,3 +130,16 @@ def test_bare_sort_first_is_horizontal(tmp_path):
     run_cli("render", "builtin:objects", "--ranks", "2", "--decomposition", "sort-first", "--frames", "1", "--size", "64x48",
             "--out", tmp_path, "-q")
     assert summary(tmp_path)["decomposition"] == "sort-first:horizontal"
+
+
+def test_reliefboards_on_a_terrain_store_is_one_line_before_any_rank(terrain_store, tmp_path):
+    """--system reliefboards (M2) on a terrain store: one line naming it before the job starts (it
+    failed on rank 0 inside the job, with MPI_Abort's noise), as --system dmmr does; the API too."""
+    import massview as mv
+    from massview.core.errors import ConfigError
+
+    proc = run_cli("render", terrain_store, "--system", "reliefboards", "--ranks", "2", "--out", tmp_path / "o", check=False)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr and "MPI_Abort" not in proc.stderr
+    assert "--system reliefboards draws polygon scenes" in proc.stderr and not (tmp_path / "o").exists()
+    with pytest.raises(ConfigError, match="draws polygon scenes"):
+        mv.render(str(terrain_store), ranks=2, system="reliefboards", frames=1, size=(64, 48))

@@ -66,11 +66,12 @@ def options_from_args(args):
 def cmd_render(args, argv, cfg: RenderConfig) -> int:
     """``massview render --system reliefboards``: relaunch under mpiexec, run, print."""
     from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
-    from ..systems.reliefboards_job import run
+    from ..systems.reliefboards_job import check_scene, run
 
     opts = options_from_args(args)
     load_path(cfg.path, [0, 0, 0], [1, 1, 1])
     if not in_mpi_job():
+        check_scene(args.scene)
         if (args.ranks or 1) < 2:
             raise ConfigError("--system reliefboards needs a visualization rank and at least one backend: give --ranks 2 or more")
         return relaunch(argv, args.ranks)

@@ -255,6 +255,17 @@ def _output_folder(out) -> Path:
     return path
 
 
+def check_scene(spec: str) -> None:
+    """M2 draws polygon scenes: a ConfigError naming ``spec`` for a terrain store (it failed on
+    rank 0 inside the job, with MPI_Abort's noise), and the store's own error for a missing or
+    damaged one, before any rank starts."""
+    from . import scene_kind
+
+    if scene_kind(str(spec)) == "terrain":
+        raise ConfigError(f"--system reliefboards draws polygon scenes (a scene store or builtin:objects), and {spec} is a "
+                          "terrain store: leave --system out (T1) or use --system roettger (T2)")
+
+
 def render_reliefboards(spec: str, what, cfg: RenderConfig, ranks: int | None, out=None, images: bool = True,
                         depth: bool = False, options=None, result=None):
     """:func:`massview.api.render` for ``system="reliefboards"``: ``result(images or None, None
@@ -266,6 +277,7 @@ def render_reliefboards(spec: str, what, cfg: RenderConfig, ranks: int | None, o
     if depth:
         raise ConfigError("render(system='reliefboards'): depth=True is not available (the visualization rank reads back colour only)")
     opts = board_options(options)
+    check_scene(spec)
     nranks = world().Get_size() if in_mpi_job() else int(ranks or 1)
     if nranks < 2:
         raise ConfigError(f"system 'reliefboards' needs a visualization rank and at least one backend: give ranks=2 or more, got {nranks}")
