@@ -420,3 +420,40 @@ def test_verify_of_an_interrupted_store_says_to_finish_it_not_to_overwrite_it(tm
     proc = run_cli("verify", tmp_path / "r.zarr", "-q", check=False)
     assert proc.returncode != 0 and "re-run the same prepare command" in proc.stderr + proc.stdout
     assert "--overwrite" not in proc.stderr + proc.stdout
+
+
+def test_geotiff_scale_offset_south_up_feet_and_rotation(tmp_path):
+    """GeoTIFF georeference and band tags a user's file may carry: the band's scale and offset
+    are applied (they were ignored: relief 10× too high), a south-up raster is read north-up (it
+    was stored as is: mirrored north-south), a CRS in feet has its spacing converted to metres
+    with a note about the heights' unit, and a rotated grid is refused with what to do."""
+    import rasterio
+    from rasterio.transform import Affine, from_origin
+
+    h = synthetic_heights(0, 130, 0, 130, 130, 5).astype(np.float32)
+    counts = np.round((h - 100.0) / 0.1).astype(np.int32)
+    metres = counts.astype(np.float32) * np.float32(0.1) + np.float32(100.0)  # (float32 arithmetic, as the reader does)
+
+    def write(name, a, transform, crs="EPSG:32632", **kw):
+        with rasterio.open(tmp_path / name, "w", driver="GTiff", width=a.shape[1], height=a.shape[0], count=1, dtype=a.dtype,
+                           transform=transform, crs=crs) as ds:
+            ds.write(a, 1)
+            if kw:
+                ds.scales, ds.offsets = (kw["scale"],), (kw["offset"],)
+        return open_source(tmp_path / name)
+
+    ref = write("n.tif", metres, from_origin(500000, 4000000, 30, 30))
+    prepare_terrain(ref, tmp_path / "n.zarr", block=129)
+    expect = finest(TerrainStore(tmp_path / "n.zarr"))
+    prepare_terrain(write("s.tif", counts, from_origin(500000, 4000000, 30, 30), scale=0.1, offset=100.0), tmp_path / "s.zarr", block=129)
+    assert np.array_equal(finest(TerrainStore(tmp_path / "s.zarr")), expect)
+    south = write("south.tif", metres[::-1].copy(),
+                  Affine(30, 0, 500000, 0, 30, 4000000 - 30 * 130))  # row 0 = the southern edge
+    assert south.transform == pytest.approx(ref.transform)
+    prepare_terrain(south, tmp_path / "south.zarr", block=129)
+    assert np.array_equal(finest(TerrainStore(tmp_path / "south.zarr")), expect)
+    res = prepare_terrain(write("ft.tif", h, from_origin(2_000_000, 200_000, 100, 100), crs="EPSG:2272"), tmp_path / "ft.zarr", block=129)
+    assert TerrainStore(tmp_path / "ft.zarr").spacing == pytest.approx((30.48006, 30.48006), rel=1e-5)
+    assert any("US survey foot" in w and "--vertical-scale 0.304801" in w for w in res.warnings), res.warnings
+    with pytest.raises(IngestError, match="rotated or sheared.*gdalwarp"):
+        write("rot.tif", h, Affine(21.2, 21.2, 500000, 21.2, -21.2, 4000000))

@@ -231,6 +231,10 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     if res.filled_fraction > 0.5:
         res.warnings.append(f"{src.name}: {res.filled_fraction:.0%} of the samples were nodata/NaN/inf and were filled from their "
                             "neighbours; check the nodata value (--nodata) and the extent")
+    unit, factor = src.linear_unit()
+    if factor != 1.0:
+        res.warnings.append(f"{src.name}: its CRS measures in {unit} ({factor:.6g} m), so the sample spacing was converted to metres; "
+                            f"heights are taken as they are — if they are in {unit} too, prepare again with --vertical-scale {factor:.6g}")
     if src.transform is None:
         res.warnings.append(f"{src.name} has no georeference: assumed 1 m sample spacing; pass --spacing DX[,DY] (and --crs) "
                             "if the samples are further apart")

@@ -71,7 +71,21 @@ class RasterSource:
             lat = self.transform[3] + self.transform[5] * self.rows / 2
             m = 111_320.0
             return dx * m * max(math.cos(math.radians(lat)), 1e-6), dy * m
-        return dx, dy
+        f = self.linear_unit()[1]
+        return dx * f, dy * f
+
+    def linear_unit(self) -> tuple[str, float]:
+        """(name, metres per unit) of a projected CRS's axes (``("metre", 1.0)`` without a CRS,
+        or when it cannot be read): the spacing is converted by it, so 100 ft pixels are 30.48 m."""
+        if not self.crs or _is_geographic(self.crs):
+            return "metre", 1.0
+        try:
+            from rasterio.crs import CRS
+
+            name, f = CRS.from_user_input(self.crs).linear_units_factor
+            return str(name), float(f)
+        except Exception:  # noqa: BLE001 - an unparsable or unit-less CRS: metres, as before
+            return "metre", 1.0
 
 
 def crs_name(wkt: str) -> str:
@@ -185,11 +199,36 @@ class GeoTiffSource(RasterSource):
         self.crs = self.ds.crs.to_wkt() if self.ds.crs else None
         t = self.ds.transform
         self.transform = None if t.is_identity else (t.c, t.a, t.b, t.f, t.d, t.e)
+        self.flipped = False  # rows stored south to north (a positive pixel height): read bottom-up
+        if self.transform is not None:
+            if t.b != 0 or t.d != 0:
+                raise IngestError(f"{path}: its georeference is rotated or sheared (transform {t.a:g}, {t.b:g}, {t.d:g}, {t.e:g}); "
+                                  "warp it to a north-up grid first, e.g. `gdalwarp -t_srs <its CRS> IN OUT.tif`")
+            if t.a < 0:
+                raise IngestError(f"{path}: its columns run west (pixel width {t.a:g}); warp it to a north-up grid first (gdalwarp)")
+            if t.e > 0:  # south-up: row 0 is the southern edge; massview's row 0 is the northern one
+                self.flipped = True
+                self.transform = (t.c, t.a, 0.0, t.f + t.e * self.rows, 0.0, -t.e)
+        scale, offset = float(self.ds.scales[band - 1] or 1.0), float(self.ds.offsets[band - 1] or 0.0)
+        self.scale_offset = None if (scale, offset) == (1.0, 0.0) else (scale, offset)
 
     def _raw(self, r0, r1, c0, c1):
         from rasterio.windows import Window
 
+        if self.flipped:
+            a = self.ds.read(self.band, window=Window(c0, self.rows - r1, c1 - c0, r1 - r0))
+            return a[::-1]
         return self.ds.read(self.band, window=Window(c0, r0, c1 - c0, r1 - r0))
+
+    def read(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """As :meth:`RasterSource.read`, with the band's scale and offset tags applied (height =
+        value · scale + offset, after the nodata value is masked on the stored values)."""
+        out = super().read(r0, r1, c0, c1)
+        if self.scale_offset is not None:
+            scale, offset = self.scale_offset
+            out *= np.float32(scale)
+            out += np.float32(offset)
+        return out
 
     def read_rgb(self, r0, r1, c0, c1):
         from rasterio.windows import Window
