@@ -25,6 +25,7 @@ from conftest import run_cli
     (["render", "builtin:objects", "--size", "-5x10"], "--size -5x10: width and height must be between 1"),  # (was argparse's "expected one argument")
     (["generate", "terrain", "--size", "65"], "no output given"),
     (["generate", "terrain", "a.npy", "-o", "b.npy", "--size", "65"], "two outputs given"),
+    (["generate", "terrain", "-o", "g.txt", "--size", "65"], ".txt is not a format generate writes"),
     # larger than llvmpipe's 16384 (was GL's "framebuffer is not complete" in a 25-line traceback)
     (["render", "builtin:objects", "--size=32768x8", "--frames", "1"], "draws frames of at most"),
     (["render", "builtin:objects", "--size=32768x8", "--frames", "1", "--ranks", "2"], "draws frames of at most"),
@@ -143,3 +144,11 @@ def test_reliefboards_on_a_terrain_store_is_one_line_before_any_rank(terrain_sto
     assert "--system reliefboards draws polygon scenes" in proc.stderr and not (tmp_path / "o").exists()
     with pytest.raises(ConfigError, match="draws polygon scenes"):
         mv.render(str(terrain_store), ranks=2, system="reliefboards", frames=1, size=(64, 48))
+
+
+def test_render_out_must_not_be_the_input_store(terrain_store, tmp_path):
+    """``render STORE -o STORE`` wrote frames/, stats.jsonl and summary.json among the store's arrays."""
+    for out in (terrain_store, terrain_store / "frames"):
+        proc = run_cli("render", terrain_store, "--frames", "1", "--size", "32x24", "--out", out, check=False)
+        assert proc.returncode != 0 and "input store" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (terrain_store / "frames").exists() and not (terrain_store / "summary.json").exists()

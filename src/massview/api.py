@@ -356,6 +356,18 @@ def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camer
             scene.close()
 
 
+def _not_inside_the_store(out: Path, spec: str) -> None:
+    """--out must not be the input store or a folder inside it (frames, stats and a summary
+    would be written among its arrays)."""
+    store = Path(spec)
+    if not store.is_dir():
+        return
+    o, st = Path(out).resolve(), store.resolve()
+    if o == st or st in o.parents:
+        raise ConfigError(f"--out {out}: is {'the input store' if o == st else 'inside the input store'} {spec}; "
+                          "give a folder outside it for the frames, stats and summary")
+
+
 def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, size, cfg: RenderConfig) -> RenderResult | None:
     from .app.outputs import check_output_dir
     from .parallel.runtime import in_mpi_job, world
@@ -370,6 +382,7 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
     out = Path(out) if out is not None else None
     validate(scene.spec, cfg, nranks)
     if out is not None:
+        _not_inside_the_store(out, scene.spec)
         check_output_dir(out, "--out")
     if nranks == 1 or in_mpi_job():
         scene.system(cfg)  # opened with this config's budgets (the bounds come from it)

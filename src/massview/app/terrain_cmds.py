@@ -57,6 +57,9 @@ def cmd_generate(args) -> int:
         raise ConfigError("no output given; `massview generate terrain -o OUT --size N` (OUT: a store folder, FILE.tif or FILE.npy)")
     out = Path(args.output or args.out)
     fmt = args.format or {".npy": "npy", ".tif": "tif", ".tiff": "tif"}.get(out.suffix.lower(), "store")
+    if fmt == "store" and not args.format and out.suffix.lower() not in ("", ".zarr") and not out.is_dir():
+        raise ConfigError(f"output {out}: {out.suffix} is not a format generate writes; give STORE.zarr (a terrain store folder), "
+                          "FILE.tif or FILE.npy (or --format store|tif|npy)")
     check_output_file(out, "output")
     if fmt != "store" and out.is_dir():
         raise OutputError(f"output {out}: is a folder; give a file name for --format {fmt}")

@@ -47,7 +47,9 @@ class BlockPool:
         per_slot = self.slot_bytes + 16  # + its instance record
         self.capacity = min(int((budget_bytes - self._fixed) // per_slot), int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256)))
         if self.capacity < 1:
-            raise ConfigError(f"GL budget {budget_bytes} bytes is smaller than one block ({self.slot_bytes} bytes); raise --gpu-mb")
+            need = self._fixed + per_slot
+            raise ConfigError(f"--gpu-mb {budget_bytes / 2**20:g}: the GL pool needs at least {need / 2**20:.2f} MiB for one "
+                              f"{M}² block ({need} bytes with its shading, colour and instance record); raise --gpu-mb")
         self.vbo = ctx.buffer(reserve=self.capacity * self.vertex_bytes)
         self.inst = ctx.buffer(reserve=self.capacity * 16)
         self.shade = ctx.texture_array((M, M, self.capacity), 3, dtype="f2")

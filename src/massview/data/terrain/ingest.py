@@ -194,6 +194,8 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     """Build the store at ``out`` from ``src`` (see the module docstring); ``workers`` threads
     (None/0: every core this process may use) share the work, with identical output."""
     t0 = time.perf_counter()
+    if src.rows < 2 or src.cols < 2:
+        raise IngestError(f"{src.name}: has {src.rows} x {src.cols} samples; a terrain needs at least 2 x 2")
     lay = TerrainLayout(src.rows, src.cols, block, K)
     if not (math.isfinite(vertical_scale) and vertical_scale > 0):
         raise IngestError(f"--vertical-scale must be a positive number, got {vertical_scale}")
@@ -224,13 +226,15 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     seconds = time.perf_counter() - t0
     res = PrepareResult(Path(out), lay, seconds, filled, resumed, src.rows * src.cols * src.dtype.itemsize, [], stages)
     if restarted:
-        res.warnings.append(f"{out}: an interrupted prepare was there, but its {', '.join(restarted)} differ from this run's; "
+        res.warnings.append(f"{out}: an interrupted prepare was there, but its {', '.join(restarted)} differed from this run's; "
                             "it was started again from the beginning")
     if place is not None and place.note:
         res.warnings.append(place.note)
     if res.filled_fraction > 0.5:
         res.warnings.append(f"{src.name}: {res.filled_fraction:.0%} of the samples were nodata/NaN/inf and were filled from their "
                             "neighbours; check the nodata value (--nodata) and the extent")
+    if getattr(src, "bands", 1) > 1:
+        res.warnings.append(f"{src.name} has {src.bands} bands; band 1 was used as the elevation")
     unit, factor = src.linear_unit()
     if factor != 1.0:
         res.warnings.append(f"{src.name}: its CRS measures in {unit} ({factor:.6g} m), so the sample spacing was converted to metres; "

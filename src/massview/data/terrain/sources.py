@@ -192,7 +192,7 @@ class GeoTiffSource(RasterSource):
             raise IngestError(f"{path}: cannot open as a raster ({e})") from None
         if band > self.ds.count:
             raise IngestError(f"{path}: has {self.ds.count} band(s), band {band} requested")
-        self.band, self.name = band, path.name
+        self.band, self.name, self.bands = band, path.name, self.ds.count
         self.rows, self.cols = self.ds.height, self.ds.width
         self.dtype = np.dtype(self.ds.dtypes[band - 1])
         self.nodata = self.ds.nodatavals[band - 1]
