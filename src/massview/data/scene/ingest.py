@@ -40,7 +40,7 @@ from .mesh import Mesh
 from .normals import CREASE_ANGLE
 from .plystream import PlyLayout
 from .simplify import build_levels
-from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_soup, split_dense
+from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_mesh, clean_soup, split_dense
 from .sources import MemorySoup, StructuredObject, open_input, stream_bounds, stream_corners, transform_normals
 from .writer import SceneWriter
 
@@ -101,7 +101,7 @@ def _mesh(p: np.ndarray, col: np.ndarray, nrm: np.ndarray | None, f: np.ndarray)
     placeholder, split by :func:`build_levels`."""
     o = local_frame(p)
     q = (np.asarray(p, np.float64) - o).astype(np.float32)
-    q, col, nrm, f = clean_soup(Corners(q[f], col[f], None if nrm is None else nrm[f]))
+    q, col, nrm, f = clean_mesh(q, col, nrm, f)
     n = np.zeros((len(q), 3), np.float32) if nrm is None else nrm.astype(np.float32)
     return Mesh(q, n, col.astype(np.uint8), f.astype(np.uint32)), o
 
