@@ -53,9 +53,12 @@ def test_objects_from_a_store_apply_transforms_and_merge_clusters():
     assert obj.status[1] != FEASIBLE  # 12 < 20 triangles
     pos, nrm, col, idx = obj.mesh(0)
     assert len(pos) == 16 and len(idx) == 72 and idx.max() == 15
-    assert np.allclose(pos.min(0), [0, 0, 0]) and np.allclose(pos.max(0), [3, 1, 1])
-    p2 = obj.mesh(1)[0]
+    np.testing.assert_array_equal(obj.origins, [[1.5, 0.5, 0.5], [11.5, 1.5, 1.5]])  # meshes about their box centres
+    assert np.allclose(pos.min(0) + obj.origins[0], [0, 0, 0]) and np.allclose(pos.max(0) + obj.origins[0], [3, 1, 1])
+    p2 = obj.mesh(1)[0] + obj.origins[1]
     assert np.allclose(p2.min(0), [10, 0, 0]) and np.allclose(p2.max(0), [13, 3, 3])
     assert np.allclose(np.linalg.norm(obj.mesh(1)[1], axis=1), 1, atol=1e-6)
-    allp, _, _, allidx, offs = obj.concatenated()
+    allp, _, _, allidx, offs, origin = obj.concatenated()
     assert len(allp) == 24 and offs.tolist() == [0, 72, 108] and allidx[72:].min() == 16
+    np.testing.assert_array_equal(origin, [6.5, 1.5, 1.5])  # the scene's box centre
+    assert np.allclose(allp.min(0) + origin, [0, 0, 0]) and np.allclose(allp.max(0) + origin, [13, 3, 3])

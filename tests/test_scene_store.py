@@ -312,3 +312,27 @@ def test_record_codec_round_trip_property():
             assert np.linalg.norm(d.positions.astype(np.float64) - p, axis=1).max() <= quantization_error(lo, hi) * 1.01 + 1e-3 * np.abs(p).max() * 1e-3
 
     check()
+
+
+def test_clean_mesh_equals_clean_soup_of_the_corners():
+    """An object's second clean (in its float32 frame) runs on its vertices, not its corners:
+    the same vertices in the same order and the same faces as clean_soup of the corners, with
+    repeated positions, degenerate and repeated faces, vertices no face uses, with and without
+    normals, float32 and float64 positions."""
+    from massview.data.scene.soup import Corners, clean_mesh, clean_soup
+
+    rng = np.random.default_rng(4)
+    for trial in range(24):
+        v, t = int(rng.integers(80, 300)), int(rng.integers(10, 600))
+        p = (rng.integers(0, 4, (v, 3)) * 0.37).astype(np.float32 if trial % 3 else np.float64)  # many equal positions
+        col = np.repeat(np.where(rng.random((v, 1)) < 0.5, 200, 90), 4, axis=1).astype(np.uint8)
+        nrm = None if trial % 2 else np.repeat(rng.integers(0, 2, (v, 1)), 3, axis=1).astype(np.float32)
+        f = rng.integers(0, v - 5, (t, 3))  # the last vertices unused
+        d = rng.random(t) < 0.1
+        f[d, 1] = f[d, 0]  # degenerate
+        f = np.concatenate([f, f[rng.integers(0, t, t // 5)][:, [1, 2, 0]]])  # repeated (rotated)
+        want = clean_soup(Corners(p[f], col[f], None if nrm is None else nrm[f]))
+        got = clean_mesh(p, col, nrm, f)
+        assert len(want[0]) < len(np.unique(f))  # vertices were merged
+        for a, b in zip(want, got):
+            assert (a is None and b is None) or (a.dtype == b.dtype and np.array_equal(a, b))

@@ -8,7 +8,8 @@ import sys
 from pathlib import Path
 
 from ..core.errors import StoreError
-from .terrain_cmds import progress_bar
+from ..data.scene.normals import CREASE_ANGLE  # (numpy only: cheap for the parser)
+from .terrain_cmds import _warn, progress_bar
 
 __all__ = ["add_generate_parser", "add_prepare_parser", "cmd_generate", "cmd_prepare", "cmd_info", "cmd_verify", "is_scene"]
 
@@ -38,6 +39,9 @@ def add_prepare_parser(psub) -> None:
     p.add_argument("--simplifier", choices=("fast-simplification", "pyfqmr"), default="fast-simplification")
     p.add_argument("--levels", type=int, default=8, help="most LOD levels per object (default 8)")
     p.add_argument("--stream-mb", type=float, default=256, help="binary PLY this large or larger is streamed in chunks (default 256)")
+    p.add_argument("--crease-angle", type=float, default=CREASE_ANGLE, metavar="DEG",
+                   help="meshes without normals in the file: faces meeting at more than DEG degrees get separate (flat) normals, "
+                        f"gentler edges are smoothed; 0 < DEG <= 180, 180 smooths everything (default {CREASE_ANGLE:g})")
     p.add_argument("--overwrite", action="store_true", help="rebuild a complete store")
     p.add_argument("--quiet", "-q", action="store_true")
 
@@ -64,9 +68,11 @@ def cmd_prepare(args) -> int:
     if args.object_triangles < 1 or args.levels < 1 or args.levels > 16:
         raise ConfigError("--object-triangles must be positive and --levels between 1 and 16")
     prm = IngestParams(object_triangles=args.object_triangles, object_size=args.object_size or float("inf"), instance=args.instance,
-                       simplifier=args.simplifier, max_levels=args.levels, stream_bytes=int(args.stream_mb * 2**20))
+                       simplifier=args.simplifier, max_levels=args.levels, stream_bytes=int(args.stream_mb * 2**20),
+                       crease_angle=args.crease_angle)
     with progress_bar(args.quiet) as prog:
         a = prepare_scene(args.inputs, Path(args.output), prm, overwrite=args.overwrite, progress=prog)
+    _warn(a["warnings"])
     s = max(a["seconds"], 1e-9)
     print(f"{'resumed and completed' if a['resumed'] else 'wrote'} {args.output}: {a['objects']} objects "
           f"({a['geometries']} geometries), {a['triangles']:,} triangles, {a['occluders']} occluders, {a['seconds']:.1f} s "

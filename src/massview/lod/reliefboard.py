@@ -16,7 +16,8 @@ size at request time), rows from the bottom (GL order), pixel (i, j) centred at
 * colour   — uint8 RGB, the unlit vertex colour;
 * normal   — float32 unit world-space surface normal.
 
-The **mesh** has one vertex per covered pixel, at ``c + x·right + y·up + (r − distance)·back``,
+The **mesh** has one vertex per covered pixel, at ``c + x·right + y·up + (r − distance)·back``
+(stored relative to ``c``: the renderer adds ``c`` in float64),
 with the pixel's colour and normal; every 2×2 block of pixels gives two triangles when all four
 are covered and one when three are, so the mesh is cut where the stencil is empty.
 
@@ -139,15 +140,17 @@ class Reliefboard:
         return len(self.distance)
 
     def mesh(self, flat: bool = False):
-        """World-space ``(positions (N,3) f4, normals (N,3) f4, colours (N,4) u1, indices (3T,) u4)``.
-        ``flat=True`` puts every vertex on the plane through the centre (a flat billboard of
-        the same maps, for comparison)."""
+        """``(positions (N,3) f4, normals (N,3) f4, colours (N,4) u1, indices (3T,) u4)``,
+        positions in world axes *relative to the frame centre* (``frame.center`` + position is
+        the world point: float32 keeps its precision far from the world origin), normals in world
+        space. ``flat=True`` puts every vertex on the plane through the centre (a flat billboard
+        of the same maps, for comparison)."""
         f = self.frame
         ys, xs = np.nonzero(self.stencil)
         pc = f.pixel_centres()
         z = np.zeros(len(xs)) if flat else f.radius - self.distance.astype(np.float64)
         local = np.stack([pc[xs], pc[ys], z], axis=1)
-        pos = np.asarray(f.center) + local @ f.axes.T
+        pos = local @ f.axes.T
         rgba = np.concatenate([self.color, np.full((len(xs), 1), 255, np.uint8)], axis=1)
         return pos.astype("f4"), self.normal.astype("f4"), rgba, grid_triangles(self.stencil)
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..lod.reliefboard import BoardFrame, Reliefboard, board_frame
 from .context import load_shader
-from .meshes import _LIGHT
+from .meshes import _LIGHT, translated
 
 __all__ = ["BoardBuilder", "BoardRenderer", "MAP_PASSES"]
 
@@ -54,14 +54,15 @@ class BoardBuilder:
         self.progs = {k: ctx.program(vertex_shader=vert, fragment_shader=load_shader(f)) for k, (f, _, _) in MAP_PASSES.items()}
         self.passes_run = 0
 
-    def capture(self, frame: BoardFrame, positions, normals, colors, indices) -> dict[str, np.ndarray]:
-        """The four (S, S[, C]) maps of a mesh (rows from the bottom), one render pass each."""
+    def capture(self, frame: BoardFrame, positions, normals, colors, indices, origin=None) -> dict[str, np.ndarray]:
+        """The four (S, S[, C]) maps of a mesh (rows from the bottom), one render pass each;
+        ``positions`` relative to ``origin`` (world, float64; None: the world origin)."""
         ctx, s = self.ctx, frame.size
         bufs = [ctx.buffer(np.ascontiguousarray(positions, "f4")), ctx.buffer(np.ascontiguousarray(normals, "f4")),
                 ctx.buffer(np.ascontiguousarray(colors, "u1"))]
         ibo = ctx.buffer(np.ascontiguousarray(indices, "u4"))
         depth = ctx.depth_renderbuffer((s, s))
-        view = np.ascontiguousarray(frame.view_matrix().T, "f4").tobytes()
+        view = np.ascontiguousarray(translated(frame.view_matrix(), origin).T, "f4").tobytes()
         proj = np.ascontiguousarray(frame.projection_matrix().T, "f4").tobytes()
         maps = {}
         try:
@@ -101,15 +102,17 @@ class BoardBuilder:
         return arr.reshape(s, s, comps) if comps > 1 else arr.reshape(s, s)
 
     def build(self, object_id: int, positions, normals, colors, indices, direction, size: int,
-              box_lo=None, box_hi=None) -> Reliefboard:
-        """A Reliefboard of one object mesh (world-space float32 positions/normals (V, 3),
-        uint8 colours (V, 4), uint32 indices (3T,)) for ``direction`` (observer → object
-        centre) at ``size`` × ``size`` pixels. The frame is the mesh's box unless given."""
+              box_lo=None, box_hi=None, origin=None) -> Reliefboard:
+        """A Reliefboard of one object mesh (float32 positions (V, 3) in world axes relative to
+        ``origin`` (world, float64; None: the world origin), world normals (V, 3), uint8 colours
+        (V, 4), uint32 indices (3T,)) for ``direction`` (observer → object centre) at ``size`` ×
+        ``size`` pixels. The frame is the mesh's world box unless given."""
         pos = np.asarray(positions, np.float32)
-        lo = pos.min(axis=0) if box_lo is None else box_lo
-        hi = pos.max(axis=0) if box_hi is None else box_hi
+        o = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
+        lo = pos.min(axis=0) + o if box_lo is None else box_lo
+        hi = pos.max(axis=0) + o if box_hi is None else box_hi
         frame = board_frame(lo, hi, direction, size)
-        maps = self.capture(frame, pos, normals, colors, indices)
+        maps = self.capture(frame, pos, normals, colors, indices, o)
         cover = maps["stencil"] > 127
         return Reliefboard(int(object_id), frame, cover, maps["distance"][cover].astype(np.float32),
                            maps["color"][cover][:, :3].copy(), maps["normal"][cover][:, :3].copy())
@@ -153,7 +156,8 @@ class BoardRenderer:
             return
         bufs = [self.ctx.buffer(pos), self.ctx.buffer(nrm), self.ctx.buffer(rgba)]
         ibo = self.ctx.buffer(idx)
-        self._boards[int(board.object_id)] = (_vao(self.ctx, self.prog, bufs, ibo), (*bufs, ibo), len(idx) // 3)
+        self._boards[int(board.object_id)] = (_vao(self.ctx, self.prog, bufs, ibo), (*bufs, ibo), len(idx) // 3,
+                                              np.asarray(board.frame.center, np.float64))
 
     def remove(self, object_id: int) -> None:
         entry = self._boards.pop(int(object_id), None)
@@ -163,14 +167,15 @@ class BoardRenderer:
                 b.release()
 
     def draw(self, object_ids, mvp: np.ndarray, tint=(0.0, 0.0, 0.0, 0.0)) -> int:
-        """Draw the boards of ``object_ids`` (those resident) with the float64 4x4 ``mvp``;
-        returns the triangles submitted."""
-        self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, dtype="f4").tobytes())
+        """Draw the boards of ``object_ids`` (those resident) with the float64 4x4 ``mvp``
+        (times each board's centre translation, in float64: board vertices are stored relative
+        to it); returns the triangles submitted."""
         self.prog["u_tint"].value = tuple(tint)
         tris = 0
         for oid in object_ids:
             entry = self._boards.get(int(oid))
             if entry is not None:
+                self.prog["u_mvp"].write(np.ascontiguousarray(translated(mvp, entry[3]).T, dtype="f4").tobytes())
                 entry[0].render(moderngl.TRIANGLES)
                 tris += entry[2]
         return tris

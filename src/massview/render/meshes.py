@@ -14,7 +14,7 @@ import numpy as np
 
 from .context import load_shader
 
-__all__ = ["MeshRenderer", "rank_tint"]
+__all__ = ["MeshRenderer", "rank_tint", "translated"]
 
 _LIGHT = np.array([0.35, -0.45, 0.82])
 _LIGHT = (_LIGHT / np.linalg.norm(_LIGHT)).astype("f4")
@@ -43,9 +43,24 @@ def _runs(items: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return starts, ends
 
 
+def translated(mvp: np.ndarray, origin) -> np.ndarray:
+    """``mvp`` · translate(``origin``) in float64: the matrix for positions stored relative to
+    ``origin`` (their float32 values stay small far from the world origin; the large
+    translations cancel here, in float64, not in the shader's float32)."""
+    if origin is None:
+        return mvp
+    t = np.eye(4)
+    t[:3, 3] = origin
+    return np.asarray(mvp, np.float64) @ t
+
+
 class MeshRenderer:
-    def __init__(self, ctx: moderngl.Context, positions, normals, colors, indices, index_offset):
+    """Objects' meshes in one VBO/IBO; positions are relative to ``origin`` (world, float64;
+    None: the world origin)."""
+
+    def __init__(self, ctx: moderngl.Context, positions, normals, colors, indices, index_offset, origin=None):
         self.ctx = ctx
+        self.origin = None if origin is None else np.asarray(origin, np.float64)
         self.index_offset = np.asarray(index_offset, np.int64)
         self.prog = ctx.program(vertex_shader=load_shader("mesh.vert.glsl"), fragment_shader=load_shader("mesh.frag.glsl"))
         self.prog["u_light"].value = tuple(_LIGHT)
@@ -83,7 +98,7 @@ class MeshRenderer:
                 self._indirect.release()
             self._indirect = self.ctx.buffer(reserve=max(len(data), 4096))
         self._indirect.write(data)
-        self.prog["u_mvp"].write(np.ascontiguousarray(mvp.T, dtype="f4").tobytes())
+        self.prog["u_mvp"].write(np.ascontiguousarray(translated(mvp, self.origin).T, dtype="f4").tobytes())
         self.prog["u_tint"].value = tuple(tint)
         self.vao.render_indirect(self._indirect, mode=moderngl.TRIANGLES, count=len(starts))
         return int(count.sum() // 3)

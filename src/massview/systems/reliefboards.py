@@ -257,7 +257,8 @@ class BackendRank:
         if mesh is None:
             mesh = self._meshes[req.object_id] = self.obj.mesh(req.object_id)
         board = self.builder.build(req.object_id, *mesh, direction=req.direction, size=req.size,
-                                   box_lo=self.obj.box_lo[req.object_id], box_hi=self.obj.box_hi[req.object_id])
+                                   box_lo=self.obj.box_lo[req.object_id], box_hi=self.obj.box_hi[req.object_id],
+                                   origin=self.obj.origins[req.object_id])
         data = encode_board(board)
         self.build_ms.append((time.perf_counter() - t0) * 1e3)
         self.built += 1

@@ -15,7 +15,9 @@ keep float32 precision relative to the object instead of ~0.25 m steps at 4e6.
 
 Every object is a *unit* for the :class:`SceneWriter`: its level-0 mesh (redundant vertices
 and faces removed, also those that become so only in float32 local coordinates; normals from
-the file, or area-weighted and split where faces meet at more than ``crease_angle`` degrees),
+the file, made unit, or — when the file has none, or some of the object's corners lack one or
+have a zero or NaN one, then for the whole object, with a warning — area-weighted and split
+where faces meet at more than ``crease_angle`` degrees),
 its LOD levels (:mod:`.simplify`), then its placement (the translation to its origin). With
 ``instance``, structured objects that share a geometry (glTF nodes of one mesh) store it once,
 in its own frame, with their transforms composed with that translation. Re-running an
@@ -33,13 +35,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ...core.errors import IngestError
+from ...core.errors import ConfigError, IngestError
 from .mesh import Mesh
 from .normals import CREASE_ANGLE
 from .plystream import PlyLayout
 from .simplify import build_levels
-from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_soup, split_dense
-from .sources import MemorySoup, StructuredObject, open_input, stream_bounds, stream_corners
+from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_mesh, clean_soup, split_dense
+from .sources import MemorySoup, StructuredObject, open_input, stream_bounds, stream_corners, transform_normals
 from .writer import SceneWriter
 
 __all__ = ["IngestParams", "prepare_scene"]
@@ -58,6 +60,10 @@ class IngestParams:
     vertex_block: int = 1 << 20  # vertices per streamed vertex read (15-40 MB)
     crease_angle: float = CREASE_ANGLE  # meshes without normals: split normals at sharper edges (degrees)
 
+    def __post_init__(self) -> None:
+        if not 0 < self.crease_angle <= 180:
+            raise ConfigError(f"--crease-angle must be more than 0 and at most 180 degrees (180: smooth everything), got {self.crease_angle:g}")
+
     def split(self) -> SplitParams:
         return SplitParams(self.object_triangles, self.object_size, self.cell_triangles)
 
@@ -75,14 +81,27 @@ def _translation(o: np.ndarray) -> np.ndarray:
     return t
 
 
+def usable_normals(nrm: np.ndarray | None) -> np.ndarray | None:
+    """Unit normals f32 (v,3) of file normals ``nrm``, or None (compute them) when there are
+    none or any is missing (NaN: an OBJ corner without ``vn``), infinite or of zero length."""
+    if nrm is None:
+        return None
+    n = np.asarray(nrm, np.float64)
+    ln = np.linalg.norm(n, axis=1, keepdims=True)
+    if not (np.isfinite(ln).all() and (ln > 0).all()):
+        return None
+    return (n / ln).astype(np.float32)
+
+
 def _mesh(p: np.ndarray, col: np.ndarray, nrm: np.ndarray | None, f: np.ndarray) -> tuple[Mesh, np.ndarray]:
     """(the object's mesh in its own frame, float32 positions relative to the origin; the
     origin (3,) f8). Vertices that become equal in float32 are merged again and faces that
-    become degenerate dropped, so the stored mesh has no zero-length edges. Without file
-    normals the mesh's normals are a placeholder: :func:`build_levels` splits them."""
+    become degenerate dropped, so the stored mesh has no zero-length edges. File normals
+    ``nrm`` must be unit (:func:`usable_normals`) or None: then the mesh's normals are a
+    placeholder, split by :func:`build_levels`."""
     o = local_frame(p)
     q = (np.asarray(p, np.float64) - o).astype(np.float32)
-    q, col, nrm, f = clean_soup(Corners(q[f], col[f], None if nrm is None else nrm[f]))
+    q, col, nrm, f = clean_mesh(q, col, nrm, f)
     n = np.zeros((len(q), 3), np.float32) if nrm is None else nrm.astype(np.float32)
     return Mesh(q, n, col.astype(np.uint8), f.astype(np.uint32)), o
 
@@ -94,6 +113,22 @@ class _Run:
         self.w, self.prm, self.prog, self.fault_after = w, prm, progress, fault_after
         self.unit = 0
         self.triangles = 0
+        self.computed: dict[str, list[int]] = {}  # input name -> [objects whose partial normals were replaced, objects]
+
+    def normals(self, source: str, nrm: np.ndarray | None) -> np.ndarray | None:
+        """An object's file normals made unit, or None (computed) when the file has none or some
+        are missing or zero: then the whole object gets computed normals (counted for a warning)."""
+        n = usable_normals(nrm)
+        if nrm is not None:
+            c = self.computed.setdefault(source, [0, 0])
+            c[0] += n is None
+            c[1] += 1
+        return n
+
+    def warnings(self) -> list[str]:
+        return [f"{name}: {bad} of {total} objects have faces without a usable normal (no vn, zero or NaN); those objects "
+                f"got computed normals (split at {self.prm.crease_angle:g}°) instead of the file's"
+                for name, (bad, total) in self.computed.items() if bad]
 
     def pending(self) -> bool:
         return self.unit >= self.w.geometries_done
@@ -117,22 +152,24 @@ class _Run:
             raise KeyboardInterrupt(f"fault injected after {self.unit} units")
 
 
-def _structured(run: _Run, objs: list[StructuredObject]) -> None:
+def _structured(run: _Run, objs: list[StructuredObject], source: str) -> None:
     if run.prm.instance:
         keys: dict[str, list[StructuredObject]] = {}
         for o in objs:
             keys.setdefault(o.geometry_key, []).append(o)
-        for group in keys.values():  # the geometry in its own frame, each instance's transform composed with it
+        for group in keys.values():  # the geometry in its own frame (normals too), each instance's transform composed with it
             p, col, nrm, f = clean_soup(group[0].corners)
+            nrm = run.normals(source, nrm)
             mesh, origin = _mesh(p, col, nrm, f)
             run.write(mesh, [np.asarray(o.transform, np.float64) @ _translation(origin) for o in group], nrm is None)
         return
     for o in objs:
         c = o.corners
         p = np.einsum("ij,tkj->tki", o.transform[:3, :3], c.positions.astype(np.float64)) + o.transform[:3, 3]
-        p, col, nrm, f = clean_soup(Corners(p, c.colors, None))
+        p, col, nrm, f = clean_soup(Corners(p, c.colors, transform_normals(c.normals, o.transform)))
+        nrm = run.normals(source, nrm)
         mesh, origin = _mesh(p, col, nrm, f)
-        run.write(mesh, [_translation(origin)], True)
+        run.write(mesh, [_translation(origin)], nrm is None)
 
 
 def _cells_of_memory(soup: MemorySoup, prm: IngestParams):
@@ -202,29 +239,32 @@ def _params_of(paths: list[Path], prm: IngestParams) -> dict:
 def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bool = False, progress=None,
                   checkpoint_bytes: int = 64 << 20, fault_after: int | None = None) -> dict:
     """Build the scene store ``out`` from mesh files ``inputs``. Returns the store attributes
-    plus ``seconds``, ``input_bytes`` and ``resumed``. ``fault_after`` (tests) interrupts the
-    run after that many units as a KeyboardInterrupt would."""
+    plus ``seconds``, ``input_bytes``, ``resumed`` and ``warnings`` (messages for the user).
+    ``fault_after`` (tests) interrupts the run after that many units as a KeyboardInterrupt would."""
     t0 = time.perf_counter()
     prog = progress or (lambda *a: None)
     paths = [Path(p) for p in inputs]
     if not paths:
         raise IngestError("no input files given")
-    sources = [open_input(p, prm.stream_bytes) for p in paths]  # validates before anything is written
+    warn: list[str] = []
+    sources = [open_input(p, prm.stream_bytes, warn) for p in paths]  # validates before anything is written
     out = Path(out)
     w = SceneWriter(out, _params_of(paths, prm), {"source": ", ".join(p.name for p in paths), "units": "1"},
                     levels_max=prm.max_levels, overwrite=overwrite, checkpoint_bytes=checkpoint_bytes)
     resumed = w.resumed
     run = _Run(w, prm, prog, fault_after)
-    for i, src in enumerate(sources):
+    for i, (path, src) in enumerate(zip(paths, sources)):
         if isinstance(src, list):
-            _structured(run, src)
+            _structured(run, src, str(path))
             continue
         cells = _cells_of_memory(src, prm) if isinstance(src, MemorySoup) else _cells_of_stream(src, out / "_spill" / str(i), prm, prog)
         for cell in cells:
             for corners in split_dense(cell, prm.cell_triangles):
                 for p, col, nrm, f in cell_objects(corners, prm.split()):
+                    nrm = run.normals(str(path), nrm)
                     mesh, origin = _mesh(p, col, nrm, f)
                     run.write(mesh, [_translation(origin)], nrm is None)
     attrs = w.finish({"ingest_seconds": round(time.perf_counter() - t0, 3)})
     shutil.rmtree(out / "_spill", ignore_errors=True)
-    return {**attrs, "seconds": time.perf_counter() - t0, "input_bytes": sum(p.stat().st_size for p in paths), "resumed": resumed}
+    return {**attrs, "seconds": time.perf_counter() - t0, "input_bytes": sum(p.stat().st_size for p in paths), "resumed": resumed,
+            "warnings": warn + run.warnings()}

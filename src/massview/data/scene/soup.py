@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Corners", "SplitParams", "cell_grid", "cell_of", "clean_soup", "cell_objects", "split_dense"]
+__all__ = ["Corners", "SplitParams", "cell_grid", "cell_of", "clean_soup", "clean_mesh", "cell_objects", "split_dense"]
 
 
 @dataclass(frozen=True)
@@ -86,28 +86,54 @@ def split_dense(c: Corners, limit: int) -> list[Corners]:
     return out
 
 
-def clean_soup(c: Corners) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
-    """Shared vertices of a corner soup: (positions (v,3) of the corners' dtype, colours u8
-    (v,4), normals or None, faces i8 (t,3)), redundant vertices merged, degenerate and repeated
-    faces dropped (the first occurrence is kept, in input order). Vertices are equal when their
-    bits are, so float64 corners are merged (and faces found degenerate) at float64 precision."""
-    m = c.count
-    parts = [c.positions.reshape(-1, 3).view(np.uint32), c.colors.reshape(-1, 4).view(np.uint32)[:, :1]]
-    if c.normals is not None:
-        parts.append(c.normals.reshape(-1, 3).view(np.uint32))
+def _key_rows(positions: np.ndarray, colors: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
+    """(n,) void keys: the bits of each row's position, colour and normal."""
+    parts = [positions.reshape(-1, 3).view(np.uint32), colors.reshape(-1, 4).view(np.uint32)[:, :1]]
+    if normals is not None:
+        parts.append(normals.reshape(-1, 3).view(np.uint32))
     rows = np.ascontiguousarray(np.concatenate(parts, 1))
-    key = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).ravel()
-    _, first, inv = np.unique(key, return_index=True, return_inverse=True)
-    faces = inv.reshape(m, 3).astype(np.int64)
+    return rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).ravel()
+
+
+def _kept_faces(faces: np.ndarray) -> np.ndarray:
+    """Sorted indices of the faces that are neither degenerate nor the same three vertices as
+    an earlier non-degenerate face."""
     ok = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     s = np.sort(faces, axis=1)
     s[~ok] = -1
     _, keep = np.unique(s, axis=0, return_index=True)
-    keep = np.sort(keep[ok[keep]])
-    faces = faces[keep]
+    return np.sort(keep[ok[keep]])
+
+
+def clean_soup(c: Corners) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    """Shared vertices of a corner soup: (positions (v,3) of the corners' dtype, colours u8
+    (v,4), normals or None, faces i8 (t,3)), redundant vertices merged, degenerate and repeated
+    faces dropped (the first occurrence is kept, in input order). Vertices are equal when their
+    bits are, so float64 corners are merged (and faces found degenerate) at float64 precision.
+    The vertices come in the order of their bits (``np.unique`` of the rows)."""
+    _, first, inv = np.unique(_key_rows(c.positions, c.colors, c.normals), return_index=True, return_inverse=True)
+    faces = inv.reshape(c.count, 3).astype(np.int64)
+    faces = faces[_kept_faces(faces)]
     flat = lambda a, w: a.reshape(-1, w)[first]  # noqa: E731
     nrm = flat(c.normals, 3) if c.normals is not None else None
     return flat(c.positions, 3), flat(c.colors, 4), nrm, faces
+
+
+def clean_mesh(p: np.ndarray, col: np.ndarray, nrm: np.ndarray | None, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    """``clean_soup(Corners(p[f], col[f], nrm[f]))`` — the same vertices in the same order and
+    the same faces — computed on the v vertices the faces use instead of their 3t corners (the
+    second clean of an object, once in its float32 frame, where most vertices are shared)."""
+    f = np.asarray(f, np.int64).reshape(-1, 3)
+    used = np.zeros(len(p), bool)
+    used[f] = True
+    idx = np.flatnonzero(used)
+    _, first, inv = np.unique(_key_rows(p[idx], col[idx], None if nrm is None else nrm[idx]), return_index=True, return_inverse=True)
+    remap = np.zeros(len(p), np.int64)
+    remap[idx] = inv.reshape(-1)
+    faces = remap[f]
+    faces = faces[_kept_faces(faces)]
+    src = idx[first]
+    return p[src], col[src], None if nrm is None else nrm[src], faces
 
 
 def _components(p: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -4,12 +4,19 @@ An input is either *structured* — objects from the file's own structure (glTF 
 their world transforms, OBJ ``o``/``g`` groups) — or one unstructured *soup* (PLY, STL, OFF,
 an OBJ without groups, a glTF with one mesh node) that :mod:`.soup` splits into objects. A
 binary triangle PLY is read with :mod:`.plystream` (streamed when it is large, whole when it
-is small: the same reader either way); everything else goes through trimesh. Positions are
-float64 throughout (georeferenced coordinates keep their precision; :mod:`.ingest` expresses
-each object in float32 relative to its own origin). Inputs are checked before anything is
-written: a directory, an unknown suffix, a file trimesh cannot parse, an empty mesh,
-NaN/infinite coordinates or face indices out of range raise :class:`IngestError` naming the
-file.
+is small: the same reader either way); an OBJ with :func:`read_obj`, in file order (trimesh
+only for its colours, when it has vertex colours or materials); everything else goes through
+trimesh. Positions are float64 throughout (georeferenced coordinates keep their precision;
+:mod:`.ingest` expresses each object in float32 relative to its own origin).
+
+Normals are the file's where it has them: PLY ``nx ny nz``, OBJ ``vn`` (per corner, indexed
+apart from the positions), glTF ``NORMAL``; a glTF node's transform turns them by its inverse
+transpose. An OBJ corner without a ``vn`` gets a NaN normal: :mod:`.ingest` computes the
+normals of any object with such a corner (or a zero one) and says so.
+
+Inputs are checked before anything is written: a directory, an unknown suffix, a file trimesh
+cannot parse, an empty mesh, NaN/infinite coordinates or face indices out of range raise
+:class:`IngestError` naming the file (and, for an OBJ, the line).
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ from ...core.errors import IngestError
 from .plystream import PlyLayout, face_chunks, gather_corners, read_ply_layout, vertex_blocks
 from .soup import Corners
 
-__all__ = ["SUFFIXES", "check_input", "StructuredObject", "MemorySoup", "open_input"]
+__all__ = ["SUFFIXES", "check_input", "StructuredObject", "MemorySoup", "ObjFile", "open_input", "read_obj", "transform_normals"]
 
 SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")
 _GREY = (200, 200, 200, 255)
@@ -95,36 +102,152 @@ def _trimesh_colors(m) -> np.ndarray:
     return np.tile(np.array(_GREY, np.uint8), (len(m.vertices), 1))
 
 
+def file_normals(m) -> np.ndarray | None:
+    """The vertex normals (v,3) f8 a trimesh mesh was loaded with (glTF ``NORMAL``, PLY
+    nx/ny/nz), or None when the file brought none. (trimesh computes ``vertex_normals`` on
+    demand; normals from the file are the ones already in its cache, which is also how
+    trimesh's own exporters tell them apart.)"""
+    n = m._cache.cache.get("vertex_normals")
+    if n is None or np.shape(n) != np.shape(m.vertices):
+        return None
+    return np.asarray(n, np.float64)
+
+
 def _corners_of(m, path: Path, what: str) -> Corners:
     p = np.asarray(m.vertices, np.float64)
     f = np.asarray(m.faces, np.int64).reshape(-1, 3)
     _validate(path, p, f, what)
     col = _trimesh_colors(m)
-    return Corners(p[f], col if col.ndim == 3 else col[f], None)
+    n = file_normals(m)
+    return Corners(p[f], col if col.ndim == 3 else col[f], None if n is None else n[f].astype(np.float32))
 
 
-def _obj_groups(path: Path) -> np.ndarray | None:
-    """Per-triangle group label of an OBJ (fan triangulation of each face line), or None
-    without groups; checks face indices against the vertices defined so far."""
-    labels, group, nv, seen = [], 0, 0, {}
+def transform_normals(n: np.ndarray | None, xf: np.ndarray) -> np.ndarray | None:
+    """Normals (...,3) through the 4x4 ``xf`` (its linear part's inverse transpose), float32,
+    not normalised (:mod:`.ingest` normalises); None stays None, as does a singular ``xf``."""
+    if n is None:
+        return None
+    try:
+        inv = np.linalg.inv(np.asarray(xf, np.float64)[:3, :3])
+    except np.linalg.LinAlgError:
+        return None
+    return (np.asarray(n, np.float64) @ inv).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class ObjFile:
+    """An OBJ read in file order: corner positions f8 (t,3,3) and normals f32 (t,3,3) (NaN
+    where a corner names no ``vn``; None when no corner does) of every triangle, faces of more
+    than 3 corners fanned from their first corner; ``labels`` (t,) i8 the ``o``/``g`` group of
+    each triangle; ``colored``: the file has vertex colours or materials (read by trimesh)."""
+
+    positions: np.ndarray
+    normals: np.ndarray | None
+    labels: np.ndarray
+    groups: int
+    colored: bool
+
+
+def _obj_index(tok: str, n: int, what: str, path: Path, lineno: int) -> int:
+    """0-based index of a 1-based (or negative: relative to the ``n`` defined so far) OBJ index."""
+    try:
+        i = int(tok)
+    except ValueError:
+        raise IngestError(f"{path}:{lineno}: face corner has {what} index {tok!r}, not an integer; the file is damaged") from None
+    k = i - 1 if i > 0 else n + i
+    if i == 0 or not 0 <= k < n:
+        raise IngestError(f"{path}:{lineno}: face refers to {what} {i} but only {n} {what}s are defined before it; "
+                          "the file is damaged")
+    return k
+
+
+def read_obj(path: Path) -> ObjFile:
+    """The triangles of an OBJ (``v``, ``vn``, ``f v``, ``f v/vt``, ``f v//vn``, ``f v/vt/vn``;
+    negative indices count back from the last defined), checked line by line: a malformed
+    coordinate or index raises :class:`IngestError` naming the file and line."""
+    v: list = []
+    vn: list = []
+    tv: list = []  # corner vertex indices, 3 per triangle
+    tn: list = []  # corner normal indices (-1: none)
+    labels: list = []
+    group, seen, colored = 0, {}, False
     with open(path, "r", errors="replace") as fh:
         for lineno, line in enumerate(fh, 1):
             w = line.split()
             if not w:
                 continue
-            if w[0] == "v":
-                nv += 1
-            elif w[0] in ("o", "g"):
+            key = w[0]
+            if key in ("v", "vn"):
+                try:
+                    xyz = (float(w[1]), float(w[2]), float(w[3]))
+                except (ValueError, IndexError):
+                    raise IngestError(f"{path}:{lineno}: {key!r} line needs three numbers, got {' '.join(w[1:4])!r}; "
+                                      "the file is damaged") from None
+                (v if key == "v" else vn).append(xyz)
+                colored |= key == "v" and len(w) >= 7
+            elif key in ("o", "g"):
                 group = seen.setdefault(" ".join(w[1:]) or f"_{lineno}", len(seen))
-            elif w[0] == "f":
-                idx = [int(t.split("/")[0]) for t in w[1:]]
-                for i in idx:
-                    if i == 0 or i > nv or i < -nv:
-                        raise IngestError(f"{path}:{lineno}: face refers to vertex {i} but only {nv} vertices are defined before it; "
-                                          "the file is damaged")
-                labels += [group] * max(len(idx) - 2, 0)
-    lab = np.asarray(labels, np.int64)
-    return lab if len(seen) > 1 and len(np.unique(lab)) > 1 else None
+            elif key == "usemtl":
+                colored = True
+            elif key == "f":
+                if len(w) < 4:
+                    raise IngestError(f"{path}:{lineno}: face has {len(w) - 1} corners; a face needs at least 3")
+                cv, cn = [], []
+                for tok in w[1:]:
+                    parts = tok.split("/")
+                    cv.append(_obj_index(parts[0], len(v), "vertex", path, lineno))
+                    cn.append(_obj_index(parts[2], len(vn), "normal", path, lineno) if len(parts) > 2 and parts[2] else -1)
+                for j in range(1, len(cv) - 1):  # fan from the first corner
+                    tv += (cv[0], cv[j], cv[j + 1])
+                    tn += (cn[0], cn[j], cn[j + 1])
+                labels += [group] * (len(cv) - 2)
+    pos = np.asarray(v, np.float64).reshape(-1, 3)
+    tri = np.asarray(tv, np.int64).reshape(-1, 3)
+    _validate(path, pos, tri)
+    nidx = np.asarray(tn, np.int64).reshape(-1, 3)
+    nrm = None
+    if (nidx >= 0).any():
+        table = np.concatenate([np.asarray(vn, np.float32).reshape(-1, 3), np.full((1, 3), np.nan, np.float32)])
+        nrm = table[nidx]  # -1: the NaN row
+    return ObjFile(pos[tri], nrm, np.asarray(labels, np.int64), max(len(seen), 1), colored)
+
+
+def _canonical_order(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rotation (t,3): each triangle's corners starting at its smallest corner position, winding
+    kept; order (t,): triangles sorted by their rotated corners) of corners (t,3,3)."""
+    flat = c.reshape(-1, 3)
+    rank = np.empty(len(flat), np.int64)
+    rank[np.lexsort(flat.T[::-1])] = np.arange(len(flat))
+    rot = (rank.reshape(-1, 3).argmin(axis=1)[:, None] + np.arange(3)) % 3
+    cc = np.take_along_axis(c, rot[:, :, None], 1).reshape(-1, 9)
+    return rot, np.lexsort(cc.T[::-1])
+
+
+def _obj_colors(path: Path, obj: ObjFile, warn: list) -> np.ndarray:
+    """Corner colours u8 (t,3,4) of an OBJ's triangles: grey, or (vertex colours, materials)
+    what trimesh makes of them, matched to the file's triangles by their corner positions
+    (trimesh regroups faces by material and splits quads its own way)."""
+    grey = np.empty((len(obj.positions), 3, 4), np.uint8)
+    grey[:] = _GREY
+    if not obj.colored:
+        return grey
+    m = _load_trimesh(path)
+    col = _trimesh_colors(m)
+    tc = np.asarray(m.vertices, np.float64)[np.asarray(m.faces, np.int64).reshape(-1, 3)]
+    col = col if col.ndim == 3 else col[np.asarray(m.faces, np.int64).reshape(-1, 3)]
+    if tc.shape != obj.positions.shape:
+        warn.append(f"{path}: trimesh reads {len(tc)} triangles where massview reads {len(obj.positions)}; its colours "
+                    "are not used (grey)")
+        return grey
+    rot_t, ord_t = _canonical_order(tc)
+    rot_m, ord_m = _canonical_order(obj.positions)
+    if not np.array_equal(np.take_along_axis(tc, rot_t[:, :, None], 1)[ord_t],
+                          np.take_along_axis(obj.positions, rot_m[:, :, None], 1)[ord_m]):
+        warn.append(f"{path}: trimesh's triangles differ from the file's; its colours are not used (grey)")
+        return grey
+    out = np.empty_like(col)
+    out[ord_m[:, None], rot_m[ord_m]] = np.take_along_axis(col[ord_t], rot_t[ord_t][:, :, None], 1)
+    return out
 
 
 def _load_trimesh(path: Path):
@@ -154,16 +277,32 @@ def _scene_objects(path: Path, scene) -> list[StructuredObject] | MemorySoup:
     if not out:
         raise IngestError(f"{path}: the scene has no triangle meshes; nothing to ingest")
     if len(out) == 1:
-        c = out[0].corners
-        p = np.einsum("ij,tkj->tki", out[0].transform[:3, :3], c.positions) + out[0].transform[:3, 3]
+        c, xf = out[0].corners, out[0].transform
+        p = np.einsum("ij,tkj->tki", xf[:3, :3], c.positions) + xf[:3, 3]
         t = np.arange(c.count * 3).reshape(-1, 3)
-        return MemorySoup(path, p.reshape(-1, 3), c.colors, None, t)
+        n = transform_normals(c.normals, xf)
+        return MemorySoup(path, p.reshape(-1, 3), c.colors, None if n is None else n.reshape(-1, 3), t)
     return out
 
 
-def open_input(path: Path, stream_bytes: int) -> list[StructuredObject] | MemorySoup | PlyLayout:
+def _obj_input(path: Path, warn: list) -> list[StructuredObject] | MemorySoup:
+    obj = read_obj(path)
+    col = _obj_colors(path, obj, warn)
+    n, lab = obj.normals, obj.labels
+    if obj.groups > 1 and len(np.unique(lab)) > 1:
+        return [StructuredObject(f"group {g}", Corners(obj.positions[lab == g], col[lab == g], None if n is None else n[lab == g]),
+                                 np.eye(4), f"group {g}") for g in np.unique(lab)]
+    t = len(obj.positions)
+    return MemorySoup(path, obj.positions.reshape(-1, 3), col, None if n is None else n.reshape(-1, 3),
+                      np.arange(t * 3).reshape(-1, 3))
+
+
+def open_input(path: Path, stream_bytes: int, warn: list | None = None) -> list[StructuredObject] | MemorySoup | PlyLayout:
     """Structured objects, a soup in RAM, or (a binary triangle PLY of at least
-    ``stream_bytes`` bytes) its layout for the streamed ingest."""
+    ``stream_bytes`` bytes) its layout for the streamed ingest. Normals come from the file
+    where it has them (PLY nx/ny/nz, OBJ ``vn`` per corner — NaN for corners without one —,
+    glTF ``NORMAL``), through any node transform. ``warn`` collects messages for the user."""
+    warn = [] if warn is None else warn
     path = check_input(path)
     suf = path.suffix.lower()
     if suf == ".ply":
@@ -173,20 +312,15 @@ def open_input(path: Path, stream_bytes: int) -> list[StructuredObject] | Memory
                 raise IngestError(f"{path}: the mesh is empty (no triangles); nothing to ingest")
             return lay if path.stat().st_size >= stream_bytes else _read_whole_ply(lay)
     if suf == ".obj":
-        labels = _obj_groups(path)
-        m = _load_trimesh(path)
-        c = _corners_of(m, path, "")
-        if labels is not None and len(labels) == c.count:
-            return [StructuredObject(f"group {g}", Corners(c.positions[labels == g], c.colors[labels == g], None), np.eye(4), f"group {g}")
-                    for g in np.unique(labels)]
-        return MemorySoup(path, c.positions.reshape(-1, 3), c.colors, None, np.arange(c.count * 3).reshape(-1, 3))
+        return _obj_input(path, warn)
     if suf in (".gltf", ".glb"):
         return _scene_objects(path, _load_trimesh(path))
     m = _load_trimesh(path)
     p = np.asarray(m.vertices, np.float64)
     f = np.asarray(m.faces, np.int64).reshape(-1, 3)
     _validate(path, p, f)
-    return MemorySoup(path, p, _trimesh_colors(m), None, f)
+    n = file_normals(m)
+    return MemorySoup(path, p, _trimesh_colors(m), None if n is None else n.astype(np.float32), f)
 
 
 def _read_whole_ply(lay: PlyLayout) -> MemorySoup:
