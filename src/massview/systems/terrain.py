@@ -18,7 +18,8 @@ Every rank runs the same K-patch LOD on the same camera. Per frame:
    whole frame (sort-last shares it; kd and balanced tiles are planned from it);
 4. the front is filtered by the task: sort-first culls it against the tile's sub-frustum;
    sort-last keeps the rank's range R_i by one of the paper's three enumerations (§4.1):
-   ``linear`` (M-block origin x), ``quadtree`` (Morton interval of the patch's finest block),
+   ``linear`` (origin x of the finest M-block under the patch), ``quadtree`` (Morton interval of
+   that block),
    ``kpatch`` (an equal share of the enumerated visible front).
 
 Block sets (residency, front blocks, shading and wanted blocks) are flat boolean arrays over
@@ -336,12 +337,13 @@ class TerrainSystem:
         if mode == "kpatch":
             n = len(vis)
             return vis[int(round(a * n)): int(round(b * n))]
-        if mode == "linear":
-            span = (self.lay.M - 1) << f.level[vis]
-            x = (f.bj[vis] * span) / float(self.lay.S - 1)
-            return vis[(x >= a) & (x < b)]
-        span0 = self.lay.M - 1  # quadtree: Morton order of the finest block under the patch centroid
+        span0 = self.lay.M - 1  # both: the finest M-block under the patch centroid
         cx, cy = (f.ax[vis] + f.lx[vis] + f.rx[vis]) // 3, (f.ay[vis] + f.ly[vis] + f.ry[vis]) // 3
+        if mode == "linear":  # that block's origin x (the paper's O_M(x) of the block the patch drew from put
+            nb0 = self.lay.blocks(0)  # every patch of a coarse block on rank 0: they all start at x = 0)
+            x = np.minimum(cx // span0, nb0 - 1) / float(nb0)
+            return vis[(x >= a) & (x < b)]
+        # quadtree: Morton order of that block
         z = _morton(cy // span0, cx // span0) / float(4**self.lay.L)
         return vis[(z >= a) & (z < b)]
 
