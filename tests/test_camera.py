@@ -147,3 +147,24 @@ def test_orbit_keeps_the_whole_box_in_view_without_standing_far_off(size, box):
         assert np.abs(ndc).max() >= 0.9, (size, box, ndc)
         depth = clip[:, 2] / clip[:, 3]  # inside the near and far planes, and the near plane not wastefully close
         assert np.abs(depth).max() <= 1.0 and cam.far / cam.near < 50, (size, box, depth, cam.near, cam.far)
+
+
+@pytest.mark.parametrize("kf,extra,needle", [
+    ({"position": [0, 0], "look_at": [1, 0, 0]}, {}, "keyframe 0: 'position' must be 3 finite numbers, got [0, 0]"),
+    ({"position": [0, 0, float("nan")], "look_at": [1, 0, 0]}, {}, "keyframe 0: 'position' must be 3 finite numbers"),
+    ({"position": [1, 2, 3], "look_at": [1, 2, 3]}, {}, "keyframe 0: 'look_at' equals 'position'"),
+    ({"position": [1, 2, 3], "look_at": [0, 0, 0]}, {"fovy": 200}, "'fovy' must be a number of degrees between 0 and 180, got 200"),
+])
+def test_keyframe_file_errors_name_the_file_and_keyframe(tmp_path, kf, extra, needle):
+    """Each of these named neither the file nor the keyframe (a Camera's message, or numpy's
+    'inhomogeneous shape' for a 2-element position)."""
+    import json
+
+    from massview.core.errors import ConfigError
+    from massview.core.paths import load_path
+
+    f = tmp_path / "p.json"
+    f.write_text(json.dumps({"keyframes": [{"time": 0, **kf}, {"time": 1, "position": [5, 5, 5], "look_at": [0, 0, 0]}], **extra}))
+    with pytest.raises(ConfigError) as e:
+        load_path(str(f), [0, 0, 0], [1, 1, 1]).cameras(2, 32, 24)
+    assert str(f) in str(e.value) and needle in str(e.value)

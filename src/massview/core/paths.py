@@ -110,6 +110,7 @@ class KeyframePath(CameraPath):
     fovy: float = 45.0
     near: float | None = None  # None: fitted to the scene by load_path (scene_clip)
     far: float | None = None
+    source: str = field(default="keyframe path", compare=False)
 
     def clip(self):
         if self.near is None or self.far is None:
@@ -122,7 +123,7 @@ class KeyframePath(CameraPath):
         self.near = near if self.near is None else self.near
         self.far = far if self.far is None else self.far
         if not 0 < self.near < self.far:
-            raise ConfigError(f"keyframe path: needs 0 < near < far, got near={self.near} far={self.far}")
+            raise ConfigError(f"{self.source}: needs 0 < near < far, got near={self.near} far={self.far}")
         return self
 
     def pose(self, t):
@@ -141,6 +142,28 @@ class KeyframePath(CameraPath):
         kfs = data.get("keyframes")
         if not isinstance(kfs, list) or not kfs:
             raise ConfigError(f"{source}: expected a non-empty 'keyframes' list")
+        for i, k in enumerate(kfs):  # each keyframe's vectors checked first, so a message names it
+            if not isinstance(k, dict):
+                raise ConfigError(f"{source}: keyframe {i} is not an object with 'time', 'position' and 'look_at'")
+            for name, n in (("position", 3), ("look_at", 3), ("orientation", 4)):
+                v = k.get(name)
+                if v is None:
+                    continue
+                try:
+                    ok = isinstance(v, list) and len(v) == n and all(math.isfinite(float(x)) for x in v)
+                except (TypeError, ValueError):
+                    ok = False
+                if not ok:
+                    raise ConfigError(f"{source}: keyframe {i}: {name!r} must be {n} finite numbers, got {v!r}")
+            if "time" in k and not (isinstance(k["time"], (int, float)) and math.isfinite(k["time"])):
+                raise ConfigError(f"{source}: keyframe {i}: 'time' must be a finite number, got {k['time']!r}")
+            if "look_at" in k and "position" in k and [float(x) for x in k["look_at"]] == [float(x) for x in k["position"]]:
+                raise ConfigError(f"{source}: keyframe {i}: 'look_at' equals 'position'; give a point the camera looks towards")
+            if "orientation" in k and not any(float(x) for x in k["orientation"]):
+                raise ConfigError(f"{source}: keyframe {i}: 'orientation' is all zeros; give a (w, x, y, z) quaternion")
+        fovy = data.get("fovy", 45.0)
+        if not (isinstance(fovy, (int, float)) and 0 < fovy < 180):
+            raise ConfigError(f"{source}: 'fovy' must be a number of degrees between 0 and 180, got {fovy!r}")
         try:
             times = np.array([float(k.get("time", i)) for i, k in enumerate(kfs)])
             positions = np.array([[float(v) for v in k["position"]] for k in kfs])
@@ -161,7 +184,7 @@ class KeyframePath(CameraPath):
             near, far = (None if data.get(k) is None else float(data[k]) for k in ("near", "far"))
         except (TypeError, ValueError):
             raise ConfigError(f"{source}: 'near' and 'far' must be numbers (world units)") from None
-        return cls(times, positions, targets, orients, float(data.get("fovy", 45.0)), near, far)
+        return cls(times, positions, targets, orients, float(fovy), near, far, source)
 
 
 @dataclass
