@@ -321,7 +321,6 @@ class ParametricPath(CameraPath):
         d /= max(np.linalg.norm(d), 1e-12)
         return eye, eye + d * 10.0 + np.array([0.0, 0.0, -0.6])
 
-
     def _walk_ground(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """``walkthrough`` on a terrain: along the straight swaying line at eye height above the
         ground under each point, looking ``_LOOK`` units ahead, a little down, and up or down by
