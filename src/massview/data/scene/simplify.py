@@ -6,7 +6,13 @@ quadric edge collapse (Garland & Heckbert 1997) through a registry package:
 Simplification; ``massview bench scene-ingest`` measures the two. Levels stop when a halving
 no longer removes 20 % of the triangles or fewer than ``min_triangles`` would remain.
 
-Colours of the new vertices are those of the nearest level-0 vertex; normals are recomputed
+Borders are locked (both packages' ``preserve_border``): an object cut from a larger surface
+keeps its cut as the same polyline at every level, so neighbouring objects drawn at any mix of
+levels meet without cracks (simplified freely, the background showed through hairlines along
+the cuts); an open mesh keeps its outline too. Where the locked outline stops a halving (it
+would keep more than 80 % of the triangles: an open mesh whose border is most of it), that
+level is simplified freely instead, as before, so such meshes still get their coarse levels. Colours of the new vertices are those of the
+nearest level-0 vertex; normals are recomputed
 from the simplified surface. With ``crease`` (a mesh whose file brought no normals), every
 level's normals are split at edges sharper than ``crease`` degrees (:mod:`.normals`): the
 levels are simplified from the welded surface and split afterwards, so the simplifier never
@@ -49,20 +55,22 @@ def is_closed(indices: np.ndarray, positions: np.ndarray | None = None) -> bool:
     return bool((counts == 2).all())
 
 
-def simplify_once(p: np.ndarray, t: np.ndarray, target: int, backend: str = "fast-simplification") -> tuple[np.ndarray, np.ndarray]:
-    """(positions f32 (v,3), triangles i64 (t,3)) simplified to about ``target`` triangles."""
+def simplify_once(p: np.ndarray, t: np.ndarray, target: int, backend: str = "fast-simplification",
+                  lock_border: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """(positions f32 (v,3), triangles i64 (t,3)) simplified to about ``target`` triangles,
+    ``lock_border``: vertices on open edges stay where they are."""
     p = np.ascontiguousarray(p, np.float32)
     t = np.ascontiguousarray(t, np.int32)
     if backend == "fast-simplification":
         import fast_simplification
 
-        q, f = fast_simplification.simplify(p, t, target_count=max(int(target), 1))
+        q, f = fast_simplification.simplify(p, t, target_count=max(int(target), 1), preserve_border=bool(lock_border))
     elif backend == "pyfqmr":
         import pyfqmr
 
         s = pyfqmr.Simplify()
         s.setMesh(p, t)
-        s.simplify_mesh(target_count=max(int(target), 1), aggressiveness=7, preserve_border=True, verbose=False)
+        s.simplify_mesh(target_count=max(int(target), 1), aggressiveness=7, preserve_border=bool(lock_border), verbose=False)
         q, f, _ = s.getMesh()
     else:
         raise ValueError(f"unknown simplifier {backend!r}; use one of {BACKENDS}")
@@ -147,6 +155,8 @@ def build_levels(mesh: Mesh, max_levels: int = 8, min_triangles: int = 64, backe
         if target < min_triangles:
             break
         q, f = simplify_once(p, t, target, backend)
+        if len(f) > 0.8 * len(t):  # the locked outline holds it (an open mesh with a long border): halve it freely
+            q, f = simplify_once(p, t, target, backend, lock_border=False)
         if len(f) == 0 or len(f) > 0.8 * len(t):
             break
         tree = tree or cKDTree(p0)
