@@ -117,8 +117,11 @@ def _trimesh_colors(m) -> np.ndarray:
     kind = getattr(vis, "kind", None)
     try:
         if kind == "texture":
+            mat = getattr(vis, "material", None)
             vis = vis.to_color()
             kind = vis.kind
+            if kind is None and mat is not None and getattr(mat, "image", None) is None:  # a plain colour (an OBJ's one Kd)
+                return np.tile(np.asarray(mat.main_color, np.uint8)[:4], (len(m.vertices), 1))
         if kind == "vertex":
             return np.asarray(vis.vertex_colors, np.uint8)[:, :4]
         if kind == "face":
@@ -174,6 +177,7 @@ class ObjFile:
     colored: bool
     mtllibs: tuple = ()  # the material libraries the file names (``mtllib``)
     uses_materials: bool = False  # it has ``usemtl`` lines
+    vertex_colors: bool = False  # some ``v`` line has r g b
 
 
 def _obj_index(tok: str, n: int, what: str, path: Path, lineno: int) -> int:
@@ -200,7 +204,7 @@ def read_obj(path: Path) -> ObjFile:
     labels: list = []
     group, seen, colored = 0, {}, False
     mtllibs: list = []
-    usemtl = False
+    usemtl = vcol = False
     with open(path, "r", errors="replace") as fh:
         for lineno, line in enumerate(fh, 1):
             w = line.split()
@@ -214,7 +218,8 @@ def read_obj(path: Path) -> ObjFile:
                     raise IngestError(f"{path}:{lineno}: {key!r} line needs three numbers, got {' '.join(w[1:4])!r}; "
                                       "the file is damaged") from None
                 (v if key == "v" else vn).append(xyz)
-                colored |= key == "v" and len(w) >= 7
+                vcol |= key == "v" and len(w) >= 7
+                colored |= vcol
             elif key in ("o", "g"):
                 group = seen.setdefault(" ".join(w[1:]) or f"_{lineno}", len(seen))
             elif key == "usemtl":
@@ -241,7 +246,7 @@ def read_obj(path: Path) -> ObjFile:
     if (nidx >= 0).any():
         table = np.concatenate([np.asarray(vn, np.float32).reshape(-1, 3), np.full((1, 3), np.nan, np.float32)])
         nrm = table[nidx]  # -1: the NaN row
-    return ObjFile(pos[tri], nrm, np.asarray(labels, np.int64), max(len(seen), 1), colored, tuple(mtllibs), usemtl)
+    return ObjFile(pos[tri], nrm, np.asarray(labels, np.int64), max(len(seen), 1), colored, tuple(mtllibs), usemtl, vcol)
 
 
 def _canonical_order(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -255,13 +260,13 @@ def _canonical_order(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rot, np.lexsort(cc.T[::-1])
 
 
-def _obj_colors(path: Path, obj: ObjFile, warn: list) -> np.ndarray:
+def _obj_colors(path: Path, obj: ObjFile, warn: list, materials_missing: bool = False) -> np.ndarray:
     """Corner colours u8 (t,3,4) of an OBJ's triangles: grey, or (vertex colours, materials)
     what trimesh makes of them, matched to the file's triangles by their corner positions
     (trimesh regroups faces by material and splits quads its own way)."""
     grey = np.empty((len(obj.positions), 3, 4), np.uint8)
     grey[:] = _GREY
-    if not obj.colored:
+    if not obj.colored or (materials_missing and not obj.vertex_colors):
         return grey
     m = _load_trimesh(path)
     col = _trimesh_colors(m)
@@ -340,7 +345,7 @@ def _obj_input(path: Path, warn: list, turn: bool) -> list[StructuredObject] | M
     msg = _missing_materials(path, obj)
     if msg:
         warn.append(msg)
-    col = _obj_colors(path, obj, warn)
+    col = _obj_colors(path, obj, warn, msg is not None)
     n, lab = obj.normals, obj.labels
     if obj.groups > 1 and len(np.unique(lab)) > 1:
         xf = Y_TO_Z if turn else np.eye(4)
