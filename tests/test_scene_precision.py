@@ -111,6 +111,8 @@ def test_instanced_geometry_at_georeferenced_placements(tmp_path):
     glb = tmp_path / "inst.glb"
     scene.export(glb)
     file_v = np.asarray(m.vertices, np.float32).astype(np.float64)  # glTF holds float32 vertices in the mesh's frame
+    turn = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # glTF is y-up: stored turned to z-up, (x, y, z) -> (x, -z, y)
+    file_v, offs = file_v @ turn.T, [o @ turn.T for o in offs]
     for name, inst in (("flat", False), ("inst", True)):
         a = prepare_scene([glb], tmp_path / name, IngestParams(instance=inst))
         assert (a["objects"], a["geometries"]) == (2, 1 if inst else 2)

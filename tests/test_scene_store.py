@@ -44,9 +44,13 @@ def _store_triangles(path) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(tris), np.concatenate(cols)
 
 
-def _unique_triangles(m: trimesh.Trimesh) -> np.ndarray:
-    t = np.asarray(m.vertices, np.float32)[np.asarray(m.faces)]
-    return np.unique(_canonical(t), axis=0)
+def _unique_triangles(m: trimesh.Trimesh, y_up: bool = False) -> np.ndarray:
+    """The mesh's triangles, canonical; ``y_up``: as massview stores a y-up file, turned to
+    z-up by (x, y, z) -> (x, -z, y)."""
+    v = np.asarray(m.vertices, np.float32)
+    if y_up:
+        v = np.stack([v[:, 0], -v[:, 2], v[:, 1]], 1)
+    return np.unique(_canonical(v[np.asarray(m.faces)]), axis=0)
 
 
 @pytest.mark.parametrize("fmt", ["ply", "ply-ascii", "obj", "stl", "off", "glb", "gltf"])
@@ -64,9 +68,15 @@ def test_round_trip_of_every_format_on_a_real_mesh(tmp_path, fmt):
         ant.export(src)
     prepare_scene([src], tmp_path / "s", IngestParams(object_triangles=300))
     got, cols = _store_triangles(tmp_path / "s")
-    want = _unique_triangles(ant)
+    want = _unique_triangles(ant, y_up=fmt in ("glb", "gltf"))  # glTF is y-up by its specification: turned to z-up
     assert len(got) == len(want) == 912
     np.testing.assert_allclose(_canonical(got), want, atol=1e-5 * np.abs(want).max())
+    if fmt in ("glb", "ply", "obj"):  # --up y turns any format, --up z keeps any as it is
+        other = "z" if fmt == "glb" else "y"
+        prepare_scene([src], tmp_path / "u", IngestParams(object_triangles=300, up=other))
+        got_u, _ = _store_triangles(tmp_path / "u")
+        want_u = _unique_triangles(ant, y_up=other == "y")
+        np.testing.assert_allclose(_canonical(got_u), want_u, atol=1e-5 * np.abs(want_u).max())
     if fmt in ("ply", "ply-ascii", "glb", "gltf"):  # formats trimesh writes vertex colours to
         assert set(np.unique(cols[..., 1])) == {90}
     assert verify_scene(tmp_path / "s") == []

@@ -42,6 +42,10 @@ def add_prepare_parser(psub) -> None:
     p.add_argument("--crease-angle", type=float, default=CREASE_ANGLE, metavar="DEG",
                    help="meshes without normals in the file: faces meeting at more than DEG degrees get separate (flat) normals, "
                         f"gentler edges are smoothed; 0 < DEG <= 180, 180 smooths everything (default {CREASE_ANGLE:g})")
+    p.add_argument("--up", default="auto", metavar="{auto,y,z}",
+                   help="the inputs' up axis; massview's world is +z up and y-up inputs are turned to it "
+                        "((x, y, z) -> (x, -z, y)). auto (default): y for glTF/GLB (their specification), z for "
+                        "PLY/OBJ/STL/OFF (no convention: say --up y for a y-up one)")
     p.add_argument("--overwrite", action="store_true", help="rebuild a complete store")
     p.add_argument("--quiet", "-q", action="store_true")
 
@@ -69,7 +73,7 @@ def cmd_prepare(args) -> int:
         raise ConfigError("--object-triangles must be positive and --levels between 1 and 16")
     prm = IngestParams(object_triangles=args.object_triangles, object_size=args.object_size or float("inf"), instance=args.instance,
                        simplifier=args.simplifier, max_levels=args.levels, stream_bytes=int(args.stream_mb * 2**20),
-                       crease_angle=args.crease_angle)
+                       crease_angle=args.crease_angle, up=args.up)
     with progress_bar(args.quiet) as prog:
         a = prepare_scene(args.inputs, Path(args.output), prm, overwrite=args.overwrite, progress=prog)
     _warn(a["warnings"])

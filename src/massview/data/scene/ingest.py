@@ -20,7 +20,8 @@ have a zero or NaN one, then for the whole object, with a warning — area-weigh
 where faces meet at more than ``crease_angle`` degrees),
 its LOD levels (:mod:`.simplify`), then its placement (the translation to its origin). With
 ``instance``, structured objects that share a geometry (glTF nodes of one mesh) store it once,
-in its own frame, with their transforms composed with that translation. Re-running an
+in its own frame, with their transforms composed with that translation. Inputs whose up axis
+(``up``, :func:`.sources.up_axis`) is y are turned to massview's z-up as they are read. Re-running an
 interrupted prepare with the same arguments skips the units already written; ``complete`` is
 set last.
 """
@@ -41,7 +42,7 @@ from .normals import CREASE_ANGLE
 from .plystream import PlyLayout
 from .simplify import build_levels
 from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_mesh, clean_soup, split_dense
-from .sources import MemorySoup, StructuredObject, open_input, stream_bounds, stream_corners, transform_normals
+from .sources import UP_CHOICES, MemorySoup, StructuredObject, open_input, stream_bounds, stream_corners, transform_normals
 from .writer import SceneWriter
 
 __all__ = ["IngestParams", "prepare_scene"]
@@ -59,8 +60,11 @@ class IngestParams:
     face_chunk: int = 1 << 18  # faces per streamed read
     vertex_block: int = 1 << 20  # vertices per streamed vertex read (15-40 MB)
     crease_angle: float = CREASE_ANGLE  # meshes without normals: split normals at sharper edges (degrees)
+    up: str = "auto"  # the inputs' up axis: auto (y for glTF/GLB, z for the rest), y or z; y-up is turned to z-up
 
     def __post_init__(self) -> None:
+        if self.up not in UP_CHOICES:
+            raise ConfigError(f"--up must be one of {', '.join(UP_CHOICES)} (auto: y for glTF/GLB, z for the rest), got {self.up!r}")
         if not 0 < self.crease_angle <= 180:
             raise ConfigError(f"--crease-angle must be more than 0 and at most 180 degrees (180: smooth everything), got {self.crease_angle:g}")
 
@@ -188,7 +192,8 @@ def _spill(lay: PlyLayout, spill: Path, prm: IngestParams, progress) -> int:
     done = spill / "done.json"
     if done.exists():
         d = json.loads(done.read_text())
-        if d.get("positions") == "f8":  # (spill files of an older massview held float32 positions: spill again)
+        # (spill files of an older massview held float32 positions, or of the other up axis: spill again)
+        if d.get("positions") == "f8" and d.get("turn", False) == lay.turn:
             return int(d["cells"])
     shutil.rmtree(spill, ignore_errors=True)
     spill.mkdir(parents=True)
@@ -203,7 +208,7 @@ def _spill(lay: PlyLayout, spill: Path, prm: IngestParams, progress) -> int:
                 fh.write(_pack(c, sel).tobytes())
         progress("read", c.count, lay.n_faces)
     n = int(np.prod(dims))
-    done.write_text(json.dumps({"cells": n, "positions": "f8"}))
+    done.write_text(json.dumps({"cells": n, "positions": "f8", "turn": lay.turn}))
     return n
 
 
@@ -247,7 +252,7 @@ def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bo
     if not paths:
         raise IngestError("no input files given")
     warn: list[str] = []
-    sources = [open_input(p, prm.stream_bytes, warn) for p in paths]  # validates before anything is written
+    sources = [open_input(p, prm.stream_bytes, warn, prm.up) for p in paths]  # validates before anything is written
     out = Path(out)
     w = SceneWriter(out, _params_of(paths, prm), {"source": ", ".join(p.name for p in paths), "units": "1"},
                     levels_max=prm.max_levels, overwrite=overwrite, checkpoint_bytes=checkpoint_bytes)

@@ -10,7 +10,8 @@ A chunk's corners are gathered from the vertex section block by block (``vertex_
 vertices per read, only the blocks the chunk refers to), so peak memory is one face chunk
 plus one vertex block, whatever the file size. Positions are read as float64 (a float or
 double PLY alike), so georeferenced coordinates keep their precision until each object is
-expressed in its own frame (:mod:`.ingest`).
+expressed in its own frame (:mod:`.ingest`). A layout read with ``turn`` (a y-up file) gives
+positions and normals turned to z-up, (x, y, z) -> (x, -z, y), wherever vertices are read.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ class PlyLayout:
     face_dtype: np.dtype  # count + 3 indices
     has_colors: bool
     has_normals: bool
+    turn: bool = False  # y-up file: vertices are turned to z-up as they are read
 
     @property
     def faces_offset(self) -> int:
@@ -64,9 +66,10 @@ def _header(path: Path) -> tuple[list[str], int]:
     return head[:end].decode("ascii", "replace").splitlines(), nl + 1
 
 
-def read_ply_layout(path) -> PlyLayout | None:
+def read_ply_layout(path, turn: bool = False) -> PlyLayout | None:
     """The layout of a binary triangle PLY, or None when the file is PLY but not of the
-    streamable kind (ASCII, other elements first, polygon lists of other types)."""
+    streamable kind (ASCII, other elements first, polygon lists of other types). ``turn``:
+    the file is y-up, its vertices are read turned to z-up."""
     path = Path(path)
     lines, hbytes = _header(path)
     fmt = next((ln.split()[1] for ln in lines if ln.startswith("format")), None)
@@ -95,7 +98,8 @@ def read_ply_layout(path) -> PlyLayout | None:
     if len(fprops) != 1 or fprops[0][0] != "list" or fprops[0][1] not in _TYPES or fprops[0][2] not in _TYPES:
         return None
     fdt = np.dtype([("n", end + _TYPES[fprops[0][1]]), ("i", end + _TYPES[fprops[0][2]], (3,))])
-    lay = PlyLayout(path, hbytes, elems[0][1], vdt, elems[1][1], fdt, {"red", "green", "blue"} <= names, {"nx", "ny", "nz"} <= names)
+    lay = PlyLayout(path, hbytes, elems[0][1], vdt, elems[1][1], fdt, {"red", "green", "blue"} <= names, {"nx", "ny", "nz"} <= names,
+                    turn)
     size = path.stat().st_size
     if size < lay.expected_bytes:
         raise IngestError(f"{path}: PLY is truncated or has non-triangle faces: its header promises {lay.n_vertices} vertices and "
@@ -130,13 +134,22 @@ def face_chunks(lay: PlyLayout, chunk: int):
 
 
 def _fields(rec: np.ndarray, lay: PlyLayout) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    p = np.stack([rec["x"], rec["y"], rec["z"]], 1).astype(np.float64)
+    """Positions f8, colours u8 and normals f32 (or None) of vertex records, turned to z-up
+    when the layout says the file is y-up."""
+    if lay.turn:  # (x, y, z) -> (x, -z, y)
+        p = np.stack([rec["x"], -rec["z"].astype(np.float64), rec["y"]], 1).astype(np.float64)
+    else:
+        p = np.stack([rec["x"], rec["y"], rec["z"]], 1).astype(np.float64)
     if lay.has_colors:
         a = rec["alpha"] if "alpha" in rec.dtype.names else np.full(len(rec), 255)
         c = np.stack([rec["red"], rec["green"], rec["blue"], a], 1).astype(np.uint8)
     else:
         c = np.full((len(rec), 4), (200, 200, 200, 255), np.uint8)
-    n = np.stack([rec["nx"], rec["ny"], rec["nz"]], 1).astype(np.float32) if lay.has_normals else None
+    n = None
+    if lay.has_normals:
+        n = np.stack([rec["nx"], rec["ny"], rec["nz"]], 1).astype(np.float32)
+        if lay.turn:
+            n = np.stack([n[:, 0], -n[:, 2], n[:, 1]], 1)
     return p, c, n
 
 

@@ -14,6 +14,14 @@ apart from the positions), glTF ``NORMAL``; a glTF node's transform turns them b
 transpose. An OBJ corner without a ``vn`` gets a NaN normal: :mod:`.ingest` computes the
 normals of any object with such a corner (or a zero one) and says so.
 
+massview's world is +z up. glTF/GLB is +y up by its specification (what Blender, Sketchfab and
+trimesh write); OBJ, PLY, STL and OFF have no convention. :func:`up_axis` picks the file's up
+axis (``auto``: y for glTF/GLB, z for the rest; ``y`` or ``z`` for every input) and a y-up input
+is turned to z-up as it is read, by :data:`Y_TO_Z` (+90° about x: (x, y, z) -> (x, -z, y), a
+proper rotation, so handedness and winding are kept): positions and normals alike, on every
+path (a glTF node's world transform is preceded by it, an OBJ group's identity becomes it, a
+soup's and a binary PLY's vertices — streamed or not — are turned where they are read).
+
 Inputs are checked before anything is written: a directory, an unknown suffix, a file trimesh
 cannot parse, an empty mesh, NaN/infinite coordinates or face indices out of range raise
 :class:`IngestError` naming the file (and, for an OBJ, the line).
@@ -30,10 +38,28 @@ from ...core.errors import IngestError
 from .plystream import PlyLayout, face_chunks, gather_corners, read_ply_layout, vertex_blocks
 from .soup import Corners
 
-__all__ = ["SUFFIXES", "check_input", "StructuredObject", "MemorySoup", "ObjFile", "open_input", "read_obj", "transform_normals"]
+__all__ = ["SUFFIXES", "UP_CHOICES", "Y_TO_Z", "up_axis", "check_input", "StructuredObject", "MemorySoup", "ObjFile", "open_input", "read_obj", "transform_normals"]
 
 SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")
 _GREY = (200, 200, 200, 255)
+UP_CHOICES = ("auto", "y", "z")
+Y_TO_Z = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])  # (x, y, z) -> (x, -z, y)
+
+
+def up_axis(path: Path, up: str) -> str:
+    """The up axis ("y" or "z") of input ``path`` under the ``--up`` choice ``up``."""
+    if up == "auto":
+        return "y" if Path(path).suffix.lower() in (".gltf", ".glb") else "z"
+    return up
+
+
+def _turn(p: np.ndarray | None) -> np.ndarray | None:
+    """Positions or normals (...,3) turned from y-up to z-up: (x, y, z) -> (x, -z, y)."""
+    if p is None:
+        return None
+    out = np.empty_like(p)
+    out[..., 0], out[..., 1], out[..., 2] = p[..., 0], -p[..., 2], p[..., 1]
+    return out
 
 
 @dataclass(frozen=True)
@@ -91,8 +117,11 @@ def _trimesh_colors(m) -> np.ndarray:
     kind = getattr(vis, "kind", None)
     try:
         if kind == "texture":
+            mat = getattr(vis, "material", None)
             vis = vis.to_color()
             kind = vis.kind
+            if kind is None and mat is not None and getattr(mat, "image", None) is None:  # a plain colour (an OBJ's one Kd)
+                return np.tile(np.asarray(mat.main_color, np.uint8)[:4], (len(m.vertices), 1))
         if kind == "vertex":
             return np.asarray(vis.vertex_colors, np.uint8)[:, :4]
         if kind == "face":
@@ -146,6 +175,9 @@ class ObjFile:
     labels: np.ndarray
     groups: int
     colored: bool
+    mtllibs: tuple = ()  # the material libraries the file names (``mtllib``)
+    uses_materials: bool = False  # it has ``usemtl`` lines
+    vertex_colors: bool = False  # some ``v`` line has r g b
 
 
 def _obj_index(tok: str, n: int, what: str, path: Path, lineno: int) -> int:
@@ -171,6 +203,8 @@ def read_obj(path: Path) -> ObjFile:
     tn: list = []  # corner normal indices (-1: none)
     labels: list = []
     group, seen, colored = 0, {}, False
+    mtllibs: list = []
+    usemtl = vcol = False
     with open(path, "r", errors="replace") as fh:
         for lineno, line in enumerate(fh, 1):
             w = line.split()
@@ -184,11 +218,14 @@ def read_obj(path: Path) -> ObjFile:
                     raise IngestError(f"{path}:{lineno}: {key!r} line needs three numbers, got {' '.join(w[1:4])!r}; "
                                       "the file is damaged") from None
                 (v if key == "v" else vn).append(xyz)
-                colored |= key == "v" and len(w) >= 7
+                vcol |= key == "v" and len(w) >= 7
+                colored |= vcol
             elif key in ("o", "g"):
                 group = seen.setdefault(" ".join(w[1:]) or f"_{lineno}", len(seen))
             elif key == "usemtl":
-                colored = True
+                colored = usemtl = True
+            elif key == "mtllib":
+                mtllibs += line.split(None, 1)[1:2]
             elif key == "f":
                 if len(w) < 4:
                     raise IngestError(f"{path}:{lineno}: face has {len(w) - 1} corners; a face needs at least 3")
@@ -209,7 +246,7 @@ def read_obj(path: Path) -> ObjFile:
     if (nidx >= 0).any():
         table = np.concatenate([np.asarray(vn, np.float32).reshape(-1, 3), np.full((1, 3), np.nan, np.float32)])
         nrm = table[nidx]  # -1: the NaN row
-    return ObjFile(pos[tri], nrm, np.asarray(labels, np.int64), max(len(seen), 1), colored)
+    return ObjFile(pos[tri], nrm, np.asarray(labels, np.int64), max(len(seen), 1), colored, tuple(mtllibs), usemtl, vcol)
 
 
 def _canonical_order(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -223,13 +260,13 @@ def _canonical_order(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rot, np.lexsort(cc.T[::-1])
 
 
-def _obj_colors(path: Path, obj: ObjFile, warn: list) -> np.ndarray:
+def _obj_colors(path: Path, obj: ObjFile, warn: list, materials_missing: bool = False) -> np.ndarray:
     """Corner colours u8 (t,3,4) of an OBJ's triangles: grey, or (vertex colours, materials)
     what trimesh makes of them, matched to the file's triangles by their corner positions
     (trimesh regroups faces by material and splits quads its own way)."""
     grey = np.empty((len(obj.positions), 3, 4), np.uint8)
     grey[:] = _GREY
-    if not obj.colored:
+    if not obj.colored or (materials_missing and not obj.vertex_colors):
         return grey
     m = _load_trimesh(path)
     col = _trimesh_colors(m)
@@ -263,7 +300,7 @@ def _load_trimesh(path: Path):
         raise IngestError(f"{path}: cannot be read as {path.suffix[1:].upper()} ({type(e).__name__}: {e}); check the file") from None
 
 
-def _scene_objects(path: Path, scene) -> list[StructuredObject] | MemorySoup:
+def _scene_objects(path: Path, scene, turn: bool) -> list[StructuredObject] | MemorySoup:
     nodes = list(scene.graph.nodes_geometry)
     if not nodes:
         raise IngestError(f"{path}: the scene has no mesh nodes; nothing to ingest")
@@ -273,7 +310,8 @@ def _scene_objects(path: Path, scene) -> list[StructuredObject] | MemorySoup:
         geom = scene.geometry[gname]
         if not hasattr(geom, "faces"):
             continue  # point clouds and paths carry no triangles
-        out.append(StructuredObject(str(node), _corners_of(geom, path, f" (node {node})"), np.asarray(xf, np.float64), str(gname)))
+        xf = (Y_TO_Z @ np.asarray(xf, np.float64)) if turn else np.asarray(xf, np.float64)
+        out.append(StructuredObject(str(node), _corners_of(geom, path, f" (node {node})"), xf, str(gname)))
     if not out:
         raise IngestError(f"{path}: the scene has no triangle meshes; nothing to ingest")
     if len(out) == 1:
@@ -285,42 +323,73 @@ def _scene_objects(path: Path, scene) -> list[StructuredObject] | MemorySoup:
     return out
 
 
-def _obj_input(path: Path, warn: list) -> list[StructuredObject] | MemorySoup:
+def _missing_materials(path: Path, obj: ObjFile) -> str | None:
+    """A warning when the OBJ's materials cannot be found (its ``mtllib`` files are missing
+    next to it, or it uses materials but names no library): trimesh then draws them grey."""
+    if not obj.uses_materials:
+        return None
+    def found(rest: str) -> bool:  # one name with spaces, or several names
+        return (path.parent / rest.strip()).is_file() or any((path.parent / t).is_file() for t in rest.split())
+
+    missing = [m.strip() for m in obj.mtllibs if not found(m)]
+    if not obj.mtllibs:
+        return f"{path}: uses materials (usemtl) but names no material library (mtllib); drawn grey"
+    if len(missing) == len(obj.mtllibs):
+        return (f"{path}: material library {', '.join(missing)} not found next to it; drawn grey "
+                "(put the .mtl beside the OBJ for its colours)")
+    return None
+
+
+def _obj_input(path: Path, warn: list, turn: bool) -> list[StructuredObject] | MemorySoup:
     obj = read_obj(path)
-    col = _obj_colors(path, obj, warn)
+    msg = _missing_materials(path, obj)
+    if msg:
+        warn.append(msg)
+    col = _obj_colors(path, obj, warn, msg is not None)
     n, lab = obj.normals, obj.labels
     if obj.groups > 1 and len(np.unique(lab)) > 1:
+        xf = Y_TO_Z if turn else np.eye(4)
         return [StructuredObject(f"group {g}", Corners(obj.positions[lab == g], col[lab == g], None if n is None else n[lab == g]),
-                                 np.eye(4), f"group {g}") for g in np.unique(lab)]
+                                 xf.copy(), f"group {g}") for g in np.unique(lab)]
     t = len(obj.positions)
-    return MemorySoup(path, obj.positions.reshape(-1, 3), col, None if n is None else n.reshape(-1, 3),
-                      np.arange(t * 3).reshape(-1, 3))
+    p, n = obj.positions.reshape(-1, 3), None if n is None else n.reshape(-1, 3)
+    if turn:
+        p, n = _turn(p), _turn(n)
+    return MemorySoup(path, p, col, n, np.arange(t * 3).reshape(-1, 3))
 
 
-def open_input(path: Path, stream_bytes: int, warn: list | None = None) -> list[StructuredObject] | MemorySoup | PlyLayout:
+def open_input(path: Path, stream_bytes: int, warn: list | None = None, up: str = "auto") -> list[StructuredObject] | MemorySoup | PlyLayout:
     """Structured objects, a soup in RAM, or (a binary triangle PLY of at least
     ``stream_bytes`` bytes) its layout for the streamed ingest. Normals come from the file
     where it has them (PLY nx/ny/nz, OBJ ``vn`` per corner — NaN for corners without one —,
-    glTF ``NORMAL``), through any node transform. ``warn`` collects messages for the user."""
+    glTF ``NORMAL``), through any node transform. ``up`` (:data:`UP_CHOICES`): the file's up
+    axis, see :func:`up_axis`; a y-up file comes back turned to z-up. ``warn`` collects
+    messages for the user."""
     warn = [] if warn is None else warn
     path = check_input(path)
     suf = path.suffix.lower()
+    if up not in UP_CHOICES:
+        raise IngestError(f"--up must be one of {', '.join(UP_CHOICES)}, got {up!r}")
+    turn = up_axis(path, up) == "y"
     if suf == ".ply":
-        lay = read_ply_layout(path)
+        lay = read_ply_layout(path, turn)
         if lay is not None:
             if lay.n_faces == 0 or lay.n_vertices == 0:
                 raise IngestError(f"{path}: the mesh is empty (no triangles); nothing to ingest")
             return lay if path.stat().st_size >= stream_bytes else _read_whole_ply(lay)
     if suf == ".obj":
-        return _obj_input(path, warn)
+        return _obj_input(path, warn, turn)
     if suf in (".gltf", ".glb"):
-        return _scene_objects(path, _load_trimesh(path))
+        return _scene_objects(path, _load_trimesh(path), turn)
     m = _load_trimesh(path)
     p = np.asarray(m.vertices, np.float64)
     f = np.asarray(m.faces, np.int64).reshape(-1, 3)
     _validate(path, p, f)
     n = file_normals(m)
-    return MemorySoup(path, p, _trimesh_colors(m), None if n is None else n.astype(np.float32), f)
+    n = None if n is None else n.astype(np.float32)
+    if turn:
+        p, n = _turn(p), _turn(n)
+    return MemorySoup(path, p, _trimesh_colors(m), n, f)
 
 
 def _read_whole_ply(lay: PlyLayout) -> MemorySoup:
