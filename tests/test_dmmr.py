@@ -206,7 +206,9 @@ def test_one_rank_in_process_matches_the_reference_and_reports_per_stage():
         assert client[-1]["counters"]["bytes_uploaded"] < c0["bytes_uploaded"]  # GPU buffers reused along the path
         lb = np.asarray(sys_.store.skeleton.level_bytes, np.int64)
         for r in records:  # per-frame process counters on the server and the client
-            assert r["counters"]["cpu_ms"] > 0 and r["counters"]["file_read_bytes"] >= r["counters"]["device_read_bytes"] >= 0
+            # (device reads are not bounded by read() bytes: the kernel's readahead and pages faulted in through
+            # memory maps count as the process's device reads — 499712 against 455622 in a run with a cold cache)
+            assert r["counters"]["cpu_ms"] > 0 and r["counters"]["file_read_bytes"] >= 0 and r["counters"]["device_read_bytes"] >= 0
         assert all(0 < r["counters"]["frame_mesh_bytes"] <= lb.max(1).sum() for r in client)
         assert all(0 < r["counters"]["depth_mesh_bytes"] <= lb.max(1).sum() for r in client)
         records, _ = sys_.run_path(_Self(), [cams[0]] * 3, cfg)  # a static camera

@@ -243,7 +243,11 @@ def recorded_stage_digests(store) -> tuple[str, dict]:
     from ingest_golden import input_digest
 
     key = input_digest(store)
-    return key, STAGE_DIGESTS_BY_INPUT.get(key, STAGE_DIGESTS)
+    rec = STAGE_DIGESTS_BY_INPUT.get(key, STAGE_DIGESTS)
+    # sort-last:linear changed on purpose (2026-11-28: a patch goes by the finest M-block under it, not by
+    # the block it draws from, which sent every coarse block's patch to rank 0): its shares are checked
+    # against an oracle in test_linear_shares_are_x_slabs_of_the_front instead of the recorded digests
+    return key, {k: v for k, v in rec.items() if not k.endswith(":linear")}
 
 
 def _stage_digests(store) -> dict:
@@ -266,7 +270,7 @@ def _stage_digests(store) -> dict:
         for path, at, tau in STAGE_CASES:
             cam = load_path(path, *sysm.bounds).camera(at, w, hh)
             key = f"{path}@{at}/{tau}"
-            for mode in ("kpatch", "linear", "quadtree"):
+            for mode in ("kpatch", "quadtree"):
                 cfg = RenderConfig(width=w, height=hh, tau=tau, loading="complete", decomposition=f"sort-last:{mode}")
                 sysm.prepare_frame(_Rank(0, 1), cam, cfg, FrameStats(0, 0))
                 f = sysm.front
@@ -354,3 +358,32 @@ def test_front_block_ids_written_by_the_walk(hier):
             assert np.array_equal(f.block_ids(index.offset, index.nb), plain.block_ids(index.offset, index.nb))
             idx = np.arange(0, len(f), 3)
             assert np.array_equal(f.take(idx).block_ids(index.offset, index.nb), plain.take(idx).block_ids(index.offset, index.nb))
+
+
+def test_linear_shares_are_x_slabs_of_the_front(terrain_store):
+    """sort-last:linear: the shares of 3 tasks partition the visible front (every patch once, in
+    front order), and a patch is in share i exactly when the origin x of the finest M-block under
+    its centroid lies in [i/3, (i+1)/3) of the grid: an oracle written from the patch corners."""
+    from massview.systems.terrain import TerrainSystem
+
+    sysm = TerrainSystem(terrain_store, loading="complete")
+    try:
+        lay = sysm.lay
+        nb0, span0 = lay.blocks(0), lay.M - 1
+        for path, at, tau in STAGE_CASES:
+            cam = load_path(path, *sysm.bounds).camera(at, 400, 240)
+            cfg = RenderConfig(width=400, height=240, tau=tau, loading="complete", decomposition="sort-last:linear")
+            sysm.prepare_frame(_Rank(0, 1), cam, cfg, FrameStats(0, 0))
+            shares = [sysm.select(t, cam, cfg) for t in sysm.plan(cam, cfg, 3)]
+            f = sysm.front
+            vis = np.sort(np.concatenate(shares))
+            assert len(np.unique(vis)) == len(vis), "a patch in two shares"
+            full = RenderConfig(width=400, height=240, tau=tau, loading="complete", decomposition="sort-last:kpatch")
+            assert np.array_equal(vis, np.concatenate([sysm.select(t, cam, full) for t in sysm.plan(cam, full, 1)]))
+            for i, share in enumerate(shares):
+                assert np.all(np.diff(share) > 0)
+                cx = (f.ax[share].astype(np.int64) + f.lx[share] + f.rx[share]) // 3
+                x = np.minimum(cx // span0, nb0 - 1) / nb0
+                assert np.all((x >= i / 3) & (x < (i + 1) / 3)), f"{path}@{at}: share {i} holds patches of another slab"
+    finally:
+        sysm.close()

@@ -195,7 +195,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     (None/0: every core this process may use) share the work, with identical output."""
     t0 = time.perf_counter()
     if src.rows < 2 or src.cols < 2:
-        raise IngestError(f"{src.name}: has {src.rows} x {src.cols} samples; a terrain needs at least 2 x 2")
+        raise IngestError(f"{src.name}: a terrain needs at least 2 × 2 samples, got {src.rows} × {src.cols}")
     lay = TerrainLayout(src.rows, src.cols, block, K)
     if not (math.isfinite(vertical_scale) and vertical_scale > 0):
         raise IngestError(f"--vertical-scale must be a positive number, got {vertical_scale}")
