@@ -86,15 +86,10 @@ class Scene:
         world units, at ``exaggeration``), from the store alone; None for other scenes."""
         if self.kind != "terrain":
             return None
-        from functools import partial
-
         from .data.terrain import TerrainStore
-        from .lod.columns import heights
-        from .lod.walk import terrain_ground
+        from .lod.walk import kpatch_ground
 
-        st = TerrainStore(self.spec)
-        base = float(np.min(st.height_ranges(0)[0])) * st.vertical_scale  # (the hierarchy's base, as world_box has it)
-        return terrain_ground(st, partial(heights, base, st.vertical_scale, float(exaggeration)))
+        return kpatch_ground(TerrainStore(self.spec), exaggeration)
 
     def system(self, cfg: RenderConfig):
         """The in-process rendering system for ``cfg`` (reopened when budgets or loading change)."""

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..core.paths import walk_eye_z
 
-__all__ = ["walk_route", "plan_walk", "terrain_ground"]
+__all__ = ["walk_route", "plan_walk", "terrain_ground", "kpatch_ground"]
 
 _BAND = (0.3, 1.2)  # the walker's body, as fractions of the eye height above the box's bottom
 _EDGE = 25.0  # cost per cell an end lies inside the 8 % (92 %) line: above a diagonal step's most, √2 × (1 + 4²)
@@ -184,3 +184,16 @@ def terrain_ground(store, z_of_h):
         return np.asarray(z_of_h(out), np.float64)
 
     return ground
+
+
+def kpatch_ground(store, exaggeration: float = 1.0):
+    """:func:`terrain_ground` in T1's world heights: ``base + Z·(h·vertical_scale − base)``,
+    base the lowest scaled height (``lod/zmin/0``, as :func:`.kpatch.world_box` and the
+    hierarchy have it), Z the ``exaggeration``; from the store's metadata alone."""
+    from functools import partial
+
+    from .columns import heights
+
+    vs = float(store.vertical_scale)
+    base = float(np.min(store.height_ranges(0)[0])) * vs
+    return terrain_ground(store, partial(heights, base, vs, float(exaggeration)))

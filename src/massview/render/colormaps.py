@@ -41,6 +41,24 @@ class Shading:
         az, alt = (math.radians(v) for v in self.sun)
         return (math.sin(az) * math.cos(alt), math.cos(az) * math.cos(alt), math.sin(alt))
 
+    def extinction(self, world_size: float) -> float:
+        """Haze per world unit for a terrain whose horizontal diagonal is ``world_size``
+        (haze 1: 30 % of the way to the sky colour across the diagonal)."""
+        return 0.35 * float(self.haze) / max(float(world_size), 1e-9)
+
+
+LIGHT_WEIGHTS = (0.30, 0.95)  # terrain lighting: sky (ambient) and sun weights (T1 and T2)
+
+
+def haze_start(eye, lo, hi, size: float) -> float:
+    """How far from ``eye`` haze starts for a terrain in the box ``lo``..``hi`` whose horizontal
+    diagonal is ``size``: 0 while the box is within one diagonal of the eye (every default
+    path), else the distance beyond that. Haze is "30 % across the diagonal": measured from the
+    eye alone, an eye standing far back (the orbit fitted to a tall narrow frame stands ~50
+    diagonals away) saw the whole terrain fade into the sky."""
+    d = math.sqrt(sum(max(l - e, 0.0, e - h) ** 2 for e, l, h in zip((float(v) for v in eye), lo, hi)))
+    return max(d - size, 0.0)
+
 
 def ramp(name: str) -> np.ndarray:
     """(256, 3) uint8 colour table for ``name`` (grey for ``ortho``/``none``)."""

@@ -15,12 +15,11 @@ from dataclasses import dataclass
 import moderngl
 import numpy as np
 
-from .colormaps import Shading
+from .colormaps import LIGHT_WEIGHTS, Shading
 from .context import load_shader
 from .meshes import _TINTS
 
 __all__ = ["LayerGeometry", "FanRenderer", "fan_triangles"]
-
 
 
 @dataclass(frozen=True)
@@ -63,7 +62,7 @@ class FanRenderer:
         self.prog["u_tints"].write(np.ascontiguousarray(_TINTS, "f4").tobytes())
         self.prog["u_sky_horizon"].value = tuple(SKY_HORIZON)
         self.prog["u_sky_zenith"].value = tuple(SKY_ZENITH)
-        self.prog["u_light"].value = (0.30, 0.95)  # as T1's terrain
+        self.prog["u_light"].value = LIGHT_WEIGHTS
         self._ramp = ctx.texture((256, 1), 3, dtype="f1")
         self._ramp.filter = (moderngl.LINEAR, moderngl.LINEAR)
         self._ramp.repeat_x = self._ramp.repeat_y = False
@@ -80,7 +79,7 @@ class FanRenderer:
         name = "hypsometric" if sh.colormap == "auto" else sh.colormap
         self.prog["u_sun"].value = tuple(float(v) for v in sh.sun_vector())
         self._ramp.write(ramp(name).tobytes())
-        self.prog["u_haze"].value = 0.35 * float(sh.haze) / max(self.world_size, 1e-9)  # haze 1: 30 % at the diagonal
+        self.prog["u_haze"].value = sh.extinction(self.world_size)
         self.shading = sh
 
     def set_eye(self, eye, haze_from: float = 0.0) -> None:

@@ -27,7 +27,7 @@ import moderngl
 import numpy as np
 
 from ..lod.kpatch import lookup_blocks, refine_uniform
-from .colormaps import Shading
+from .colormaps import LIGHT_WEIGHTS, Shading, haze_start
 from .terrain_gbuffer import GBuffers
 from .terrain_pool import BlockPool, layer_bytes, pack_payload
 from .terrain_programs import TerrainPrograms, program
@@ -161,29 +161,24 @@ class TerrainRenderer:
         u("u_exag", (self.base, float(sh.exaggeration)))
         u("u_slope_scale", self.vscale * float(sh.exaggeration))
         u("u_sun", sh.sun_vector())
-        u("u_light", (0.30, 0.95))
+        u("u_light", LIGHT_WEIGHTS)
         if self.programs.set_mode(1 if sh.colormap == "ortho" and self.pool.has_ortho else (2 if sh.colormap in ("none", "ortho") else 0)):
             self._shade_vao.release()
             self._shade_vao = self.ctx.vertex_array(self.programs.shade, [])
             if getattr(self, "_ibo", None) is not None:
                 self._rebuild()
-        u("u_haze", 0.35 * float(sh.haze) / max(self.world_size, 1e-9))  # haze 1: 30 % at the diagonal
+        u("u_haze", sh.extinction(self.world_size))
         self._ramp.write(ramp(sh.colormap).tobytes())
         u("u_sky_horizon", SKY_HORIZON)
         u("u_sky_zenith", SKY_ZENITH)
 
     def haze_from(self, eye) -> float:
-        """How far from the eye haze starts: 0 while the terrain's box (at the shading's
-        exaggeration) is within one diagonal (``world_size``) of the eye — every default path, so
-        their frames are unchanged — else the distance beyond that. Haze is "30 % across the
-        diagonal": measured from the eye alone, an eye standing far back (the orbit fitted to a
-        tall narrow frame stands ~50 diagonals away) saw the whole terrain fade into the sky."""
-        ex, ey, ez = (float(v) for v in eye)
+        """Where haze starts (:func:`.colormaps.haze_start`) for the terrain's box at the
+        shading's exaggeration."""
         fx, fy = self._footprint
         Z = float(getattr(getattr(self, "shading", None), "exaggeration", 1.0))
         zhi = self.base + Z * (self.peak - self.base) if math.isfinite(self.peak) else math.inf
-        d = math.sqrt(max(-ex, 0.0, ex - fx) ** 2 + max(-fy - ey, 0.0, ey) ** 2 + max(self.base - ez, 0.0, ez - zhi) ** 2)
-        return max(d - self.world_size, 0.0)
+        return haze_start(eye, (0.0, -fy, self.base), (fx, 0.0, zhi), self.world_size)
 
     def _uniform(self, name: str, value) -> None:
         """Set a uniform in every program that has it (:class:`.terrain_programs.TerrainPrograms`)."""

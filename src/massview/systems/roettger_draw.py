@@ -13,7 +13,7 @@ from ..core.camera import Camera, Viewport
 from ..core.image import Image
 from ..core.stats import FrameStats
 from ..lod.roettger import morton2
-from ..render.colormaps import Shading
+from ..render.colormaps import Shading, haze_start
 from ..render.context import create_context, renderer_string
 from ..render.roettger import FanRenderer, LayerGeometry
 from ..render.view import ViewRenderer
@@ -67,11 +67,6 @@ class FanDrawer:
         self.view = ViewRenderer(self.ctx)
         self.geoms = [LayerGeometry(i.index_dim, i.spacing, i.vscale, (i.rows, i.cols), i.zrange, i.zoffset) for i in infos]
 
-    def haze_from(self, eye) -> float:
-        """Where haze starts (see ``TerrainRenderer.haze_from``): 0 within one diagonal of the
-        layers' box, else the distance beyond it."""
-        d = np.maximum(np.maximum(self._lo - np.asarray(eye, np.float64), np.asarray(eye, np.float64) - self._hi), 0.0)
-        return max(float(np.linalg.norm(d)) - self._size, 0.0)
 
     @property
     def renderer(self) -> str:
@@ -81,7 +76,7 @@ class FanDrawer:
         def draw(mvp):
             return sum(self.fans.draw(g, *layer, mvp, tint) for g, layer in zip(self.geoms, layers))
 
-        self.fans.set_eye(camera.position, self.haze_from(camera.position))
+        self.fans.set_eye(camera.position, haze_start(camera.position, self._lo, self._hi, self._size))
 
         try:
             return self.view.render(camera, vp, draw, stats)

@@ -128,14 +128,10 @@ class TerrainSystem:
 
     def ground(self, cfg: RenderConfig | None = None):
         """The surface the ``walkthrough`` path walks on, at ``cfg``'s exaggeration
-        (:func:`massview.lod.walk.terrain_ground`; the hierarchy's world heights)."""
-        from functools import partial
+        (:func:`massview.lod.walk.kpatch_ground`: the hierarchy's world heights)."""
+        from ..lod.walk import kpatch_ground
 
-        from ..lod.columns import heights
-        from ..lod.walk import terrain_ground
-
-        Z = 1.0 if cfg is None else float(cfg.exaggeration)
-        return terrain_ground(self.store, partial(heights, self.h.base, self.h.vs, Z))
+        return kpatch_ground(self.store, 1.0 if cfg is None else cfg.exaggeration)
 
     def _renderers(self):
         if self._gl is None:

@@ -24,7 +24,7 @@ import numpy as np
 from ...core.errors import IngestError
 from .soup import Corners
 
-__all__ = ["PlyLayout", "read_ply_layout", "vertex_blocks", "face_chunks", "gather_corners"]
+__all__ = ["PlyLayout", "read_ply_layout", "vertex_blocks", "face_chunks", "gather_corners", "turn_y_up"]
 
 _TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
           "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
@@ -133,24 +133,26 @@ def face_chunks(lay: PlyLayout, chunk: int):
             yield s, tri
 
 
+def turn_y_up(p: np.ndarray | None) -> np.ndarray | None:
+    """Positions or normals (...,3) turned from y-up to z-up: (x, y, z) -> (x, -z, y)."""
+    if p is None:
+        return None
+    out = np.empty_like(p)
+    out[..., 0], out[..., 1], out[..., 2] = p[..., 0], -p[..., 2], p[..., 1]
+    return out
+
+
 def _fields(rec: np.ndarray, lay: PlyLayout) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Positions f8, colours u8 and normals f32 (or None) of vertex records, turned to z-up
     when the layout says the file is y-up."""
-    if lay.turn:  # (x, y, z) -> (x, -z, y)
-        p = np.stack([rec["x"], -rec["z"].astype(np.float64), rec["y"]], 1).astype(np.float64)
-    else:
-        p = np.stack([rec["x"], rec["y"], rec["z"]], 1).astype(np.float64)
+    p = np.stack([rec["x"], rec["y"], rec["z"]], 1).astype(np.float64)
     if lay.has_colors:
         a = rec["alpha"] if "alpha" in rec.dtype.names else np.full(len(rec), 255)
         c = np.stack([rec["red"], rec["green"], rec["blue"], a], 1).astype(np.uint8)
     else:
         c = np.full((len(rec), 4), (200, 200, 200, 255), np.uint8)
-    n = None
-    if lay.has_normals:
-        n = np.stack([rec["nx"], rec["ny"], rec["nz"]], 1).astype(np.float32)
-        if lay.turn:
-            n = np.stack([n[:, 0], -n[:, 2], n[:, 1]], 1)
-    return p, c, n
+    n = np.stack([rec["nx"], rec["ny"], rec["nz"]], 1).astype(np.float32) if lay.has_normals else None
+    return (turn_y_up(p), c, turn_y_up(n)) if lay.turn else (p, c, n)
 
 
 def gather_corners(lay: PlyLayout, tri: np.ndarray, block: int) -> Corners:

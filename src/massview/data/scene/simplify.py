@@ -11,8 +11,9 @@ keeps its cut as the same polyline at every level, so neighbouring objects drawn
 levels meet without cracks (simplified freely, the background showed through hairlines along
 the cuts); an open mesh keeps its outline too. Where the locked outline stops a halving (it
 would keep more than 80 % of the triangles: an open mesh whose border is most of it), that
-level is simplified freely instead, as before, so such meshes still get their coarse levels. Colours of the new vertices are those of the
-nearest level-0 vertex; normals are recomputed
+level is simplified freely instead, as before, so such meshes still get their coarse levels.
+
+Colours of the new vertices are those of the nearest level-0 vertex; normals are recomputed
 from the simplified surface. With ``crease`` (a mesh whose file brought no normals), every
 level's normals are split at edges sharper than ``crease`` degrees (:mod:`.normals`): the
 levels are simplified from the welded surface and split afterwards, so the simplifier never

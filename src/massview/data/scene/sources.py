@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ...core.errors import IngestError
-from .plystream import PlyLayout, face_chunks, gather_corners, read_ply_layout, vertex_blocks
+from .plystream import PlyLayout, face_chunks, gather_corners, read_ply_layout, turn_y_up, vertex_blocks
 from .soup import Corners
 
 __all__ = ["SUFFIXES", "UP_CHOICES", "Y_TO_Z", "up_axis", "check_input", "StructuredObject", "MemorySoup", "ObjFile", "open_input", "read_obj", "transform_normals"]
@@ -51,15 +51,6 @@ def up_axis(path: Path, up: str) -> str:
     if up == "auto":
         return "y" if Path(path).suffix.lower() in (".gltf", ".glb") else "z"
     return up
-
-
-def _turn(p: np.ndarray | None) -> np.ndarray | None:
-    """Positions or normals (...,3) turned from y-up to z-up: (x, y, z) -> (x, -z, y)."""
-    if p is None:
-        return None
-    out = np.empty_like(p)
-    out[..., 0], out[..., 1], out[..., 2] = p[..., 0], -p[..., 2], p[..., 1]
-    return out
 
 
 @dataclass(frozen=True)
@@ -354,7 +345,7 @@ def _obj_input(path: Path, warn: list, turn: bool) -> list[StructuredObject] | M
     t = len(obj.positions)
     p, n = obj.positions.reshape(-1, 3), None if n is None else n.reshape(-1, 3)
     if turn:
-        p, n = _turn(p), _turn(n)
+        p, n = turn_y_up(p), turn_y_up(n)
     return MemorySoup(path, p, col, n, np.arange(t * 3).reshape(-1, 3))
 
 
@@ -388,7 +379,7 @@ def open_input(path: Path, stream_bytes: int, warn: list | None = None, up: str 
     n = file_normals(m)
     n = None if n is None else n.astype(np.float32)
     if turn:
-        p, n = _turn(p), _turn(n)
+        p, n = turn_y_up(p), turn_y_up(n)
     return MemorySoup(path, p, _trimesh_colors(m), n, f)
 
 

@@ -233,7 +233,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     if res.filled_fraction > 0.5:
         res.warnings.append(f"{src.name}: {res.filled_fraction:.0%} of the samples were nodata/NaN/inf and were filled from their "
                             "neighbours; check the nodata value (--nodata) and the extent")
-    if getattr(src, "bands", 1) > 1:
+    if src.bands > 1:
         res.warnings.append(f"{src.name} has {src.bands} bands; band 1 was used as the elevation")
     unit, factor = src.linear_unit()
     if factor != 1.0:

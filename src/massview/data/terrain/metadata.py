@@ -164,7 +164,7 @@ def write_colors(store: TerrainStore, lay: TerrainLayout, zlo: float, zhi: float
     if place is None:
         from .sources import OrthoPlacement
 
-        place = OrthoPlacement(ortho.rows / lay.rows, 0.0, ortho.cols / lay.cols, 0.0, False)
+        place = OrthoPlacement.stretched(lay.rows, lay.cols, ortho)
 
     g = zarr.open_group(str(store.path), mode="r+")
     total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))

@@ -42,6 +42,7 @@ class RasterSource:
     name: str = ""
     stamp: list | None = None  # a file input's [size, mtime_ns] (open_source): a resumed prepare checks it
     anchored: bool = True  # the transform places the raster (False: only a spacing was given, origin 0, 0)
+    bands: int = 1  # bands in the file (the elevation is band 1)
 
     def _raw(self, r0, r1, c0, c1) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -389,6 +390,11 @@ class OrthoPlacement:
     covered: float = 1.0
     note: str | None = None
 
+    @classmethod
+    def stretched(cls, dem_rows: int, dem_cols: int, ortho: RasterSource, note: str | None = None) -> "OrthoPlacement":
+        """The image stretched over the DEM's extent (no georeference used)."""
+        return cls(ortho.rows / dem_rows, 0.0, ortho.cols / dem_cols, 0.0, False, note=note)
+
 
 def _north_up(t) -> bool:
     return t is not None and t[2] == 0 and t[4] == 0 and t[1] != 0 and t[5] != 0
@@ -420,15 +426,15 @@ def place_ortho(dem: RasterSource, ortho: RasterSource) -> OrthoPlacement:
     georeference from their files (north-up transforms, the same CRS), the image is placed by
     it: an image of another place is an error, one covering part of the DEM a note. Otherwise
     (either has none, or only a ``--spacing``) the image is stretched over the DEM, as before."""
-    stretch = OrthoPlacement(ortho.rows / dem.rows, 0.0, ortho.cols / dem.cols, 0.0, False)
     dem_geo = dem.transform is not None and dem.anchored
     ortho_geo = ortho.transform is not None and ortho.anchored
     if not (dem_geo and ortho_geo):
+        note = None
         if dem_geo != ortho_geo:
             which, other = (ortho, dem) if ortho_geo else (dem, ortho)
-            return OrthoPlacement(**{**stretch.__dict__, "note": f"{other.name} has no georeference, so {ortho.name} is stretched "
-                                     f"over the DEM's extent ({which.name}'s georeference is not used)"})
-        return stretch
+            note = (f"{other.name} has no georeference, so {ortho.name} is stretched over the DEM's extent "
+                    f"({which.name}'s georeference is not used)")
+        return OrthoPlacement.stretched(dem.rows, dem.cols, ortho, note)
     if dem.crs and ortho.crs and not _same_crs(dem.crs, ortho.crs):
         raise IngestError(f"--color {ortho.name}: its CRS ({crs_name(ortho.crs)}) differs from the DEM's ({crs_name(dem.crs)}); "
                           "reproject it to the DEM's CRS first (e.g. gdalwarp -t_srs)")
