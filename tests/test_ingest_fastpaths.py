@@ -89,6 +89,15 @@ def test_write_floor_writes_the_same_names_and_bytes(tmp_path):
     assert _files(tmp_path / "floor", meta=True) == _files(tmp_path / "s.zarr", meta=True)
 
 
+def test_page_cost_times_new_and_cached_pages_and_leaves_nothing(tmp_path):
+    from massview.app.bench.ingest import _free_page_reporting, _page_cost
+
+    new, again = _page_cost(tmp_path, mib=4)
+    assert new > 0 and again > 0
+    assert list(tmp_path.iterdir()) == []
+    assert isinstance(_free_page_reporting(), bool)
+
+
 def test_make_chunk_root_is_only_a_hint(tmp_path):
     from massview.data.terrain.store import make_chunk_root
 

@@ -11,6 +11,9 @@ The DEM (default 16385², 1 GiB of float32; ``--size 32769``: 4.3 GB) is generat
 * floor: reading the DEM once (``readinto`` one reused buffer) plus writing the store's own
   files again (same names and bytes, with the chunk writer's calls, on as many threads as
   prepare's workers) — what no ingest can beat on this disk, whatever it computes;
+* page cost: seconds per GiB to write page-cache pages the kernel hands out new, and the same
+  pages again in place — on a VM whose balloon reports freed pages to its host, the first is
+  several times the second, and the store's bytes pay it;
 * ``massview prepare terrain --workers N`` in a child process, which reports its own peak
   resident memory (``VmHWM`` of /proc/self/status) at exit. (``wait4``'s ``ru_maxrss`` would
   not do: Linux carries the parent's high-water mark over fork and exec.) CPU time is the
@@ -78,6 +81,40 @@ def _read_floor(src: Path) -> float:
         while f.readinto(buf):
             pass
     return time.perf_counter() - t0
+
+
+def _page_cost(work: Path, mib: int = 256) -> tuple[float, float]:
+    """Seconds per GiB to write into page-cache pages the kernel must newly hand out (a new
+    file), and into pages already cached (the same file again, in place): the part of the write
+    floor that is the host's memory, not the file system. On a VM that returns freed memory to
+    its host (virtio-balloon free page reporting), every new page costs a host fault."""
+    piece = b"\x5a" * (1 << 20)
+    f = work / "pages.tmp"
+    f.unlink(missing_ok=True)
+    out = []
+    for flags in (os.O_WRONLY | os.O_CREAT | os.O_TRUNC, os.O_WRONLY):
+        fd = os.open(f, flags)
+        try:
+            t = time.perf_counter()
+            for k in range(mib):
+                os.pwrite(fd, piece, k << 20)
+            out.append((time.perf_counter() - t) * 1024 / mib)
+        finally:
+            os.close(fd)
+    f.unlink(missing_ok=True)
+    return out[0], out[1]
+
+
+def _free_page_reporting() -> bool:
+    """Whether this machine is a VM whose balloon device reports freed pages to the host
+    (virtio device 5, feature bit 5, VIRTIO_BALLOON_F_REPORTING)."""
+    for d in Path("/sys/bus/virtio/devices").glob("*"):
+        try:
+            if int((d / "device").read_text(), 16) == 5 and (d / "features").read_text()[5:6] == "1":
+                return True
+        except (OSError, ValueError):
+            continue
+    return False
 
 
 def _write_floor(store: Path, dst: Path, threads: int = 2) -> tuple[float, float]:
@@ -212,8 +249,12 @@ def run(args) -> int:
     write_s, write_sys = _write_floor(store, floor_dir, max(args.workers or len(os.sched_getaffinity(0)), 1))
     shutil.rmtree(floor_dir, ignore_errors=True)
     floor_s = read_s + write_s
+    new_s, again_s = _page_cost(work)
     t.add_row("read floor (the DEM once, page cache, one reused buffer)", f"{read_s:.2f} s, {nbytes / 1e6 / read_s:.0f} MB/s")
     t.add_row("write floor (the same store bytes, the chunk writer's calls)", f"{write_s:.1f} s ({write_sys:.1f} s system CPU)")
+    t.add_row("page-cache writes: new pages, the same pages again",
+              f"{new_s:.2f}, {again_s:.2f} s per GiB ({info['disk_bytes'] / 2**30 * (new_s - again_s):.1f} s of the write floor is "
+              f"new pages{'; this VM reports freed pages to its host' if _free_page_reporting() else ''})")
     t.add_row("prepare ÷ floor (read + write)", f"{prep_s / floor_s:.1f}× ({nbytes / 1e6 / floor_s:.0f} MB/s at the floor)")
     t.add_row("height compression ratio", f"{info['compression_ratio']:.3f}")
     t.add_row("store on disk (heights + shading + metadata)", f"{info['disk_bytes'] / 2**20:.0f} MiB")
