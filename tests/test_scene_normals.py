@@ -108,14 +108,14 @@ def test_rendered_cube_faces_are_one_colour_each_and_a_sphere_is_shaded_smoothly
 
 
 def test_weld_gives_np_unique_rows_ids():
-    """normals._weld (a column lexsort) gives np.unique(p, axis=0)'s inverse ids, faster."""
-    from massview.data.scene.normals import _weld
+    """normals.weld (a column lexsort) gives np.unique(p, axis=0)'s inverse ids, faster."""
+    from massview.data.scene.normals import weld
 
     rng = np.random.default_rng(5)
     p = rng.integers(0, 6, (5000, 3)).astype(np.float64) * 0.37  # many repeated rows
     _, want = np.unique(p, axis=0, return_inverse=True)
-    assert np.array_equal(_weld(p), want.reshape(-1))
-    assert len(_weld(np.zeros((0, 3)))) == 0
+    assert np.array_equal(weld(p), want.reshape(-1))
+    assert len(weld(np.zeros((0, 3)))) == 0
 
 
 # -- normals from the file: OBJ vn, glTF NORMAL; the crease angle option -------------------------------------------

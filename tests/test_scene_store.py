@@ -348,6 +348,33 @@ def test_clean_mesh_equals_clean_soup_of_the_corners():
             assert (a is None and b is None) or (a.dtype == b.dtype and np.array_equal(a, b))
 
 
+def test_the_cleans_fast_uniques_equal_numpys_row_uniques():
+    """_unique_bits (big-endian words, lexsorted) gives np.unique's first indices and inverse of
+    void keys (memcmp order: key widths 16 and 28 bytes, -0.0 and 0.0 distinct bits), and
+    _kept_faces' packed int64 key keeps the faces np.unique(axis=0) of the sorted triples kept."""
+    from massview.data.scene.soup import _key_rows, _kept_faces, _unique_bits
+
+    rng = np.random.default_rng(7)
+    for trial in range(12):
+        n = int(rng.integers(1, 3000))
+        p = (rng.integers(-3, 4, (n, 3)) * 0.25).astype(np.float32 if trial % 2 else np.float64)
+        p[rng.random(n) < 0.1] *= -0.0  # -0.0 beside 0.0
+        col = rng.integers(0, 3, (n, 4)).astype(np.uint8)
+        nrm = None if trial % 3 else rng.integers(0, 2, (n, 3)).astype(np.float32)
+        keys = _key_rows(p, col, nrm)
+        _, first, inv = np.unique(keys, return_index=True, return_inverse=True)
+        got_first, got_inv = _unique_bits(keys)
+        assert np.array_equal(first, got_first) and np.array_equal(inv.reshape(-1), got_inv)
+        f = rng.integers(0, int(rng.integers(2, 60)), (n, 3))
+        f = np.concatenate([f, f[:, [2, 0, 1]], f[:, [1, 0, 2]]])  # the same faces, turned and flipped
+        s = np.sort(f, axis=1)
+        ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+        s[~ok] = -1
+        keep = np.unique(s, axis=0, return_index=True)[1]
+        assert np.array_equal(_kept_faces(f), np.sort(keep[ok[keep]]))
+    assert len(_unique_bits(_key_rows(np.zeros((0, 3), np.float32), np.zeros((0, 4), np.uint8), None))[0]) == 0
+
+
 def _open_edges(p: np.ndarray, t: np.ndarray, tol: float) -> int:
     """Edges of triangles ``t`` used by one triangle only, vertices closer than ``tol`` welded."""
     from scipy.sparse import coo_matrix

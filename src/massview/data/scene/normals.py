@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["CREASE_ANGLE", "crease_split"]
+__all__ = ["CREASE_ANGLE", "crease_split", "weld"]
 
 CREASE_ANGLE = 50.0  # degrees: hexagonal prisms (60°) and boxes are faceted, octagons (45°) and finer smooth
 
 
-def _weld(p: np.ndarray) -> np.ndarray:
+def weld(p: np.ndarray) -> np.ndarray:
     """(v,) i8: the same id for vertices at the same position (``np.unique(p, axis=0,
     return_inverse=True)``'s ids, in its order, ~3× faster: a lexsort of the columns)."""
     if len(p) == 0:
@@ -46,7 +46,7 @@ def crease_split(p: np.ndarray, tri: np.ndarray, angle: float = CREASE_ANGLE) ->
     ln = np.linalg.norm(fn, axis=1)
     un = fn / np.maximum(ln, 1e-300)[:, None]
     flat = ln <= 0  # degenerate faces take any neighbour's group (they weigh nothing)
-    w = _weld(p)[tri]
+    w = weld(p)[tri]
     # every edge of every face: welded ends (a, b) and the corners (3k+i) holding them
     i0, i1 = np.array([0, 1, 2]), np.array([1, 2, 0])
     ea, eb = w[:, i0].ravel(), w[:, i1].ravel()

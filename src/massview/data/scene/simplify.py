@@ -44,8 +44,9 @@ def is_closed(indices: np.ndarray, positions: np.ndarray | None = None) -> bool:
     if positions is not None:
         p = np.asarray(positions, np.float64)
         tol = max(float(np.ptp(p, axis=0).max()), 1e-30) * 1e-6  # weld closer than 1e-6 of the size
-        _, weld = np.unique(np.round(p / tol), axis=0, return_inverse=True)
-        indices = weld.reshape(-1)[indices]
+        from .normals import weld
+
+        indices = weld(np.round(p / tol))[indices]
         ok = (indices[:, 0] != indices[:, 1]) & (indices[:, 1] != indices[:, 2]) & (indices[:, 0] != indices[:, 2])
         indices = indices[ok]  # welding collapses the sliver triangles at poles and seams
         if len(indices) == 0:

@@ -101,8 +101,33 @@ def _kept_faces(faces: np.ndarray) -> np.ndarray:
     ok = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     s = np.sort(faces, axis=1)
     s[~ok] = -1
-    _, keep = np.unique(s, axis=0, return_index=True)
+    n = int(s.max(initial=-1)) + 2  # entries + 1 lie in [0, n)
+    if n ** 3 < 2 ** 63:  # the sorted triple as one int64 (its rows' order): ~9× faster than rows
+        key = ((s[:, 0] + 1) * n + (s[:, 1] + 1)) * n + (s[:, 2] + 1)
+        _, keep = np.unique(key, return_index=True)
+    else:
+        _, keep = np.unique(s, axis=0, return_index=True)
     return np.sort(keep[ok[keep]])
+
+
+def _unique_bits(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(keys, return_index=True, return_inverse=True)[1:]`` of (n,) void keys —
+    their byte (memcmp) order, the first of equal keys — ~1.5× faster: the bytes read as
+    big-endian 64-bit words (whose numeric order is the bytes' order) and lexsorted."""
+    if len(keys) == 0:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    b = keys.view(np.uint8).reshape(len(keys), -1)
+    if b.shape[1] % 8:
+        b = np.concatenate([b, np.zeros((len(b), 8 - b.shape[1] % 8), np.uint8)], 1)
+    words = np.ascontiguousarray(b).view(">u8").astype(np.uint64)
+    order = np.lexsort(words.T[::-1])  # stable: equal keys keep their input order
+    w = words[order]
+    start = np.empty(len(order), bool)
+    start[0] = True
+    start[1:] = (w[1:] != w[:-1]).any(1)
+    inv = np.empty(len(order), np.intp)
+    inv[order] = np.cumsum(start) - 1
+    return order[start], inv
 
 
 def clean_soup(c: Corners) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
@@ -111,7 +136,7 @@ def clean_soup(c: Corners) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, n
     faces dropped (the first occurrence is kept, in input order). Vertices are equal when their
     bits are, so float64 corners are merged (and faces found degenerate) at float64 precision.
     The vertices come in the order of their bits (``np.unique`` of the rows)."""
-    _, first, inv = np.unique(_key_rows(c.positions, c.colors, c.normals), return_index=True, return_inverse=True)
+    first, inv = _unique_bits(_key_rows(c.positions, c.colors, c.normals))
     faces = inv.reshape(c.count, 3).astype(np.int64)
     faces = faces[_kept_faces(faces)]
     flat = lambda a, w: a.reshape(-1, w)[first]  # noqa: E731
@@ -127,7 +152,7 @@ def clean_mesh(p: np.ndarray, col: np.ndarray, nrm: np.ndarray | None, f: np.nda
     used = np.zeros(len(p), bool)
     used[f] = True
     idx = np.flatnonzero(used)
-    _, first, inv = np.unique(_key_rows(p[idx], col[idx], None if nrm is None else nrm[idx]), return_index=True, return_inverse=True)
+    first, inv = _unique_bits(_key_rows(p[idx], col[idx], None if nrm is None else nrm[idx]))
     remap = np.zeros(len(p), np.int64)
     remap[idx] = inv.reshape(-1)
     faces = remap[f]
@@ -141,8 +166,9 @@ def _components(p: np.ndarray, faces: np.ndarray) -> np.ndarray:
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    _, weld = np.unique(p, axis=0, return_inverse=True)
-    f = weld.reshape(-1)[faces]
+    from .normals import weld
+
+    f = weld(p)[faces]
     n = int(f.max()) + 1
     a = np.concatenate([f[:, 0], f[:, 1]])
     b = np.concatenate([f[:, 1], f[:, 2]])
