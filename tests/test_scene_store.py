@@ -186,6 +186,30 @@ def test_interrupted_ingest_resumes_to_the_same_store(tmp_path, capsys):
         prepare_scene([tmp_path / "soup.ply"], tmp_path / "s", prm)
 
 
+def test_prepare_scene_never_deletes_what_is_not_a_scene_store(tmp_path):
+    """-o naming the input mesh, another file, a user's folder or a terrain store is refused with
+    or without --overwrite, and nothing there is touched (they were deleted)."""
+    mesh = trimesh.creation.box()
+    ply = tmp_path / "in.ply"
+    mesh.export(ply)
+    before = ply.read_bytes()
+    (tmp_path / "user").mkdir()
+    (tmp_path / "user" / "thesis.tex").write_text("x")
+    (tmp_path / "notes.txt").write_text("y")
+    for out in (ply, tmp_path / "user", tmp_path / "notes.txt"):
+        for overwrite in (False, True):
+            with pytest.raises(StoreError, match="not a massview scene store"):
+                prepare_scene([ply], out, IngestParams(), overwrite=overwrite)
+        args = ["prepare", "scene", str(ply), "-o", str(out), "--overwrite"]
+        assert main(args) != 0
+        assert main(["generate", "scene", "city", "--size", "0.02", "-o", str(out), "--overwrite"]) != 0
+    assert ply.read_bytes() == before
+    assert (tmp_path / "user" / "thesis.tex").read_text() == "x" and (tmp_path / "notes.txt").read_text() == "y"
+    (tmp_path / "empty").mkdir()  # an empty folder is fine
+    prepare_scene([ply], tmp_path / "empty", IngestParams())
+    assert verify_scene(tmp_path / "empty") == []
+
+
 @pytest.fixture(scope="module")
 def plant(tmp_path_factory):
     out = tmp_path_factory.mktemp("plant") / "plant"

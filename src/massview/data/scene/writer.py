@@ -83,9 +83,10 @@ class SceneWriter:
             old = dict(g.attrs)
         except Exception:  # noqa: BLE001 - not a zarr group
             old = None
-        if old is None or old.get("format") != FORMAT:
-            if self.path.is_dir() and any(self.path.iterdir()) and not overwrite:
-                raise StoreError(f"{self.path} exists and is not a massview scene store; choose another -o or remove it")
+        if old is None or old.get("format") != FORMAT:  # never removed, --overwrite or not: it may be the input, or a user's folder
+            if not self.path.is_dir() or any(self.path.iterdir()):
+                raise StoreError(f"{self.path} exists and is not a massview scene store (--overwrite replaces only scene "
+                                 f"stores); choose another -o or remove it")
         elif old.get("complete") and not overwrite:
             raise StoreError(f"{self.path} is already a complete scene store; pass --overwrite to rebuild it")
         elif old.get("params") == params and not overwrite and old.get("levels_max") == self.L:
