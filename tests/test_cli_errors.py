@@ -2,11 +2,13 @@
 exit itself: cli.main's last exit handler)."""
 
 import os
+import subprocess
 import sys
 
+import numpy as np
 import pytest
 
-from conftest import run_cli
+from conftest import clean_env, run_cli
 
 
 @pytest.mark.parametrize("args,needle", [
@@ -77,24 +79,20 @@ def test_version():
     assert proc.stdout.strip() == f"massview {massview.__version__}"
 
 
-def test_kernels_cached_looks_for_this_pythons_cache_files(tmp_path, monkeypatch):
-    """The first-prepare note (kernels compile for about a minute) is printed only where numba's
-    cache beside the ingest modules holds no index file for this Python."""
-    from massview.app import terrain_cmds
-    from massview.data import terrain
-
-    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
-    fake = tmp_path / "terrain"
-    (fake / "__pycache__").mkdir(parents=True)
-    monkeypatch.setattr(terrain, "__file__", str(fake / "__init__.py"))
-    assert not terrain_cmds.kernels_cached()
-    (fake / "__pycache__" / "kernels.grid_level-164.py27.nbi").write_bytes(b"")  # another Python's
-    assert not terrain_cmds.kernels_cached()
-    (fake / "__pycache__" / f"kernels.grid_level-164.py{sys.version_info.major}{sys.version_info.minor}.nbi").write_bytes(b"")
-    assert terrain_cmds.kernels_cached()
-    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
-    (fake / "__pycache__").rename(fake / "gone")
-    assert terrain_cmds.kernels_cached()
+@pytest.mark.slow  # compiles the ingest kernels once (about a minute on 2 cores)
+def test_compile_note_only_when_kernels_compile(tmp_path):
+    """``prepare terrain`` says the kernels are compiling when numba compiles any (here: an empty
+    cache), and says nothing when they all load from the cache. (It looked for any .nbi file
+    beside the package, and assumed a cache wherever NUMBA_CACHE_DIR was set, so a DEM needing
+    kernels the cache lacked compiled for ~37 s without a word.)"""
+    np.save(tmp_path / "d.npy", np.random.default_rng(0).normal(size=(65, 65)).astype(np.float32).cumsum(axis=0))
+    env = clean_env(NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    runs = [subprocess.run([sys.executable, "-m", "massview", "prepare", "terrain", str(tmp_path / "d.npy"), "--spacing", "10",
+                            "-o", str(tmp_path / f"{i}.zarr")], capture_output=True, text=True, env=env, timeout=900)
+            for i in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], runs[-1].stderr[-2000:]
+    assert runs[0].stderr.count("note: compiling the ingest kernels") == 1, runs[0].stderr[-2000:]
+    assert "compiling" not in runs[1].stderr, runs[1].stderr[-2000:]
 
 
 def test_generate_terrain_takes_its_output_as_o_too(tmp_path):
