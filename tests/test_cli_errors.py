@@ -28,6 +28,9 @@ from conftest import clean_env, run_cli
     (["generate", "terrain", "--size", "65"], "no output given"),
     (["generate", "terrain", "a.npy", "-o", "b.npy", "--size", "65"], "two outputs given"),
     (["generate", "terrain", "-o", "g.txt", "--size", "65"], ".txt is not a format generate writes"),
+    (["generate", "scene", "city", "--size", "0.01"], "no output given; `massview generate scene city -o OUT`"),  # (was argparse's usage)
+    (["generate", "scene", "city", "a.zarr", "-o", "b.zarr", "--size", "0.01"], "two outputs given"),
+    (["generate", "scene", "city", "-o", "c.glb", "--size", "0.01"], ".glb is not a format generate scene writes"),
     # larger than llvmpipe's 16384 (was GL's "framebuffer is not complete" in a 25-line traceback)
     (["render", "builtin:objects", "--size=32768x8", "--frames", "1"], "draws frames of at most"),
     (["render", "builtin:objects", "--size=32768x8", "--frames", "1", "--ranks", "2"], "draws frames of at most"),
@@ -100,6 +103,17 @@ def test_generate_terrain_takes_its_output_as_o_too(tmp_path):
     run_cli("generate", "terrain", "-o", tmp_path / "a.npy", "--size", 65, "-q")
     run_cli("generate", "terrain", tmp_path / "b.npy", "--size", 65, "-q")
     assert (tmp_path / "a.npy").read_bytes() == (tmp_path / "b.npy").read_bytes()
+
+
+def test_generate_scene_takes_its_output_positionally_too(tmp_path):
+    """``generate scene KIND OUT`` as ``generate terrain OUT`` takes it, and ``-o OUT``: the same store."""
+    from massview.data.scene import SceneStore
+
+    run_cli("generate", "scene", "city", "-o", tmp_path / "a.zarr", "--size", 0.01, "-q")
+    run_cli("generate", "scene", "city", tmp_path / "b.scene", "--size", 0.01, "-q")  # (the README's name for a scene store)
+    a, b = SceneStore(tmp_path / "a.zarr"), SceneStore(tmp_path / "b.scene")
+    assert a.skeleton.count == b.skeleton.count > 0 and a.attrs["triangles"] == b.attrs["triangles"]
+    assert np.array_equal(a.skeleton.center, b.skeleton.center)
 
 
 def test_a_dash_value_reaches_its_option():

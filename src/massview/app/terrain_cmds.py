@@ -49,13 +49,9 @@ def cmd_generate(args) -> int:
     from ..data.terrain import prepare_terrain
     from ..data.terrain.sources import write_sidecar
     from ..data.terrain.synthetic import SyntheticSource, write_synthetic
-    from .outputs import check_output_file
+    from .outputs import check_output_file, one_output
 
-    if args.out and args.output and Path(args.out) != Path(args.output):
-        raise ConfigError(f"two outputs given ({args.out} and -o {args.output}); give one")
-    if not (args.out or args.output):
-        raise ConfigError("no output given; `massview generate terrain -o OUT --size N` (OUT: a store folder, FILE.tif or FILE.npy)")
-    out = Path(args.output or args.out)
+    out = one_output(args.out, args.output, "`massview generate terrain -o OUT --size N` (OUT: a store folder, FILE.tif or FILE.npy)")
     fmt = args.format or {".npy": "npy", ".tif": "tif", ".tiff": "tif"}.get(out.suffix.lower(), "store")
     if fmt == "store" and not args.format and out.suffix.lower() not in ("", ".zarr") and not out.is_dir():
         raise ConfigError(f"output {out}: {out.suffix} is not a format generate writes; give STORE.zarr (a terrain store folder), "
