@@ -2,11 +2,13 @@
 exit itself: cli.main's last exit handler)."""
 
 import os
+import subprocess
 import sys
 
+import numpy as np
 import pytest
 
-from conftest import run_cli
+from conftest import clean_env, run_cli
 
 
 @pytest.mark.parametrize("args,needle", [
@@ -26,6 +28,9 @@ from conftest import run_cli
     (["generate", "terrain", "--size", "65"], "no output given"),
     (["generate", "terrain", "a.npy", "-o", "b.npy", "--size", "65"], "two outputs given"),
     (["generate", "terrain", "-o", "g.txt", "--size", "65"], ".txt is not a format generate writes"),
+    (["generate", "scene", "city", "--size", "0.01"], "no output given; `massview generate scene city -o OUT`"),  # (was argparse's usage)
+    (["generate", "scene", "city", "a.zarr", "-o", "b.zarr", "--size", "0.01"], "two outputs given"),
+    (["generate", "scene", "city", "-o", "c.glb", "--size", "0.01"], ".glb is not a format generate scene writes"),
     # larger than llvmpipe's 16384 (was GL's "framebuffer is not complete" in a 25-line traceback)
     (["render", "builtin:objects", "--size=32768x8", "--frames", "1"], "draws frames of at most"),
     (["render", "builtin:objects", "--size=32768x8", "--frames", "1", "--ranks", "2"], "draws frames of at most"),
@@ -77,24 +82,20 @@ def test_version():
     assert proc.stdout.strip() == f"massview {massview.__version__}"
 
 
-def test_kernels_cached_looks_for_this_pythons_cache_files(tmp_path, monkeypatch):
-    """The first-prepare note (kernels compile for about a minute) is printed only where numba's
-    cache beside the ingest modules holds no index file for this Python."""
-    from massview.app import terrain_cmds
-    from massview.data import terrain
-
-    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
-    fake = tmp_path / "terrain"
-    (fake / "__pycache__").mkdir(parents=True)
-    monkeypatch.setattr(terrain, "__file__", str(fake / "__init__.py"))
-    assert not terrain_cmds.kernels_cached()
-    (fake / "__pycache__" / "kernels.grid_level-164.py27.nbi").write_bytes(b"")  # another Python's
-    assert not terrain_cmds.kernels_cached()
-    (fake / "__pycache__" / f"kernels.grid_level-164.py{sys.version_info.major}{sys.version_info.minor}.nbi").write_bytes(b"")
-    assert terrain_cmds.kernels_cached()
-    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
-    (fake / "__pycache__").rename(fake / "gone")
-    assert terrain_cmds.kernels_cached()
+@pytest.mark.slow  # compiles the ingest kernels once (about a minute on 2 cores)
+def test_compile_note_only_when_kernels_compile(tmp_path):
+    """``prepare terrain`` says the kernels are compiling when numba compiles any (here: an empty
+    cache), and says nothing when they all load from the cache. (It looked for any .nbi file
+    beside the package, and assumed a cache wherever NUMBA_CACHE_DIR was set, so a DEM needing
+    kernels the cache lacked compiled for ~37 s without a word.)"""
+    np.save(tmp_path / "d.npy", np.random.default_rng(0).normal(size=(65, 65)).astype(np.float32).cumsum(axis=0))
+    env = clean_env(NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    runs = [subprocess.run([sys.executable, "-m", "massview", "prepare", "terrain", str(tmp_path / "d.npy"), "--spacing", "10",
+                            "-o", str(tmp_path / f"{i}.zarr")], capture_output=True, text=True, env=env, timeout=900)
+            for i in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], runs[-1].stderr[-2000:]
+    assert runs[0].stderr.count("note: compiling the ingest kernels") == 1, runs[0].stderr[-2000:]
+    assert "compiling" not in runs[1].stderr, runs[1].stderr[-2000:]
 
 
 def test_generate_terrain_takes_its_output_as_o_too(tmp_path):
@@ -102,6 +103,17 @@ def test_generate_terrain_takes_its_output_as_o_too(tmp_path):
     run_cli("generate", "terrain", "-o", tmp_path / "a.npy", "--size", 65, "-q")
     run_cli("generate", "terrain", tmp_path / "b.npy", "--size", 65, "-q")
     assert (tmp_path / "a.npy").read_bytes() == (tmp_path / "b.npy").read_bytes()
+
+
+def test_generate_scene_takes_its_output_positionally_too(tmp_path):
+    """``generate scene KIND OUT`` as ``generate terrain OUT`` takes it, and ``-o OUT``: the same store."""
+    from massview.data.scene import SceneStore
+
+    run_cli("generate", "scene", "city", "-o", tmp_path / "a.zarr", "--size", 0.01, "-q")
+    run_cli("generate", "scene", "city", tmp_path / "b.scene", "--size", 0.01, "-q")  # (the README's name for a scene store)
+    a, b = SceneStore(tmp_path / "a.zarr"), SceneStore(tmp_path / "b.scene")
+    assert a.skeleton.count == b.skeleton.count > 0 and a.attrs["triangles"] == b.attrs["triangles"]
+    assert np.array_equal(a.skeleton.center, b.skeleton.center)
 
 
 def test_a_dash_value_reaches_its_option():

@@ -147,3 +147,42 @@ def test_walkthrough_on_a_terrain_walks_on_its_ground(terrain_store, tmp_path):
         f = load_png(out / "frames" / f"{k:05d}.png")
         assert not_sky(f[-10:]) == 10 * 160, f"frame {k}: sky below the eye (the eye is under the ground)"
         assert not_sky(f[:10]) < 0.75 * 10 * 160, f"frame {k}: no sky in the top rows"
+
+
+# a 20 x 20 town of six towers 2-5 units high (glTF: y up, x-z ground), scattered round the middle
+_TOWN = [(7.2, -5.7, 3.5), (-3.0, -1.2, 4.8), (-1.5, 0.8, 4.5), (4.1, 0.6, 2.1), (4.6, -3.1, 3.0), (-5.9, -1.6, 3.4)]
+
+
+def _tiny_town(path) -> None:
+    import trimesh
+
+    ground = trimesh.Trimesh([[-10, 0, -10], [10, 0, -10], [10, 0, 10], [-10, 0, 10]], [[0, 2, 1], [0, 3, 2]], process=False)
+    ground.visual.face_colors = [120, 120, 120, 255]
+    scene = trimesh.Scene()
+    scene.add_geometry(ground, node_name="ground", geom_name="ground")
+    for i, (x, z, h) in enumerate(_TOWN):
+        tower = trimesh.creation.box(extents=(1.5, h, 1.5))
+        tower.apply_translation((x, h / 2, z))
+        tower.visual.face_colors = [220, 40, 40, 255]
+        scene.add_geometry(tower, node_name=f"t{i}", geom_name=f"t{i}")
+    scene.export(path)
+
+
+@pytest.mark.parametrize("system", ["auto", "reliefboards"])
+def test_a_walk_through_a_tiny_town_shows_its_towers(tmp_path, system):
+    """A 20-unit glTF town, 4 frames of walkthrough: every frame shows towers. The walker looked
+    along the way's first or last few cells and 10 units ahead, half the town: the first frame
+    faced the corner the way bends to, and the last stood 1.6 units from the edge looking out of
+    the town (towers in 1 of 4 frames); reliefboards walked the straight line through the towers."""
+    from conftest import load_png, run_cli
+
+    _tiny_town(tmp_path / "town.glb")
+    run_cli("prepare", "scene", tmp_path / "town.glb", "-o", tmp_path / "town.zarr", "-q")
+    out = tmp_path / "walk"
+    run_cli("render", tmp_path / "town.zarr", "--path", "walkthrough", "--frames", 4, "--size", "160x128", "--system", system,
+            *(("--ranks", 2) if system == "reliefboards" else ()), "--out", out, "-q")
+    red = []
+    for i in range(4):
+        img = load_png(out / "frames" / f"{i:05d}.png").astype(int)
+        red.append(int(((img[..., 0] > img[..., 1] + 50) & (img[..., 0] > img[..., 2] + 50)).sum()))
+    assert min(red) > 0.02 * 160 * 128, red

@@ -11,9 +11,9 @@ import os
 import tempfile
 from pathlib import Path
 
-from ..core.errors import OutputError
+from ..core.errors import ConfigError, OutputError
 
-__all__ = ["check_output_dir", "check_output_file"]
+__all__ = ["check_output_dir", "check_output_file", "one_output"]
 
 
 def _why(e: OSError) -> str:
@@ -61,3 +61,14 @@ def check_output_file(path: Path, option: str = "output") -> Path:
         raise OutputError(f"{option} {path}: cannot create {parent} ({_why(e)}); choose a writable location") from None
     _probe(parent, option, path)
     return path
+
+
+def one_output(positional: str | None, option: str | None, usage: str) -> Path:
+    """The output a ``generate`` command was given, positionally or as ``-o`` (the same path
+    both ways is fine); none or two different ones is a :class:`ConfigError` (``usage``: how to
+    give it, shown after "no output given; ")."""
+    if positional and option and Path(positional) != Path(option):
+        raise ConfigError(f"two outputs given ({positional} and -o {option}); give one")
+    if not (positional or option):
+        raise ConfigError(f"no output given; {usage}")
+    return Path(option or positional)

@@ -17,7 +17,8 @@ __all__ = ["add_generate_parser", "add_prepare_parser", "cmd_generate", "cmd_pre
 def add_generate_parser(gsub) -> None:
     g = gsub.add_parser("scene", help="a replicated massive scene (plant, city, forest), streamed to a scene store")
     g.add_argument("kind", choices=("plant", "city", "forest"))
-    g.add_argument("-o", "--output", required=True, help="scene store folder to write")
+    g.add_argument("out", nargs="?", help="scene store folder to write (or give it with -o)")
+    g.add_argument("-o", "--output", default=None, help="the same output, as an option")
     g.add_argument("--copies", type=int, default=1, help="replicas of the scene, each stored as its own geometry (default 1)")
     g.add_argument("--size", type=float, default=1.0,
                    help="scale of one copy (default 1: plant ~21 600 nodes / 8.4 M triangles, city ~1100 nodes / 4.1 M, forest ~250 objects / 13.7 M)")
@@ -51,14 +52,19 @@ def add_prepare_parser(psub) -> None:
 
 
 def cmd_generate(args) -> int:
+    from ..core.errors import ConfigError
     from ..data.generators.scenes import generate_scene
-    from .outputs import check_output_file
+    from .outputs import check_output_file, one_output
 
-    check_output_file(Path(args.output), "-o")
+    out = one_output(args.out, args.output, f"`massview generate scene {args.kind} -o OUT` (OUT: a scene store folder, e.g. city.zarr)")
+    if out.suffix.lower() not in ("", ".zarr", ".scene") and not out.is_dir():  # (as generate terrain: -o city.glb is no store name)
+        raise ConfigError(f"output {out}: {out.suffix} is not a format generate scene writes; give a scene store folder "
+                          "(STORE.zarr or STORE.scene)")
+    check_output_file(out, "output")
     with progress_bar(args.quiet) as prog:
-        a = generate_scene(args.kind, Path(args.output), copies=args.copies, size=args.size, seed=args.seed,
+        a = generate_scene(args.kind, out, copies=args.copies, size=args.size, seed=args.seed,
                            overwrite=args.overwrite, progress=prog, backend=args.simplifier, detail=args.detail)
-    print(f"wrote scene store {args.output}: {a['objects']} objects, {a['triangles']:,} triangles, {a['groups']} groups, "
+    print(f"wrote scene store {out}: {a['objects']} objects, {a['triangles']:,} triangles, {a['groups']} groups, "
           f"{a['occluders']} occluders")
     return 0
 

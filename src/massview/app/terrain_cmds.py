@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ..core.errors import ConfigError, OutputError, StoreError
 
-__all__ = ["cmd_generate", "cmd_prepare", "cmd_info", "cmd_verify", "progress_bar"]
+__all__ = ["cmd_generate", "cmd_prepare", "cmd_info", "cmd_verify", "compile_note", "progress_bar"]
 
 
 @contextmanager
@@ -49,13 +49,9 @@ def cmd_generate(args) -> int:
     from ..data.terrain import prepare_terrain
     from ..data.terrain.sources import write_sidecar
     from ..data.terrain.synthetic import SyntheticSource, write_synthetic
-    from .outputs import check_output_file
+    from .outputs import check_output_file, one_output
 
-    if args.out and args.output and Path(args.out) != Path(args.output):
-        raise ConfigError(f"two outputs given ({args.out} and -o {args.output}); give one")
-    if not (args.out or args.output):
-        raise ConfigError("no output given; `massview generate terrain -o OUT --size N` (OUT: a store folder, FILE.tif or FILE.npy)")
-    out = Path(args.output or args.out)
+    out = one_output(args.out, args.output, "`massview generate terrain -o OUT --size N` (OUT: a store folder, FILE.tif or FILE.npy)")
     fmt = args.format or {".npy": "npy", ".tif": "tif", ".tiff": "tif"}.get(out.suffix.lower(), "store")
     if fmt == "store" and not args.format and out.suffix.lower() not in ("", ".zarr") and not out.is_dir():
         raise ConfigError(f"output {out}: {out.suffix} is not a format generate writes; give STORE.zarr (a terrain store folder), "
@@ -66,7 +62,7 @@ def cmd_generate(args) -> int:
     from ..data.terrain.workers import return_freed_memory
 
     return_freed_memory()
-    with progress_bar(args.quiet) as prog:
+    with compile_note(args.quiet), progress_bar(args.quiet) as prog:
         if fmt == "store":
             res = prepare_terrain(SyntheticSource(args.size, args.seed), out, block=args.block, overwrite=args.overwrite, progress=prog)
             msg = f"wrote terrain store {out} ({res.layout.levels} levels, {res.seconds:.1f} s)"
@@ -93,20 +89,22 @@ def _shape(spec: str | None):
         raise ConfigError(f"--shape {spec!r}: expected ROWSxCOLS") from None
 
 
-def kernels_cached() -> bool:
-    """Whether numba's disk cache holds compiled ingest kernels for this Python (beside the
-    modules, where ``cached_jit`` puts them unless ``NUMBA_CACHE_DIR`` says otherwise: then
-    assumed yes)."""
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return True
-    from ..data import terrain
+@contextmanager
+def compile_note(quiet: bool):
+    """Within the block, a note on stderr when the ingest's kernels start compiling (numba: the
+    first prepare after installing, or one whose input needs kernels the cache lacks, waits
+    about a minute on 2 cores for them); nothing when they all load from the cache."""
+    if quiet:
+        yield
+        return
+    from ..data.jit import on_first_compile
 
-    tag = f".py{sys.version_info.major}{sys.version_info.minor}.nbi"
-    cache = Path(terrain.__file__).parent / "__pycache__"
-    try:
-        return any(name.endswith(tag) for name in os.listdir(cache))
-    except OSError:
-        return False
+    def note() -> None:
+        print("massview: note: compiling the ingest kernels (about a minute on 2 cores, once: later runs load them "
+              "from the cache)", file=sys.stderr, flush=True)
+
+    with on_first_compile(note):
+        yield
 
 
 def cmd_prepare(args) -> int:
@@ -119,10 +117,7 @@ def cmd_prepare(args) -> int:
     src = open_source(args.input, nodata=args.nodata, array=args.array, shape=_shape(args.shape), dtype=args.dtype,
                       spacing=args.spacing, crs=args.crs)
     ortho = open_source(args.color) if args.color else None
-    if not args.quiet and not kernels_cached():
-        print("massview: note: the first prepare after installing compiles its kernels (about a minute on 2 cores, once: "
-              "later runs load them from the cache)", file=sys.stderr)
-    with progress_bar(args.quiet) as prog:
+    with compile_note(args.quiet), progress_bar(args.quiet) as prog:
         res = prepare_terrain(src, Path(args.output), block=args.block, vertical_scale=args.vertical_scale,
                               color=None if args.no_color else "computed", ortho=ortho, overwrite=args.overwrite, progress=prog,
                               workers=getattr(args, "workers", 0))

@@ -17,8 +17,9 @@ splines in time; orientations given directly are slerped. Built-in paths (``turn
 ``forward``, ``orbit``, ``flyover``, ``walkthrough``) are fitted to a scene's axis-aligned
 bounding box, +z up. ``walkthrough`` walks through a model at eye height (1.7 units above the
 bottom of the box, or 30 % of the box height if that is lower), looking ahead: given the
-scene's object boxes, along a way round them (:mod:`massview.lod.walk`), else along x with a
-gentle sway in y.
+scene's object boxes, along a way round them (:mod:`massview.lod.walk`), looking at the way
+10 units ahead (a third of it, if that is less) and ending that far before its end; else along
+x with a gentle sway in y.
 """
 
 from __future__ import annotations
@@ -307,19 +308,33 @@ class ParametricPath(CameraPath):
         ext = self.hi - self.lo
         z = walk_eye_z(self.lo, self.hi)
         route = self._route()
+        if route is not None:
+            return self._walk_route(t, *route, z)
 
         def at(u):
-            if route is not None:
-                way, s = route
-                d = u * s[-1]
-                return np.array([np.interp(d, s, way[:, 0]), np.interp(d, s, way[:, 1]), z])
             return np.array([self.lo[0] + ext[0] * (0.08 + 0.84 * u),
                              (self.lo[1] + self.hi[1]) / 2 + 0.12 * ext[1] * math.sin(2 * math.pi * u), z])
 
         eye = at(t)
         d = at(min(t + 0.02, 1.0)) - at(max(t - 0.02, 0.0))
         d /= max(np.linalg.norm(d), 1e-12)
-        return eye, eye + d * 10.0 + np.array([0.0, 0.0, -0.6])
+        return eye, eye + d * _WALK_LOOK + np.array([0.0, 0.0, -_WALK_DIP * _WALK_LOOK])
+
+    @staticmethod
+    def _walk_route(t: float, way: np.ndarray, s: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray]:
+        """``walkthrough`` along a planned way (xy (k, 2), cumulative length ``s``) at height
+        ``z``: looking at the way ``look`` ahead (``_WALK_LOOK`` units, at most a third of the way,
+        so a small scene's walker looks across the scene, not half out of it), a little down;
+        the eye walks the way's first ``length − look``, so its last view is along the way to
+        the way's end, not out of the scene from the end."""
+        look = min(_WALK_LOOK, s[-1] / 3)
+
+        def at(d):
+            return np.array([np.interp(d, s, way[:, 0]), np.interp(d, s, way[:, 1]), z])
+
+        d = t * (s[-1] - look)
+        eye, ahead = at(d), at(d + look)
+        return eye, ahead - np.array([0.0, 0.0, _WALK_DIP * float(np.linalg.norm(ahead - eye))])
 
     def _walk_ground(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """``walkthrough`` on a terrain: along the straight swaying line at eye height above the
@@ -346,6 +361,8 @@ class ParametricPath(CameraPath):
 
 
 _EYE = 1.7  # walkthrough's eye height above the ground (world units: metres for georeferenced data)
+_WALK_LOOK = 10.0  # how far ahead a walker in a scene looks (world units; at most a third of a planned way)
+_WALK_DIP = 0.06  # and how far down, per unit ahead
 _LOOK = 30.0  # how far ahead a walker on a terrain looks (world units)
 
 

@@ -5,10 +5,13 @@ no bounds checks, numpy's error model (division by zero gives inf/NaN, not an ex
 from __future__ import annotations
 
 import sys
+import threading
+from contextlib import contextmanager
 
 from numba import njit
+from numba.core import event
 
-__all__ = ["cached_jit", "njit"]
+__all__ = ["cached_jit", "njit", "on_first_compile"]
 
 
 def _arraymath_without_scipy_blas() -> None:
@@ -47,3 +50,30 @@ def cached_jit(fn):
         return njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")(fn)
     except RuntimeError:  # numba: "cannot cache function ...: no locator available"
         return njit(nogil=True, boundscheck=False, error_model="numpy")(fn)
+
+
+class _FirstCompile(event.Listener):
+    """Calls ``callback()`` at the start of the first compile it hears of, once."""
+
+    def __init__(self, callback):
+        self._callback, self._lock, self._fired = callback, threading.Lock(), False
+
+    def on_start(self, ev) -> None:
+        with self._lock:
+            if self._fired:
+                return
+            self._fired = True
+        self._callback()
+
+    def on_end(self, ev) -> None:
+        pass
+
+
+@contextmanager
+def on_first_compile(callback):
+    """Within the block, ``callback()`` (no arguments) is called once, in whichever thread, when
+    numba starts compiling a kernel for a signature it has neither in memory nor in its disk
+    cache: before the compile, so a note printed by it comes before the wait. Never called when
+    every kernel the block runs loads from the cache."""
+    with event.install_listener("numba:compile", _FirstCompile(callback)):
+        yield

@@ -72,6 +72,11 @@ class BoardObjects:
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return self.box_lo.min(axis=0), self.box_hi.max(axis=0)
 
+    @property
+    def obstacles(self) -> tuple[np.ndarray, np.ndarray]:
+        """The objects' boxes, which the ``walkthrough`` path walks round."""
+        return self.box_lo, self.box_hi
+
     def mesh(self, i: int) -> tuple:
         """Object ``i``'s level 0: positions f32 (V, 3) in world axes relative to
         ``origins[i]``, world normals f32 (V, 3), colours u8 (V, 4), indices u32 (3T,)."""
