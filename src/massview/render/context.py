@@ -14,7 +14,7 @@ import moderngl
 
 from ..core.errors import GLUnavailableError
 
-__all__ = ["create_context", "renderer_string", "load_shader", "finish", "max_frame_size", "check_frame_size"]
+__all__ = ["create_context", "release_gl", "renderer_string", "load_shader", "finish", "max_frame_size", "check_frame_size"]
 
 _INSTALL_HINT = (
     "massview renders headless through EGL. Install the EGL loader and an OpenGL driver: "
@@ -35,6 +35,16 @@ def create_context(device_index: int | None = None) -> moderngl.Context:
     except Exception as e:  # glcontext raises plain Exceptions with driver messages
         raise GLUnavailableError(f"could not create a headless OpenGL context ({e}). {_INSTALL_HINT}") from None
     return ctx
+
+
+def release_gl(owner) -> None:
+    """Release ``owner._gl``'s context (its first item) and with it every GL object made on it
+    (the block or mesh pool of ``--gpu-mb``, targets, programs): a system's ``close()``. The
+    owner makes them anew on next use (``_gl`` is set to None)."""
+    gl = getattr(owner, "_gl", None)
+    if gl is not None:
+        owner._gl = None
+        gl[0].release()
 
 
 def renderer_string(ctx: moderngl.Context) -> str:

@@ -21,7 +21,7 @@ from ..core.task import Task
 from ..data.generators import generate_objects
 from ..lod.cull import screen_rects, spheres_in_frustum
 from ..parallel.decompose import parse_decomposition, sort_first_tiles, sort_last_ranges
-from ..render.context import create_context
+from ..render.context import create_context, release_gl
 from ..render.meshes import MeshRenderer
 from ..render.view import ViewRenderer
 
@@ -75,6 +75,9 @@ class ObjectsSystem:
         return [Task(i, vp) for i, vp in enumerate(tiles)]
 
     # -- render (GL) ---------------------------------------------------------------------
+    def close(self) -> None:
+        release_gl(self)
+
     def _renderers(self):
         if self._gl is None:
             ctx = create_context(self._egl_device)

@@ -42,7 +42,7 @@ from ..lod.cull import boxes_in_frustum, screen_rects
 from ..lod.scene import SkeletonCuller, choose_levels, lod_scale, resolve_levels
 from ..parallel.decompose import parse_decomposition, sort_first_tiles, sort_last_ranges
 from ..parallel.exchange import agree_all, any_rank
-from ..render.context import create_context, renderer_string
+from ..render.context import create_context, release_gl, renderer_string
 from ..render.scene import MeshPool, SceneRenderer, pack_mesh
 from ..render.view import ViewRenderer
 from .frameloop import display_tiles
@@ -324,3 +324,4 @@ class SceneSystem:
 
     def close(self) -> None:
         self.cache.close()
+        release_gl(self)

@@ -45,7 +45,7 @@ from ..lod.texlod import ShadingPyramid
 from ..parallel.decompose import parse_decomposition, sort_first_tiles, sort_last_ranges
 from ..parallel.exchange import agree_all, any_rank
 from ..parallel.runtime import return_free_heap
-from ..render.context import create_context, renderer_string
+from ..render.context import create_context, release_gl, renderer_string
 from ..render.colormaps import Shading, paint_sky
 from ..render.terrain import BlockPool, TerrainRenderer, pack_payload
 from ..render.view import ViewRenderer
@@ -371,3 +371,4 @@ class TerrainSystem:
 
     def close(self) -> None:
         self.cache.close()
+        release_gl(self)
