@@ -35,6 +35,9 @@ from conftest import clean_env, run_cli
     (["render", "builtin:objects", "--size=32768x8", "--frames", "1"], "draws frames of at most"),
     (["render", "builtin:objects", "--size=32768x8", "--frames", "1", "--ranks", "2"], "draws frames of at most"),
     (["render", "/nonexistent/s.zarr", "--system", "reliefboards", "--ranks", "2"], "not found"),
+    # fewer pixels than sort-first tiles (was a ZeroDivisionError traceback and MPI_Abort)
+    (["render", "builtin:objects", "--size", "2x2", "--ranks", "3", "--decomposition", "sort-first:grid"], "is less than that"),
+    (["render", "builtin:objects", "--size", "64x2", "--ranks", "3", "--decomposition", "sort-first:horizontal"], "height (2 pixels)"),
 ])
 def test_bad_input_is_reported_plainly(args, needle, tmp_path):
     proc = run_cli(*args, "--out", tmp_path, check=False) if args[0] == "render" else run_cli(*args, check=False)
@@ -164,3 +167,20 @@ def test_render_out_must_not_be_the_input_store(terrain_store, tmp_path):
         proc = run_cli("render", terrain_store, "--frames", "1", "--size", "32x24", "--out", out, check=False)
         assert proc.returncode != 0 and "input store" in proc.stderr and "Traceback" not in proc.stderr
     assert not (terrain_store / "frames").exists() and not (terrain_store / "summary.json").exists()
+
+
+def test_render_out_in_any_store_is_refused_before_a_rank_starts(terrain_store, tmp_path):
+    """--out naming a store (the input, or another one) or a folder inside one is one line for
+    every system, the scene untouched (reliefboards wrote frames/ into its input store; the
+    others wrote into another store)."""
+    run_cli("generate", "scene", "city", "-o", tmp_path / "s.scene", "--size", 0.01, "-q")
+    before = sorted(p.name for p in (tmp_path / "s.scene").iterdir())
+    for args, needle in (
+        (["render", tmp_path / "s.scene", "--system", "reliefboards", "--ranks", "2", "--out", tmp_path / "s.scene"], "is the input store"),
+        (["render", "builtin:objects", "--out", tmp_path / "s.scene"], "is the store"),
+        (["render", "builtin:objects", "--out", tmp_path / "s.scene" / "frames"], "is inside the store"),
+        (["render", tmp_path / "s.scene", "--out", terrain_store], "is the store"),
+    ):
+        proc = run_cli(*args, "--frames", "1", "--size", "64x48", check=False)
+        assert proc.returncode != 0 and needle in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert sorted(p.name for p in (tmp_path / "s.scene").iterdir()) == before

@@ -341,6 +341,7 @@ def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camer
             w, h = _size(size) if size is not None else (cfg.width, cfg.height)
             cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": cfg.frames if frames is None else _count(frames, "frames")})
         spec = scene.spec if isinstance(scene, Scene) else str(scene)
+        check_render_out(out, spec)
         return render_reliefboards(spec, what, cfg, ranks, out, images, depth, reliefboards, result=RenderResult)
     owned = not isinstance(scene, Scene)
     scene = open_scene(scene)
@@ -352,19 +353,32 @@ def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camer
 
 
 def _not_inside_the_store(out: Path, spec: str) -> None:
-    """--out must not be the input store or a folder inside it (frames, stats and a summary
-    would be written among its arrays)."""
+    """--out must not be the input store or a folder inside it, nor any other massview store
+    or a folder inside one (frames, stats and a summary would be written among its arrays)."""
+    o = Path(out).resolve()
     store = Path(spec)
-    if not store.is_dir():
-        return
-    o, st = Path(out).resolve(), store.resolve()
-    if o == st or st in o.parents:
-        raise ConfigError(f"--out {out}: is {'the input store' if o == st else 'inside the input store'} {spec}; "
-                          "give a folder outside it for the frames, stats and summary")
+    if store.is_dir():
+        st = store.resolve()
+        if o == st or st in o.parents:
+            raise ConfigError(f"--out {out}: is {'the input store' if o == st else 'inside the input store'} {spec}; "
+                              "give a folder outside it for the frames, stats and summary")
+    for d in (o, *o.parents):
+        if (d / "zarr.json").is_file():
+            raise ConfigError(f"--out {out}: {'is' if d == o else 'is inside'} the store {d}; "
+                              "give a folder outside it for the frames, stats and summary")
+
+
+def check_render_out(out, spec: str) -> Path | None:
+    """``out`` checked before any rank starts (outside every store, a writable folder)."""
+    from .app.outputs import check_output_dir
+
+    if out is None:
+        return None
+    _not_inside_the_store(Path(out), spec)
+    return check_output_dir(Path(out), "--out")
 
 
 def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, size, cfg: RenderConfig) -> RenderResult | None:
-    from .app.outputs import check_output_dir
     from .parallel.runtime import in_mpi_job, world
 
     nranks = world().Get_size() if in_mpi_job() else (1 if ranks is None else _count(ranks, "ranks"))
@@ -376,9 +390,7 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
         load_path(str(what), [0, 0, 0], [1, 1, 1])  # a bad name or file is reported now
     out = Path(out) if out is not None else None
     validate(scene.spec, cfg, nranks)
-    if out is not None:
-        _not_inside_the_store(out, scene.spec)
-        check_output_dir(out, "--out")
+    check_render_out(out, scene.spec)
     if nranks == 1 or in_mpi_job():
         scene.system(cfg)  # opened with this config's budgets (the bounds come from it)
     cams, label = _cameras(scene, what, cfg)
@@ -417,6 +429,14 @@ def validate(spec: str, cfg: RenderConfig, nranks: int) -> None:
 
         return validate_roettger(spec, cfg, nranks)
     parse_decomposition(cfg.decomposition, modes)
+    if nranks > 1 and (cfg.decomposition.startswith("sort-first") or cfg.system == "dmmr"):
+        layout = cfg.decomposition.partition(":")[2] or "horizontal"
+        need = {"horizontal": ("height", cfg.height), "vertical": ("width", cfg.width)}.get(layout)
+        short = [need] if need else [("width", cfg.width), ("height", cfg.height)]
+        for what, n in short:
+            if n < nranks:
+                raise ConfigError(f"--size {cfg.width}x{cfg.height}: {cfg.decomposition} cuts the image into {nranks} tiles, "
+                                  f"and its {what} ({n} pixels) is less than that; give a larger --size or fewer --ranks")
     if cfg.decomposition == "sort-first:grid":
         sort_first_tiles("grid", nranks, cfg.width, cfg.height, cfg.grid)
     if cfg.wall:

@@ -72,6 +72,9 @@ def cmd_render(args, argv, cfg: RenderConfig) -> int:
     load_path(cfg.path, [0, 0, 0], [1, 1, 1])
     if not in_mpi_job():
         check_scene(args.scene)
+        from ..api import check_render_out
+
+        check_render_out(args.out, args.scene)
         if (args.ranks or 1) < 2:
             raise ConfigError("--system reliefboards needs a visualization rank and at least one backend: give --ranks 2 or more")
         return relaunch(argv, args.ranks)
