@@ -49,6 +49,22 @@ def test_frustum_planes_classify_points():
     assert np.any(planes @ behind < 0)
 
 
+def test_a_viewport_without_pixels_sees_nothing():
+    """A sort-first tile of a frame smaller than its tiles has no pixels: its planes reject
+    every point, sphere and box (they divided by zero: ZeroDivisionError on a scene store)."""
+    from massview.lod.cull import boxes_in_frustum, spheres_in_frustum
+
+    c = cam()
+    pts = np.random.default_rng(1).uniform(-50, 50, (200, 3))
+    for vp in (Viewport(0, 0, 0, 480), Viewport(640, 0, 0, 0), Viewport(3, 7, 5, 0)):
+        planes = c.frustum_planes(vp)
+        assert np.isfinite(planes).all()
+        assert not np.any(np.all(np.c_[pts, np.ones(200)] @ planes.T >= 0, axis=1))
+        assert not spheres_in_frustum(pts, np.full(200, 1e3), planes).any()
+        assert not boxes_in_frustum(pts - 1e3, pts + 1e3, planes).any()
+    assert np.all(c.frustum_planes() @ np.array([0.0, 0.0, 0.0, 1.0]) >= 0)
+
+
 def test_camera_json_and_pickle_round_trip():
     c = cam(fovy=50)
     assert Camera.from_json(json.loads(json.dumps(c.to_json()))) == c

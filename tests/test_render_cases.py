@@ -32,9 +32,14 @@ def test_a_failing_rank_ends_the_job_and_names_the_case(tmp_path):
 def test_sort_first_tiles_without_pixels_render_nothing_and_still_equal_serial(tmp_path):
     """A 1×1 frame split among 3 sort-first ranks: two ranks get empty tiles. They draw nothing
     (their camera's projection divided by zero: ZeroDivisionError and MPI_Abort) and the
-    assembled frame still equals the one-rank frame."""
+    assembled frame still equals the one-rank frame. Likewise a scene store's 2×2 frame in a
+    3-tile grid (its per-tile selection took the empty tile's planes: ZeroDivisionError)."""
+    scene = tmp_path / "c.scene"
+    run_cli("generate", "scene", "city", "-o", scene, "--size", 0.01, "-q")
     cases = {dec: [SMALL_SCENE, "--frames", 2, "--size", "1x1", "--decomposition", dec, "--reference"]
              for dec in ("sort-first:kd", "sort-first:horizontal")}
+    cases.update({f"scene-{dec}": [scene, "--frames", 2, "--size", "2x2", "--decomposition", dec, "--reference"]
+                  for dec in ("sort-first:grid", "sort-first:vertical")})
     for dec, out in render_cases(tmp_path, 3, cases, timeout=180).items():
         s = summary(out)
         assert s["ranks"] == 3 and s["frames"] == 2 and s["max_abs_diff"] == 0, (dec, s)

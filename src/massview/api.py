@@ -429,14 +429,6 @@ def validate(spec: str, cfg: RenderConfig, nranks: int) -> None:
 
         return validate_roettger(spec, cfg, nranks)
     parse_decomposition(cfg.decomposition, modes)
-    if nranks > 1 and (cfg.decomposition.startswith("sort-first") or cfg.system == "dmmr"):
-        layout = cfg.decomposition.partition(":")[2] or "horizontal"
-        need = {"horizontal": ("height", cfg.height), "vertical": ("width", cfg.width)}.get(layout)
-        short = [need] if need else [("width", cfg.width), ("height", cfg.height)]
-        for what, n in short:
-            if n < nranks:
-                raise ConfigError(f"--size {cfg.width}x{cfg.height}: {cfg.decomposition} cuts the image into {nranks} tiles, "
-                                  f"and its {what} ({n} pixels) is less than that; give a larger --size or fewer --ranks")
     if cfg.decomposition == "sort-first:grid":
         sort_first_tiles("grid", nranks, cfg.width, cfg.height, cfg.grid)
     if cfg.wall:

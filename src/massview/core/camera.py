@@ -240,7 +240,13 @@ class Camera:
     def frustum_planes(self, vp: Viewport | None = None) -> np.ndarray:
         """(6, 4) float64 planes (a, b, c, d), normals pointing inward and normalized:
         a point p is inside when ``a*px + b*py + c*pz + d >= 0`` for all six.
-        Order: left, right, bottom, top, near, far."""
+        Order: left, right, bottom, top, near, far.
+        A ``vp`` without pixels (a sort-first tile of a frame smaller than its tiles) sees
+        nothing: the full frame's planes pushed out of reach, so every test rejects all."""
+        if vp is not None and (vp.w <= 0 or vp.h <= 0):
+            planes = self.frustum_planes()
+            planes[:, 3] = -1e300
+            return planes
         m = self.view_projection(vp)
         planes = np.array([m[3] + m[0], m[3] - m[0], m[3] + m[1], m[3] - m[1], m[3] + m[2], m[3] - m[2]])
         return planes / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
