@@ -4,6 +4,7 @@ of a scene store (``terrain_cmds`` hands those over when the path is a scene sto
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -74,17 +75,22 @@ def cmd_prepare(args) -> int:
     from ..data.scene.ingest import IngestParams, prepare_scene
     from .outputs import check_output_file
 
-    check_output_file(Path(args.output), "-o")
+    out = Path(args.output)
+    if args.object_size is not None and not (math.isfinite(args.object_size) and args.object_size > 0):
+        raise ConfigError(f"--object-size must be a positive length in file units (leave it out for no limit), got {args.object_size:g}")
+    if not (math.isfinite(args.stream_mb) and args.stream_mb >= 0):
+        raise ConfigError(f"--stream-mb must be a size in MB, 0 or more, got {args.stream_mb:g}")
     if args.object_triangles < 1 or args.levels < 1 or args.levels > 16:
         raise ConfigError("--object-triangles must be positive and --levels between 1 and 16")
+    check_output_file(out, "-o")
     prm = IngestParams(object_triangles=args.object_triangles, object_size=args.object_size or float("inf"), instance=args.instance,
                        simplifier=args.simplifier, max_levels=args.levels, stream_bytes=int(args.stream_mb * 2**20),
                        crease_angle=args.crease_angle, up=args.up)
     with progress_bar(args.quiet) as prog:
-        a = prepare_scene(args.inputs, Path(args.output), prm, overwrite=args.overwrite, progress=prog)
+        a = prepare_scene(args.inputs, out, prm, overwrite=args.overwrite, progress=prog)
     _warn(a["warnings"])
     s = max(a["seconds"], 1e-9)
-    print(f"{'resumed and completed' if a['resumed'] else 'wrote'} {args.output}: {a['objects']} objects "
+    print(f"{'resumed and completed' if a['resumed'] else 'wrote'} {out}: {a['objects']} objects "
           f"({a['geometries']} geometries), {a['triangles']:,} triangles, {a['occluders']} occluders, {a['seconds']:.1f} s "
           f"({a['input_bytes'] / 1e6 / s:.1f} MB/s, {a['triangles'] / s:,.0f} triangles/s)")
     return 0

@@ -42,7 +42,7 @@ from .normals import CREASE_ANGLE
 from .plystream import PlyLayout
 from .simplify import build_levels
 from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_mesh, clean_soup, split_dense
-from .sources import UP_CHOICES, MemorySoup, StructuredObject, open_input, stream_bounds, stream_corners, transform_normals
+from .sources import UP_CHOICES, MemorySoup, StructuredObject, check_input, open_input, stream_bounds, stream_corners, transform_normals
 from .writer import SceneWriter
 
 __all__ = ["IngestParams", "prepare_scene"]
@@ -65,6 +65,10 @@ class IngestParams:
     def __post_init__(self) -> None:
         if self.up not in UP_CHOICES:
             raise ConfigError(f"--up must be one of {', '.join(UP_CHOICES)} (auto: y for glTF/GLB, z for the rest), got {self.up!r}")
+        if not self.object_size > 0:  # (inf: no limit; NaN fails too)
+            raise ConfigError(f"--object-size must be a positive length in file units (leave it out for no limit), got {self.object_size:g}")
+        if self.object_triangles < 1:
+            raise ConfigError(f"--object-triangles must be at least 1, got {self.object_triangles}")
         if not 0 < self.crease_angle <= 180:
             raise ConfigError(f"--crease-angle must be more than 0 and at most 180 degrees (180: smooth everything), got {self.crease_angle:g}")
 
@@ -241,6 +245,19 @@ def _params_of(paths: list[Path], prm: IngestParams) -> dict:
     return d
 
 
+def _distinct(paths: list[Path]) -> None:
+    """Refuse an input given twice (by another name, a link, too): each input becomes its own
+    objects, so the two copies would lie exactly on top of each other (z-fighting, twice the
+    triangles) — there is no option that would place them apart."""
+    seen: dict = {}
+    for i, p in enumerate(paths):
+        st = check_input(p).stat()
+        j = seen.setdefault((st.st_dev, st.st_ino), i)
+        if j != i:
+            raise ConfigError(f"{p} is given twice (inputs {j + 1} and {i + 1}{'' if p == paths[j] else f': {paths[j]}'}); "
+                              "each input becomes its own objects, so the copies would lie exactly on top of each other — give it once")
+
+
 def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bool = False, progress=None,
                   checkpoint_bytes: int = 64 << 20, fault_after: int | None = None) -> dict:
     """Build the scene store ``out`` from mesh files ``inputs``. Returns the store attributes
@@ -251,6 +268,7 @@ def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bo
     paths = [Path(p) for p in inputs]
     if not paths:
         raise IngestError("no input files given")
+    _distinct(paths)
     warn: list[str] = []
     sources = [open_input(p, prm.stream_bytes, warn, prm.up) for p in paths]  # validates before anything is written
     out = Path(out)
