@@ -9,9 +9,10 @@ import json
 import numpy as np
 import pytest
 import trimesh
-from conftest import run_cli
+from conftest import FlakySource, run_cli
 from PIL import Image
 
+from massview.app.cli import main
 from massview.data.scene import SceneStore
 from massview.data.scene.ingest import IngestParams, prepare_scene
 
@@ -47,3 +48,74 @@ def test_refused_options_inputs_and_outputs(tmp_path):
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
     with pytest.raises(ValueError, match="--object-size"):
         IngestParams(object_size=-1.0)
+
+
+def _interrupt_after(monkeypatch, calls: int, checkpoint: bool):
+    """Ctrl-C after the writer's ``calls``-th unit (each unit checkpointed first with ``checkpoint``)."""
+    from massview.data.scene import writer
+
+    step, n = writer.SceneWriter.step, [0]
+
+    def stop(self):
+        if checkpoint:
+            self.checkpoint()
+        step(self)
+        n[0] += 1
+        if n[0] == calls:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(writer.SceneWriter, "step", stop)
+
+
+@pytest.mark.parametrize("checkpoint", [False, True])
+def test_an_interrupted_prepare_says_what_it_kept_and_the_rerun_what_it_resumed(tmp_path, monkeypatch, capsys, checkpoint):
+    """The re-run printed "resumed and completed" also when the interrupted run had saved no
+    checkpoint (every 64 MiB of records: a small input never does) and everything was redone.
+    Now the interrupted run says what it keeps and to re-run the same command, and the re-run
+    says "resumed (N of M objects were already written)" only when a checkpoint was used."""
+    _soup(tmp_path / "soup.ply")
+    argv = ["prepare", "scene", str(tmp_path / "soup.ply"), "-o", str(tmp_path / "s.scene"), "--object-triangles", "320", "-q"]
+    _interrupt_after(monkeypatch, 3, checkpoint)
+    assert main(argv) == 130
+    err = capsys.readouterr().err
+    if checkpoint:
+        assert f"massview: interrupted; {tmp_path / 's.scene'} keeps the 3 objects of its last checkpoint: re-run the same command to continue" in err
+    else:
+        assert "has no checkpoint yet (one is saved every 64 MiB of stored geometry), so re-running the same command starts it over" in err
+    monkeypatch.undo()
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    if checkpoint:
+        assert out.startswith(f"resumed {tmp_path / 's.scene'} (3 of 8 objects were already written): 8 objects"), out
+    else:
+        assert out.startswith(f"started {tmp_path / 's.scene'} over (the interrupted run had saved no checkpoint"), out
+    assert "resumed and completed" not in out
+
+def test_the_terrain_prepare_says_resumed_only_when_it_kept_rows(tmp_path, monkeypatch, capsys):
+    """``prepare terrain`` printed "resumed and completed" for any re-run of an interrupted
+    prepare; now it names the block rows it kept, or says it started over, and the
+    interrupted run says how to continue."""
+    from massview.data.generators import synthetic_heights
+    from massview.data.terrain import ingest, prepare_terrain
+
+    a = synthetic_heights(0, 600, 0, 500, 600, 9)
+    with pytest.raises(KeyboardInterrupt):
+        prepare_terrain(FlakySource(a, 0), tmp_path / "none.zarr", block=129)
+    assert prepare_terrain(FlakySource(a, 10**9), tmp_path / "none.zarr", block=129).rows_kept == 0
+    np.save(tmp_path / "dem.npy", a)
+    argv = ["prepare", "terrain", str(tmp_path / "dem.npy"), "-o", str(tmp_path / "t.zarr"), "--block", "129", "-q"]
+    read, n = ingest._read_strip, [0]
+
+    def stop(*args, **kw):
+        n[0] += 1
+        if n[0] == 3:
+            raise KeyboardInterrupt
+        return read(*args, **kw)
+
+    monkeypatch.setattr(ingest, "_read_strip", stop)
+    assert main(argv) == 130
+    assert (f"massview: interrupted; {tmp_path / 't.zarr'} keeps the 2 of 8 block rows it finished: re-run the same "
+            "command to continue") in capsys.readouterr().err
+    monkeypatch.undo()
+    assert main(argv) == 0
+    assert capsys.readouterr().out.startswith(f"resumed {tmp_path / 't.zarr'} (2 of 8 block rows of level 0 were already written)")

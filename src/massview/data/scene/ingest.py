@@ -43,7 +43,7 @@ from .plystream import PlyLayout
 from .simplify import build_levels
 from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_mesh, clean_soup, split_dense
 from .sources import UP_CHOICES, MemorySoup, StructuredObject, check_input, open_input, stream_bounds, stream_corners, transform_normals
-from .writer import SceneWriter
+from .writer import CHECKPOINT_BYTES, SceneWriter
 
 __all__ = ["IngestParams", "prepare_scene"]
 
@@ -191,14 +191,15 @@ def _cells_of_memory(soup: MemorySoup, prm: IngestParams):
         yield soup.corners(sel)
 
 
-def _spill(lay: PlyLayout, spill: Path, prm: IngestParams, progress) -> int:
-    """Stream the PLY's triangles into per-cell spill files; returns the cell count."""
+def _spill(lay: PlyLayout, spill: Path, prm: IngestParams, progress) -> tuple[int, bool]:
+    """Stream the PLY's triangles into per-cell spill files; returns the cell count and
+    whether an interrupted run's complete spill was used instead."""
     done = spill / "done.json"
     if done.exists():
         d = json.loads(done.read_text())
         # (spill files of an older massview held float32 positions, or of the other up axis: spill again)
         if d.get("positions") == "f8" and d.get("turn", False) == lay.turn:
-            return int(d["cells"])
+            return int(d["cells"]), True
     shutil.rmtree(spill, ignore_errors=True)
     spill.mkdir(parents=True)
     lo, hi = stream_bounds(lay, prm.vertex_block)
@@ -213,7 +214,7 @@ def _spill(lay: PlyLayout, spill: Path, prm: IngestParams, progress) -> int:
         progress("read", c.count, lay.n_faces)
     n = int(np.prod(dims))
     done.write_text(json.dumps({"cells": n, "positions": "f8", "turn": lay.turn}))
-    return n
+    return n, False
 
 
 def _record_dtype(normals: bool) -> np.dtype:
@@ -229,8 +230,9 @@ def _pack(c: Corners, sel: np.ndarray) -> np.ndarray:
     return rec
 
 
-def _cells_of_stream(lay: PlyLayout, spill: Path, prm: IngestParams, progress):
-    cells = _spill(lay, spill, prm, progress)
+def _cells_of_stream(lay: PlyLayout, spill: Path, prm: IngestParams, progress, reused: list):
+    cells, again = _spill(lay, spill, prm, progress)
+    reused.append(again)
     dt = _record_dtype(lay.has_normals)
     for k in range(cells):
         f = spill / f"{k}.bin"
@@ -259,9 +261,12 @@ def _distinct(paths: list[Path]) -> None:
 
 
 def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bool = False, progress=None,
-                  checkpoint_bytes: int = 64 << 20, fault_after: int | None = None) -> dict:
+                  checkpoint_bytes: int = CHECKPOINT_BYTES, fault_after: int | None = None) -> dict:
     """Build the scene store ``out`` from mesh files ``inputs``. Returns the store attributes
-    plus ``seconds``, ``input_bytes``, ``resumed`` and ``warnings`` (messages for the user).
+    plus ``seconds``, ``input_bytes``, ``resumed`` (an interrupted run's store was continued),
+    ``objects_kept`` (of its objects, those this run did not write again: 0 when it had saved
+    no checkpoint), ``spill_reused`` (its streamed inputs' spill files were complete and used),
+    ``checkpoint_bytes`` and ``warnings`` (messages for the user).
     ``fault_after`` (tests) interrupts the run after that many units as a KeyboardInterrupt would."""
     t0 = time.perf_counter()
     prog = progress or (lambda *a: None)
@@ -274,13 +279,15 @@ def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bo
     out = Path(out)
     w = SceneWriter(out, _params_of(paths, prm), {"source": ", ".join(p.name for p in paths), "units": "1"},
                     levels_max=prm.max_levels, overwrite=overwrite, checkpoint_bytes=checkpoint_bytes)
-    resumed = w.resumed
+    resumed, kept = w.resumed, w.objects_done
     run = _Run(w, prm, prog, fault_after)
+    reused: list[bool] = []
     for i, (path, src) in enumerate(zip(paths, sources)):
         if isinstance(src, list):
             _structured(run, src, str(path))
             continue
-        cells = _cells_of_memory(src, prm) if isinstance(src, MemorySoup) else _cells_of_stream(src, out / "_spill" / str(i), prm, prog)
+        cells = (_cells_of_memory(src, prm) if isinstance(src, MemorySoup)
+                 else _cells_of_stream(src, out / "_spill" / str(i), prm, prog, reused))
         for cell in cells:
             for corners in split_dense(cell, prm.cell_triangles):
                 for p, col, nrm, f in cell_objects(corners, prm.split()):
@@ -290,4 +297,4 @@ def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bo
     attrs = w.finish({"ingest_seconds": round(time.perf_counter() - t0, 3)})
     shutil.rmtree(out / "_spill", ignore_errors=True)
     return {**attrs, "seconds": time.perf_counter() - t0, "input_bytes": sum(p.stat().st_size for p in paths), "resumed": resumed,
-            "warnings": warn + run.warnings()}
+            "objects_kept": kept, "spill_reused": any(reused), "checkpoint_bytes": checkpoint_bytes, "warnings": warn + run.warnings()}

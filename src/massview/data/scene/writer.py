@@ -21,9 +21,10 @@ from .groups import build_groups, kd_paths
 from .mesh import Mesh, crc32, decoded_bytes, encode_record
 from .store import FORMAT, FORMAT_VERSION, GEOMETRY_TABLES, GROUP_FIELDS, SKELETON_FIELDS
 
-__all__ = ["SceneWriter", "CHUNK_BYTES", "occluder_flags", "enclosing_store"]
+__all__ = ["SceneWriter", "CHUNK_BYTES", "CHECKPOINT_BYTES", "occluder_flags", "enclosing_store"]
 
 CHUNK_BYTES = 32 * 1024
+CHECKPOINT_BYTES = 64 << 20  # records written between two checkpoints (what an interrupted build keeps)
 SHARD_CHUNKS = 512
 _ROWS = 16384
 
@@ -55,7 +56,7 @@ class SceneWriter:
     incomplete store with equal params is resumed, anything else needs ``overwrite``."""
 
     def __init__(self, path, params: dict, attrs: dict | None = None, levels_max: int = 8, path_depth: int = 0,
-                 overwrite: bool = False, checkpoint_bytes: int = 64 << 20):
+                 overwrite: bool = False, checkpoint_bytes: int = CHECKPOINT_BYTES):
         import zarr
 
         self.path = Path(path)
