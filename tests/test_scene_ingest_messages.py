@@ -150,3 +150,104 @@ def test_triangles_dropped_as_degenerate_are_counted_with_the_likely_cause(tmp_p
     assert "dup.ply: 3 of 5,123 triangles" in lines[1] and "likely cause" not in lines[1]
     info = json.loads(run_cli("info", tmp_path / "u.scene", "--json").stdout)
     assert list(info["triangles_removed"].values()) == [64, 0, 3]
+
+
+def _checker(path, n=8):
+    ii, jj = np.indices((n, n))
+    img = np.where(((ii + jj) % 2 == 0)[..., None], [255, 0, 0], [0, 0, 255]).astype(np.uint8)
+    Image.fromarray(img).save(path)
+
+
+def _textured_obj(folder, plain_triangle=False):
+    """A unit quad with an 8×8 red/blue checker (map_Kd); with ``plain_triangle``, a triangle
+    of a plain yellow material (Kd) beside it."""
+    _checker(folder / "checker.png")
+    (folder / "quad.mtl").write_text("newmtl chk\nKd 1 1 1\nmap_Kd checker.png\nnewmtl plain\nKd 1 1 0\n")
+    lines = ["mtllib quad.mtl", "v 0 0 0", "v 1 0 0", "v 1 1 0", "v 0 1 0", "vt 0 0", "vt 1 0", "vt 1 1", "vt 0 1",
+             "usemtl chk", "f 1/1 2/2 3/3", "f 1/1 3/3 4/4"]
+    if plain_triangle:
+        lines += ["v 2 0 0", "v 3 0 0", "v 3 1 0", "usemtl plain", "f 5 6 7"]
+    (folder / "quad.obj").write_text("\n".join(lines) + "\n")
+    return folder / "quad.obj"
+
+
+def _colors(store) -> dict:
+    """World x of each stored level-0 vertex -> its colours (sorted lists)."""
+    st = SceneStore(store)
+    out = {}
+    for o in range(st.skeleton.count):
+        m = st.get_mesh(int(st.skeleton.geometry[o]), 0)
+        x = m.positions[:, 0].astype(np.float64) + st.skeleton.transform[o][0, 3]
+        for xi, c in zip(x.round(3), m.colors.tolist()):
+            out.setdefault(float(xi), []).append(c)
+    return out
+
+
+def test_a_textured_obj_is_baked_to_its_faces_mean_and_says_so(tmp_path):
+    """The 8×8 checker on a quad was a red-blue gradient (each vertex the texel at its UV),
+    silently; now every vertex is the checker's mean (purple), one warning line names the file
+    and the material, and ``info`` shows it."""
+    obj = _textured_obj(tmp_path)
+    proc = run_cli("prepare", "scene", obj, "-o", tmp_path / "q.scene", "-q")
+    warn = [ln for ln in proc.stderr.splitlines() if "textured" in ln]
+    assert len(warn) == 1 and "quad.obj: 1 textured material (chk) baked to per-vertex colours" in warn[0]
+    assert "detail finer than the mesh's vertices is lost" in warn[0]
+    cols = [c for cs in _colors(tmp_path / "q.scene").values() for c in cs]
+    assert len(cols) == 4 and all(c == PURPLE for c in cols), cols
+    info = json.loads(run_cli("info", tmp_path / "q.scene", "--json").stdout)
+    assert info["textures_baked"] == {str(obj): 1}
+
+
+def test_a_plain_material_beside_a_textured_one_keeps_its_colour(tmp_path):
+    """trimesh forced the OBJ into one mesh, packing both materials into one atlas: the plain
+    Kd triangle came out transparent black (0, 0, 0, 0) and the checker at half resolution."""
+    obj = _textured_obj(tmp_path, plain_triangle=True)
+    a = prepare_scene([obj], tmp_path / "m.scene")
+    assert any("1 textured material (chk)" in w for w in a["warnings"])
+    cols = _colors(tmp_path / "m.scene")
+    assert all(c == [255, 255, 0, 255] for x in (2.0, 3.0) for c in cols[x])
+    assert all(c == PURPLE for x in (0.0, 1.0) for c in cols[x])
+
+
+def test_a_textured_glb_is_counted_per_mesh_and_a_plain_material_keeps_its_colour(tmp_path):
+    """The quad's checker is baked to its mean and counted; the box's plain baseColorFactor
+    (red) came out grey (trimesh's to_color made it one malformed row)."""
+    _checker(tmp_path / "c.png")
+    quad = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]], process=False)
+    quad.visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [1, 1], [0, 1]], image=Image.open(tmp_path / "c.png"))
+    plain = trimesh.creation.box()
+    plain.visual = trimesh.visual.TextureVisuals(material=trimesh.visual.material.PBRMaterial(baseColorFactor=RED))
+    plain.apply_translation([3, 0, 0])
+    trimesh.Scene({"quad": quad, "box": plain}).export(tmp_path / "s.glb")
+    a = prepare_scene([tmp_path / "s.glb"], tmp_path / "g.scene")
+    assert [w for w in a["warnings"] if "textured" in w] == [
+        w for w in a["warnings"] if "s.glb: 1 textured mesh (quad) baked to per-vertex colours" in w]
+    assert a["textures_baked"] == {str(tmp_path / "s.glb"): 1}
+    st = SceneStore(tmp_path / "g.scene")
+    meshes = [st.get_mesh(int(g), 0) for g in st.skeleton.geometry]
+    assert sorted(m.triangle_count for m in meshes) == [2, 12]
+    for m in meshes:
+        assert (m.colors == (PURPLE if m.triangle_count == 2 else RED)).all()
+
+
+def test_the_bake_keeps_a_fine_mesh_sharp_and_a_coarse_one_true_on_average():
+    """A mesh finer than the texture keeps its texels (a face inside one texel reads level 0);
+    the mip levels are the rounded means of 2x2 blocks."""
+    from massview.data.scene.texture import bake_vertex_colors, mip_levels
+
+    ii, jj = np.indices((8, 8))
+    img = np.where(((ii + jj) % 2 == 0)[..., None], RED, BLUE).astype(np.uint8)
+    n = 32  # a 32×32 grid of vertices on the 8×8 checker: 4 vertices a texel side
+    u, v = np.meshgrid((np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) / n)
+    uv = np.stack([u.ravel(), v.ravel()], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    pos = np.column_stack([uv, np.zeros(len(uv))])
+    col = bake_vertex_colors(pos, faces, uv, img)
+    x, y = np.floor(uv[:, 0] * 8).astype(int), 7 - np.floor(uv[:, 1] * 8).astype(int)
+    interior = ((uv * 8) % 1 > 0.2).all(1) & ((uv * 8) % 1 < 0.8).all(1)  # vertices whose faces all lie in their texel
+    assert interior.sum() > 100 and (col[interior] == img[y, x][interior]).all()
+    lv = mip_levels(np.arange(64, dtype=np.uint8).reshape(8, 8, 1) * 3)
+    assert [m.shape[:2] for m in lv] == [(8, 8), (4, 4), (2, 2), (1, 1)]
+    assert lv[1][0, 0, 0] == np.rint((0 + 3 + 24 + 27) / 4) and lv[3][0, 0, 0] == np.rint(63 * 3 / 2)

@@ -316,7 +316,8 @@ def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bo
     ``objects_kept`` (of its objects, those this run did not write again: 0 when it had saved
     no checkpoint), ``spill_reused`` (its streamed inputs' spill files were complete and used),
     ``checkpoint_bytes`` and ``warnings`` (messages for the user). The store's attributes
-    record ``triangles_removed`` (input name -> degenerate or repeated triangles dropped).
+    record ``textures_baked`` (input name -> textured materials or meshes baked to vertex
+    colours) and ``triangles_removed`` (input name -> degenerate or repeated triangles dropped).
     ``fault_after`` (tests) interrupts the run after that many units as a KeyboardInterrupt would."""
     t0 = time.perf_counter()
     prog = progress or (lambda *a: None)
@@ -325,7 +326,8 @@ def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bo
         raise IngestError("no input files given")
     _distinct(paths)
     warn: list[str] = []
-    sources = [open_input(p, prm.stream_bytes, warn, prm.up) for p in paths]  # validates before anything is written
+    textures: dict[str, int] = {}
+    sources = [open_input(p, prm.stream_bytes, warn, prm.up, textures) for p in paths]  # validates before anything is written
     out = Path(out)
     w = SceneWriter(out, _params_of(paths, prm), {"source": ", ".join(p.name for p in paths), "units": "1"},
                     levels_max=prm.max_levels, overwrite=overwrite, checkpoint_bytes=checkpoint_bytes)
@@ -345,7 +347,7 @@ def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bo
                     nrm = run.normals(str(path), nrm)
                     mesh, origin = _mesh(p, col, nrm, f)
                     run.write(str(path), mesh, [_translation(origin)], nrm is None)
-    attrs = w.finish({"ingest_seconds": round(time.perf_counter() - t0, 3),
+    attrs = w.finish({"ingest_seconds": round(time.perf_counter() - t0, 3), "textures_baked": textures,
                       "triangles_removed": {k: t.read - t.kept for k, t in run.tally.items()}})
     shutil.rmtree(out / "_spill", ignore_errors=True)
     return {**attrs, "seconds": time.perf_counter() - t0, "input_bytes": sum(p.stat().st_size for p in paths), "resumed": resumed,
