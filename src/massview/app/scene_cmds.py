@@ -4,6 +4,7 @@ of a scene store (``terrain_cmds`` hands those over when the path is a scene sto
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -61,9 +62,13 @@ def cmd_generate(args) -> int:
         raise ConfigError(f"output {out}: {out.suffix} is not a format generate scene writes; give a scene store folder "
                           "(STORE.zarr or STORE.scene)")
     check_output_file(out, "output")
-    with progress_bar(args.quiet) as prog:
-        a = generate_scene(args.kind, out, copies=args.copies, size=args.size, seed=args.seed,
-                           overwrite=args.overwrite, progress=prog, backend=args.simplifier, detail=args.detail)
+    try:
+        with progress_bar(args.quiet) as prog:
+            a = generate_scene(args.kind, out, copies=args.copies, size=args.size, seed=args.seed,
+                               overwrite=args.overwrite, progress=prog, backend=args.simplifier, detail=args.detail)
+    except KeyboardInterrupt:
+        print(f"massview: interrupted; {interrupted_note(out)}", file=sys.stderr)
+        return 130
     print(f"wrote scene store {out}: {a['objects']} objects, {a['triangles']:,} triangles, {a['groups']} groups, "
           f"{a['occluders']} occluders")
     return 0
@@ -74,20 +79,56 @@ def cmd_prepare(args) -> int:
     from ..data.scene.ingest import IngestParams, prepare_scene
     from .outputs import check_output_file
 
-    check_output_file(Path(args.output), "-o")
+    out = Path(args.output)
+    if args.object_size is not None and not (math.isfinite(args.object_size) and args.object_size > 0):
+        raise ConfigError(f"--object-size must be a positive length in file units (leave it out for no limit), got {args.object_size:g}")
+    if not (math.isfinite(args.stream_mb) and args.stream_mb >= 0):
+        raise ConfigError(f"--stream-mb must be a size in MB, 0 or more, got {args.stream_mb:g}")
     if args.object_triangles < 1 or args.levels < 1 or args.levels > 16:
         raise ConfigError("--object-triangles must be positive and --levels between 1 and 16")
+    check_output_file(out, "-o")
     prm = IngestParams(object_triangles=args.object_triangles, object_size=args.object_size or float("inf"), instance=args.instance,
                        simplifier=args.simplifier, max_levels=args.levels, stream_bytes=int(args.stream_mb * 2**20),
                        crease_angle=args.crease_angle, up=args.up)
-    with progress_bar(args.quiet) as prog:
-        a = prepare_scene(args.inputs, Path(args.output), prm, overwrite=args.overwrite, progress=prog)
+    try:
+        with progress_bar(args.quiet) as prog:
+            a = prepare_scene(args.inputs, out, prm, overwrite=args.overwrite, progress=prog)
+    except KeyboardInterrupt:
+        print(f"massview: interrupted; {interrupted_note(out)}", file=sys.stderr)
+        return 130
     _warn(a["warnings"])
     s = max(a["seconds"], 1e-9)
-    print(f"{'resumed and completed' if a['resumed'] else 'wrote'} {args.output}: {a['objects']} objects "
+    print(f"{_how(a, out)}: {a['objects']} objects "
           f"({a['geometries']} geometries), {a['triangles']:,} triangles, {a['occluders']} occluders, {a['seconds']:.1f} s "
           f"({a['input_bytes'] / 1e6 / s:.1f} MB/s, {a['triangles'] / s:,.0f} triangles/s)")
     return 0
+
+
+def _how(a: dict, out: Path) -> str:
+    """How the store came about: written, resumed (saying how much was kept) or started over."""
+    if not a["resumed"]:
+        return f"wrote {out}"
+    if a["objects_kept"]:
+        return f"resumed {out} ({a['objects_kept']} of {a['objects']} objects were already written)"
+    return (f"started {out} over{' from its spilled cells' if a['spill_reused'] else ''} (the interrupted run had saved no "
+            f"checkpoint: one is saved every {a['checkpoint_bytes'] / 2**20:g} MiB of stored geometry)")
+
+
+def interrupted_note(out: Path) -> str:
+    """What an interrupted ``prepare``/``generate scene`` leaves at ``out`` and how to go on."""
+    from ..data.scene.writer import CHECKPOINT_BYTES
+
+    try:
+        attrs = json.loads((Path(out) / "zarr.json").read_text())["attributes"]
+        kept, complete = int(attrs["checkpoint"]["objects"]), bool(attrs.get("complete"))
+    except (OSError, ValueError, KeyError, TypeError):  # no store yet
+        return "nothing was written yet; re-run the same command to start"
+    if complete:  # (--overwrite, stopped before it began rewriting)
+        return f"{out} is unchanged; re-run the same command to rebuild it"
+    if kept:
+        return f"{out} keeps the {kept} objects of its last checkpoint: re-run the same command to continue from there"
+    return (f"{out} has no checkpoint yet (one is saved every {CHECKPOINT_BYTES >> 20} MiB of stored geometry), so "
+            "re-running the same command starts it over")
 
 
 def is_scene(path) -> bool:

@@ -117,12 +117,22 @@ def cmd_prepare(args) -> int:
     src = open_source(args.input, nodata=args.nodata, array=args.array, shape=_shape(args.shape), dtype=args.dtype,
                       spacing=args.spacing, crs=args.crs)
     ortho = open_source(args.color) if args.color else None
-    with compile_note(args.quiet), progress_bar(args.quiet) as prog:
-        res = prepare_terrain(src, Path(args.output), block=args.block, vertical_scale=args.vertical_scale,
-                              color=None if args.no_color else "computed", ortho=ortho, overwrite=args.overwrite, progress=prog,
-                              workers=getattr(args, "workers", 0))
+    try:
+        with compile_note(args.quiet), progress_bar(args.quiet) as prog:
+            res = prepare_terrain(src, Path(args.output), block=args.block, vertical_scale=args.vertical_scale,
+                                  color=None if args.no_color else "computed", ortho=ortho, overwrite=args.overwrite, progress=prog,
+                                  workers=getattr(args, "workers", 0))
+    except KeyboardInterrupt:
+        print(f"massview: interrupted; {_interrupted_note(Path(args.output))}", file=sys.stderr)
+        return 130
     mb = res.input_bytes / 1e6
-    print(f"{'resumed and completed' if res.resumed else 'wrote'} {res.path}: {res.layout.rows}x{res.layout.cols} samples, "
+    if not res.resumed:
+        how = f"wrote {res.path}"
+    elif res.rows_kept:
+        how = f"resumed {res.path} ({res.rows_kept} of {res.layout.blocks(0)} block rows of level 0 were already written)"
+    else:
+        how = f"started {res.path} over (the interrupted run had finished no block row)"
+    print(f"{how}: {res.layout.rows}x{res.layout.cols} samples, "
           f"{res.layout.levels} levels of {res.layout.M}² blocks, {res.filled} nodata samples filled, "
           f"{res.seconds:.1f} s ({mb / max(res.seconds, 1e-9):.1f} MB/s)")
     print("stages (wall, CPU of all threads, of it system): " + "; ".join(f"{k} {v[0]:.1f} s, {v[1]:.1f} s, {v[2]:.1f} s" for k, v in res.stages.items()))
@@ -130,6 +140,19 @@ def cmd_prepare(args) -> int:
     if os.environ.get("MASSVIEW_STAGES_FILE"):  # for `massview bench ingest`
         Path(os.environ["MASSVIEW_STAGES_FILE"]).write_text(json.dumps(res.stages))
     return 0
+
+
+def _interrupted_note(out: Path) -> str:
+    """What an interrupted ``prepare terrain`` leaves at ``out`` and how to go on."""
+    from ..data.terrain.store import rows_done
+
+    done = rows_done(out)
+    if done is None:
+        return "no unfinished store to continue; re-run the same command to start"
+    if done[0]:
+        return (f"{out} keeps the {done[0]} of {done[1]} block rows it finished: re-run the same command to continue "
+                "from there")
+    return f"{out} has no finished block row yet, so re-running the same command starts it over"
 
 
 def store_info(path: Path) -> dict:

@@ -42,8 +42,8 @@ from .normals import CREASE_ANGLE
 from .plystream import PlyLayout
 from .simplify import build_levels
 from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_mesh, clean_soup, split_dense
-from .sources import UP_CHOICES, MemorySoup, StructuredObject, open_input, stream_bounds, stream_corners, transform_normals
-from .writer import SceneWriter
+from .sources import UP_CHOICES, MemorySoup, StructuredObject, check_input, open_input, stream_bounds, stream_corners, transform_normals
+from .writer import CHECKPOINT_BYTES, SceneWriter
 
 __all__ = ["IngestParams", "prepare_scene"]
 
@@ -65,6 +65,10 @@ class IngestParams:
     def __post_init__(self) -> None:
         if self.up not in UP_CHOICES:
             raise ConfigError(f"--up must be one of {', '.join(UP_CHOICES)} (auto: y for glTF/GLB, z for the rest), got {self.up!r}")
+        if not self.object_size > 0:  # (inf: no limit; NaN fails too)
+            raise ConfigError(f"--object-size must be a positive length in file units (leave it out for no limit), got {self.object_size:g}")
+        if self.object_triangles < 1:
+            raise ConfigError(f"--object-triangles must be at least 1, got {self.object_triangles}")
         if not 0 < self.crease_angle <= 180:
             raise ConfigError(f"--crease-angle must be more than 0 and at most 180 degrees (180: smooth everything), got {self.crease_angle:g}")
 
@@ -110,6 +114,44 @@ def _mesh(p: np.ndarray, col: np.ndarray, nrm: np.ndarray | None, f: np.ndarray)
     return Mesh(q, n, col.astype(np.uint8), f.astype(np.uint32)), o
 
 
+@dataclass
+class _Tally:
+    """One input's triangles: read from the file, stored at level 0 (each placement counted),
+    whether every coordinate read was a float32 value, their largest magnitude and their box."""
+
+    read: int = 0
+    kept: int = 0
+    float32: bool = True
+    largest: float = 0.0
+    lo: tuple = (np.inf,) * 3
+    hi: tuple = (-np.inf,) * 3
+
+    def add(self, positions: np.ndarray) -> None:
+        p = np.asarray(positions, np.float64).reshape(-1, 3)
+        self.read += len(p) // 3
+        if len(p):
+            self.float32 = self.float32 and bool(np.array_equal(p.astype(np.float32), p))
+            self.largest = max(self.largest, float(np.abs(p).max()))
+            self.lo, self.hi = tuple(np.minimum(self.lo, p.min(axis=0))), tuple(np.maximum(self.hi, p.max(axis=0)))
+
+    def warning(self, name: str) -> str | None:
+        """One line when triangles were removed; with the likely cause when more than 1 % were
+        and the coordinates are float32 values too coarse for the mesh (fewer than 4096 float32
+        steps across it at its largest coordinate)."""
+        gone = self.read - self.kept
+        if gone <= 0:
+            return None
+        msg = (f"{name}: {gone:,} of {self.read:,} triangles ({gone / self.read:.1%}) were removed as degenerate (corners at "
+               "one point at the file's precision, or within an object's float32 frame) or repeated (the same three vertices twice)")
+        step = float(np.spacing(np.float32(self.largest)))
+        span = float(np.max(np.subtract(self.hi, self.lo)))
+        if gone > 0.01 * self.read and self.float32 and step * 4096 > span:
+            msg += (f"; likely cause: the coordinates are float32 values up to {self.largest:.6g}, where float32 steps by "
+                    f"{step:g} — coarse for a mesh {span:.4g} across; write the file with float64 (double) coordinates or move "
+                    "its origin near the mesh")
+        return msg
+
+
 class _Run:
     """Writes units in order, skipping those a previous run wrote."""
 
@@ -118,6 +160,11 @@ class _Run:
         self.unit = 0
         self.triangles = 0
         self.computed: dict[str, list[int]] = {}  # input name -> [objects whose partial normals were replaced, objects]
+        self.tally: dict[str, _Tally] = {}  # input name -> its triangles read and stored
+
+    def read(self, source: str, positions: np.ndarray) -> None:
+        """Count corner positions (t,3,3) f8 read from ``source``, as the file gives them."""
+        self.tally.setdefault(source, _Tally()).add(positions)
 
     def normals(self, source: str, nrm: np.ndarray | None) -> np.ndarray | None:
         """An object's file normals made unit, or None (computed) when the file has none or some
@@ -130,16 +177,19 @@ class _Run:
         return n
 
     def warnings(self) -> list[str]:
-        return [f"{name}: {bad} of {total} objects have faces without a usable normal (no vn, zero or NaN); those objects "
-                f"got computed normals (split at {self.prm.crease_angle:g}°) instead of the file's"
-                for name, (bad, total) in self.computed.items() if bad]
+        out = [f"{name}: {bad} of {total} objects have faces without a usable normal (no vn, zero or NaN); those objects "
+               f"got computed normals (split at {self.prm.crease_angle:g}°) instead of the file's"
+               for name, (bad, total) in self.computed.items() if bad]
+        return out + [m for m in (t.warning(name) for name, t in self.tally.items()) if m]
 
     def pending(self) -> bool:
         return self.unit >= self.w.geometries_done
 
-    def write(self, mesh: Mesh, placements: list[np.ndarray | None], crease: bool = False) -> None:
-        """Write one unit: ``mesh`` (local frame) placed by each of ``placements`` (4x4 f8);
-        ``crease``: the file brought no normals, split them at the crease angle."""
+    def write(self, source: str, mesh: Mesh, placements: list[np.ndarray | None], crease: bool = False) -> None:
+        """Write one unit of input ``source``: ``mesh`` (local frame) placed by each of
+        ``placements`` (4x4 f8); ``crease``: the file brought no normals, split them at the
+        crease angle."""
+        self.tally.setdefault(source, _Tally()).kept += mesh.triangle_count * len(placements)
         if mesh.triangle_count == 0:  # every face collapsed (degenerate at float32 in its own frame)
             return
         if self.pending():
@@ -162,18 +212,21 @@ def _structured(run: _Run, objs: list[StructuredObject], source: str) -> None:
         for o in objs:
             keys.setdefault(o.geometry_key, []).append(o)
         for group in keys.values():  # the geometry in its own frame (normals too), each instance's transform composed with it
+            for o in group:
+                run.read(source, o.corners.positions)
             p, col, nrm, f = clean_soup(group[0].corners)
             nrm = run.normals(source, nrm)
             mesh, origin = _mesh(p, col, nrm, f)
-            run.write(mesh, [np.asarray(o.transform, np.float64) @ _translation(origin) for o in group], nrm is None)
+            run.write(source, mesh, [np.asarray(o.transform, np.float64) @ _translation(origin) for o in group], nrm is None)
         return
     for o in objs:
         c = o.corners
+        run.read(source, c.positions)
         p = np.einsum("ij,tkj->tki", o.transform[:3, :3], c.positions.astype(np.float64)) + o.transform[:3, 3]
         p, col, nrm, f = clean_soup(Corners(p, c.colors, transform_normals(c.normals, o.transform)))
         nrm = run.normals(source, nrm)
         mesh, origin = _mesh(p, col, nrm, f)
-        run.write(mesh, [_translation(origin)], nrm is None)
+        run.write(source, mesh, [_translation(origin)], nrm is None)
 
 
 def _cells_of_memory(soup: MemorySoup, prm: IngestParams):
@@ -187,14 +240,15 @@ def _cells_of_memory(soup: MemorySoup, prm: IngestParams):
         yield soup.corners(sel)
 
 
-def _spill(lay: PlyLayout, spill: Path, prm: IngestParams, progress) -> int:
-    """Stream the PLY's triangles into per-cell spill files; returns the cell count."""
+def _spill(lay: PlyLayout, spill: Path, prm: IngestParams, progress) -> tuple[int, bool]:
+    """Stream the PLY's triangles into per-cell spill files; returns the cell count and
+    whether an interrupted run's complete spill was used instead."""
     done = spill / "done.json"
     if done.exists():
         d = json.loads(done.read_text())
         # (spill files of an older massview held float32 positions, or of the other up axis: spill again)
         if d.get("positions") == "f8" and d.get("turn", False) == lay.turn:
-            return int(d["cells"])
+            return int(d["cells"]), True
     shutil.rmtree(spill, ignore_errors=True)
     spill.mkdir(parents=True)
     lo, hi = stream_bounds(lay, prm.vertex_block)
@@ -209,7 +263,7 @@ def _spill(lay: PlyLayout, spill: Path, prm: IngestParams, progress) -> int:
         progress("read", c.count, lay.n_faces)
     n = int(np.prod(dims))
     done.write_text(json.dumps({"cells": n, "positions": "f8", "turn": lay.turn}))
-    return n
+    return n, False
 
 
 def _record_dtype(normals: bool) -> np.dtype:
@@ -225,8 +279,9 @@ def _pack(c: Corners, sel: np.ndarray) -> np.ndarray:
     return rec
 
 
-def _cells_of_stream(lay: PlyLayout, spill: Path, prm: IngestParams, progress):
-    cells = _spill(lay, spill, prm, progress)
+def _cells_of_stream(lay: PlyLayout, spill: Path, prm: IngestParams, progress, reused: list):
+    cells, again = _spill(lay, spill, prm, progress)
+    reused.append(again)
     dt = _record_dtype(lay.has_normals)
     for k in range(cells):
         f = spill / f"{k}.bin"
@@ -241,35 +296,59 @@ def _params_of(paths: list[Path], prm: IngestParams) -> dict:
     return d
 
 
+def _distinct(paths: list[Path]) -> None:
+    """Refuse an input given twice (by another name, a link, too): each input becomes its own
+    objects, so the two copies would lie exactly on top of each other (z-fighting, twice the
+    triangles) — there is no option that would place them apart."""
+    seen: dict = {}
+    for i, p in enumerate(paths):
+        st = check_input(p).stat()
+        j = seen.setdefault((st.st_dev, st.st_ino), i)
+        if j != i:
+            raise ConfigError(f"{p} is given twice (inputs {j + 1} and {i + 1}{'' if p == paths[j] else f': {paths[j]}'}); "
+                              "each input becomes its own objects, so the copies would lie exactly on top of each other — give it once")
+
+
 def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bool = False, progress=None,
-                  checkpoint_bytes: int = 64 << 20, fault_after: int | None = None) -> dict:
+                  checkpoint_bytes: int = CHECKPOINT_BYTES, fault_after: int | None = None) -> dict:
     """Build the scene store ``out`` from mesh files ``inputs``. Returns the store attributes
-    plus ``seconds``, ``input_bytes``, ``resumed`` and ``warnings`` (messages for the user).
+    plus ``seconds``, ``input_bytes``, ``resumed`` (an interrupted run's store was continued),
+    ``objects_kept`` (of its objects, those this run did not write again: 0 when it had saved
+    no checkpoint), ``spill_reused`` (its streamed inputs' spill files were complete and used),
+    ``checkpoint_bytes`` and ``warnings`` (messages for the user). The store's attributes
+    record ``textures_baked`` (input name -> textured materials or meshes baked to vertex
+    colours) and ``triangles_removed`` (input name -> degenerate or repeated triangles dropped).
     ``fault_after`` (tests) interrupts the run after that many units as a KeyboardInterrupt would."""
     t0 = time.perf_counter()
     prog = progress or (lambda *a: None)
     paths = [Path(p) for p in inputs]
     if not paths:
         raise IngestError("no input files given")
+    _distinct(paths)
     warn: list[str] = []
-    sources = [open_input(p, prm.stream_bytes, warn, prm.up) for p in paths]  # validates before anything is written
+    textures: dict[str, int] = {}
+    sources = [open_input(p, prm.stream_bytes, warn, prm.up, textures) for p in paths]  # validates before anything is written
     out = Path(out)
     w = SceneWriter(out, _params_of(paths, prm), {"source": ", ".join(p.name for p in paths), "units": "1"},
                     levels_max=prm.max_levels, overwrite=overwrite, checkpoint_bytes=checkpoint_bytes)
-    resumed = w.resumed
+    resumed, kept = w.resumed, w.objects_done
     run = _Run(w, prm, prog, fault_after)
+    reused: list[bool] = []
     for i, (path, src) in enumerate(zip(paths, sources)):
         if isinstance(src, list):
             _structured(run, src, str(path))
             continue
-        cells = _cells_of_memory(src, prm) if isinstance(src, MemorySoup) else _cells_of_stream(src, out / "_spill" / str(i), prm, prog)
+        cells = (_cells_of_memory(src, prm) if isinstance(src, MemorySoup)
+                 else _cells_of_stream(src, out / "_spill" / str(i), prm, prog, reused))
         for cell in cells:
+            run.read(str(path), cell.positions)
             for corners in split_dense(cell, prm.cell_triangles):
                 for p, col, nrm, f in cell_objects(corners, prm.split()):
                     nrm = run.normals(str(path), nrm)
                     mesh, origin = _mesh(p, col, nrm, f)
-                    run.write(mesh, [_translation(origin)], nrm is None)
-    attrs = w.finish({"ingest_seconds": round(time.perf_counter() - t0, 3)})
+                    run.write(str(path), mesh, [_translation(origin)], nrm is None)
+    attrs = w.finish({"ingest_seconds": round(time.perf_counter() - t0, 3), "textures_baked": textures,
+                      "triangles_removed": {k: t.read - t.kept for k, t in run.tally.items()}})
     shutil.rmtree(out / "_spill", ignore_errors=True)
     return {**attrs, "seconds": time.perf_counter() - t0, "input_bytes": sum(p.stat().st_size for p in paths), "resumed": resumed,
-            "warnings": warn + run.warnings()}
+            "objects_kept": kept, "spill_reused": any(reused), "checkpoint_bytes": checkpoint_bytes, "warnings": warn + run.warnings()}

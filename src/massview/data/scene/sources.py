@@ -9,6 +9,11 @@ only for its colours, when it has vertex colours or materials); everything else 
 trimesh. Positions are float64 throughout (georeferenced coordinates keep their precision;
 :mod:`.ingest` expresses each object in float32 relative to its own origin).
 
+Colours are the file's vertex or face colours, or its materials' (per OBJ material: each is
+read as its own mesh): a plain colour (``Kd``, ``baseColorFactor``), or a texture (``map_Kd``,
+``baseColorTexture``) baked into the vertex colours by :mod:`.texture` — a scene store keeps no
+textures, and ``open_input`` warns, naming the file and how many materials or meshes were baked.
+
 Normals are the file's where it has them: PLY ``nx ny nz``, OBJ ``vn`` (per corner, indexed
 apart from the positions), glTF ``NORMAL``; a glTF node's transform turns them by its inverse
 transpose. An OBJ corner without a ``vn`` gets a NaN normal: :mod:`.ingest` computes the
@@ -37,11 +42,11 @@ import numpy as np
 from ...core.errors import IngestError
 from .plystream import PlyLayout, face_chunks, gather_corners, read_ply_layout, turn_y_up, vertex_blocks
 from .soup import Corners
+from .texture import GREY, is_textured, trimesh_colors
 
 __all__ = ["SUFFIXES", "UP_CHOICES", "Y_TO_Z", "up_axis", "check_input", "StructuredObject", "MemorySoup", "ObjFile", "open_input", "read_obj", "transform_normals"]
 
 SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")
-_GREY = (200, 200, 200, 255)
 UP_CHOICES = ("auto", "y", "z")
 Y_TO_Z = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])  # (x, y, z) -> (x, -z, y)
 
@@ -102,26 +107,6 @@ def _validate(path: Path, p: np.ndarray, f: np.ndarray, what: str = "") -> None:
         raise IngestError(f"{path}{what}: a face refers to vertex {int(f.max())} but there are {len(p)} vertices; the file is damaged")
 
 
-def _trimesh_colors(m) -> np.ndarray:
-    """Vertex colours (v,4) or corner colours (t,3,4) u8 of a trimesh mesh (grey if none)."""
-    vis = m.visual
-    kind = getattr(vis, "kind", None)
-    try:
-        if kind == "texture":
-            mat = getattr(vis, "material", None)
-            vis = vis.to_color()
-            kind = vis.kind
-            if kind is None and mat is not None and getattr(mat, "image", None) is None:  # a plain colour (an OBJ's one Kd)
-                return np.tile(np.asarray(mat.main_color, np.uint8)[:4], (len(m.vertices), 1))
-        if kind == "vertex":
-            return np.asarray(vis.vertex_colors, np.uint8)[:, :4]
-        if kind == "face":
-            return np.repeat(np.asarray(vis.face_colors, np.uint8)[:, None, :4], 3, axis=1)
-    except Exception:  # noqa: BLE001 - a material trimesh cannot turn into colours: grey
-        pass
-    return np.tile(np.array(_GREY, np.uint8), (len(m.vertices), 1))
-
-
 def file_normals(m) -> np.ndarray | None:
     """The vertex normals (v,3) f8 a trimesh mesh was loaded with (glTF ``NORMAL``, PLY
     nx/ny/nz), or None when the file brought none. (trimesh computes ``vertex_normals`` on
@@ -137,7 +122,7 @@ def _corners_of(m, path: Path, what: str) -> Corners:
     p = np.asarray(m.vertices, np.float64)
     f = np.asarray(m.faces, np.int64).reshape(-1, 3)
     _validate(path, p, f, what)
-    col = _trimesh_colors(m)
+    col = trimesh_colors(m)
     n = file_normals(m)
     return Corners(p[f], col if col.ndim == 3 else col[f], None if n is None else n[f].astype(np.float32))
 
@@ -251,18 +236,47 @@ def _canonical_order(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rot, np.lexsort(cc.T[::-1])
 
 
-def _obj_colors(path: Path, obj: ObjFile, warn: list, materials_missing: bool = False) -> np.ndarray:
+def _obj_parts(path: Path) -> list:
+    """The OBJ as trimesh reads it, one mesh per material, each with its own material (forced
+    into one mesh, trimesh packs the materials into one atlas, and a plain ``Kd`` material
+    beside a textured one came out transparent black)."""
+    import trimesh
+
+    loaded = _load_trimesh(path, one_mesh=False)
+    if not isinstance(loaded, trimesh.Scene):
+        return [loaded]
+    parts = []
+    for node in sorted(loaded.graph.nodes_geometry):
+        xf, gname = loaded.graph[node]
+        geom = loaded.geometry[gname]
+        if hasattr(geom, "faces"):
+            if not np.array_equal(xf, np.eye(4)):  # (an OBJ's parts are not moved; should one be: as trimesh places it)
+                geom = geom.copy()
+                geom.apply_transform(xf)
+            parts.append(geom)
+    return parts
+
+
+def _obj_colors(path: Path, obj: ObjFile, warn: list, materials_missing: bool = False,
+                textured: list | None = None) -> np.ndarray:
     """Corner colours u8 (t,3,4) of an OBJ's triangles: grey, or (vertex colours, materials)
-    what trimesh makes of them, matched to the file's triangles by their corner positions
-    (trimesh regroups faces by material and splits quads its own way)."""
+    what trimesh makes of them — a texture baked per vertex (:func:`.texture.trimesh_colors`;
+    the name of each textured material is appended to ``textured``) — matched to the file's
+    triangles by their corner positions (trimesh regroups faces by material and splits quads
+    its own way)."""
     grey = np.empty((len(obj.positions), 3, 4), np.uint8)
-    grey[:] = _GREY
+    grey[:] = GREY
     if not obj.colored or (materials_missing and not obj.vertex_colors):
         return grey
-    m = _load_trimesh(path)
-    col = _trimesh_colors(m)
-    tc = np.asarray(m.vertices, np.float64)[np.asarray(m.faces, np.int64).reshape(-1, 3)]
-    col = col if col.ndim == 3 else col[np.asarray(m.faces, np.int64).reshape(-1, 3)]
+    tcs, cols = [], []
+    for m in _obj_parts(path):
+        f = np.asarray(m.faces, np.int64).reshape(-1, 3)
+        col = trimesh_colors(m)
+        tcs.append(np.asarray(m.vertices, np.float64)[f])
+        cols.append(col if col.ndim == 3 else col[f])
+        if textured is not None and is_textured(m):
+            textured.append(getattr(getattr(m.visual, "material", None), "name", None) or f"material {len(textured) + 1}")
+    tc, col = np.concatenate(tcs), np.concatenate(cols)
     if tc.shape != obj.positions.shape:
         warn.append(f"{path}: trimesh reads {len(tc)} triangles where massview reads {len(obj.positions)}; its colours "
                     "are not used (grey)")
@@ -278,20 +292,24 @@ def _obj_colors(path: Path, obj: ObjFile, warn: list, materials_missing: bool = 
     return out
 
 
-def _load_trimesh(path: Path):
+def _load_trimesh(path: Path, one_mesh: bool = True):
+    """The file as trimesh reads it: a glTF/GLB as a scene, anything else as one mesh (as a
+    scene of one mesh per material with ``one_mesh=False``, where trimesh makes one)."""
     import trimesh
 
     try:
         if path.suffix.lower() in (".gltf", ".glb"):
             return trimesh.load_scene(str(path))
-        return trimesh.load(str(path), process=False, force="mesh")
+        return trimesh.load(str(path), process=False, **({"force": "mesh"} if one_mesh else {}))
     except IngestError:
         raise
     except Exception as e:  # noqa: BLE001 - trimesh raises many kinds on bad files
         raise IngestError(f"{path}: cannot be read as {path.suffix[1:].upper()} ({type(e).__name__}: {e}); check the file") from None
 
 
-def _scene_objects(path: Path, scene, turn: bool) -> list[StructuredObject] | MemorySoup:
+def _scene_objects(path: Path, scene, turn: bool, textured: list | None = None) -> list[StructuredObject] | MemorySoup:
+    """The mesh nodes of a glTF/GLB scene as objects (one alone as a soup); the name of each
+    textured mesh is appended to ``textured`` (once, however many nodes place it)."""
     nodes = list(scene.graph.nodes_geometry)
     if not nodes:
         raise IngestError(f"{path}: the scene has no mesh nodes; nothing to ingest")
@@ -302,6 +320,8 @@ def _scene_objects(path: Path, scene, turn: bool) -> list[StructuredObject] | Me
         if not hasattr(geom, "faces"):
             continue  # point clouds and paths carry no triangles
         xf = (Y_TO_Z @ np.asarray(xf, np.float64)) if turn else np.asarray(xf, np.float64)
+        if textured is not None and str(gname) not in textured and is_textured(geom):
+            textured.append(str(gname))
         out.append(StructuredObject(str(node), _corners_of(geom, path, f" (node {node})"), xf, str(gname)))
     if not out:
         raise IngestError(f"{path}: the scene has no triangle meshes; nothing to ingest")
@@ -331,12 +351,12 @@ def _missing_materials(path: Path, obj: ObjFile) -> str | None:
     return None
 
 
-def _obj_input(path: Path, warn: list, turn: bool) -> list[StructuredObject] | MemorySoup:
+def _obj_input(path: Path, warn: list, turn: bool, textured: list) -> list[StructuredObject] | MemorySoup:
     obj = read_obj(path)
     msg = _missing_materials(path, obj)
     if msg:
         warn.append(msg)
-    col = _obj_colors(path, obj, warn, msg is not None)
+    col = _obj_colors(path, obj, warn, msg is not None, textured)
     n, lab = obj.normals, obj.labels
     if obj.groups > 1 and len(np.unique(lab)) > 1:
         xf = Y_TO_Z if turn else np.eye(4)
@@ -349,19 +369,34 @@ def _obj_input(path: Path, warn: list, turn: bool) -> list[StructuredObject] | M
     return MemorySoup(path, p, col, n, np.arange(t * 3).reshape(-1, 3))
 
 
-def open_input(path: Path, stream_bytes: int, warn: list | None = None, up: str = "auto") -> list[StructuredObject] | MemorySoup | PlyLayout:
+def open_input(path: Path, stream_bytes: int, warn: list | None = None, up: str = "auto",
+               textures: dict | None = None) -> list[StructuredObject] | MemorySoup | PlyLayout:
     """Structured objects, a soup in RAM, or (a binary triangle PLY of at least
     ``stream_bytes`` bytes) its layout for the streamed ingest. Normals come from the file
     where it has them (PLY nx/ny/nz, OBJ ``vn`` per corner — NaN for corners without one —,
     glTF ``NORMAL``), through any node transform. ``up`` (:data:`UP_CHOICES`): the file's up
     axis, see :func:`up_axis`; a y-up file comes back turned to z-up. ``warn`` collects
-    messages for the user."""
+    messages for the user; ``textures`` gets ``str(path)`` -> the number of textured materials
+    (OBJ) or meshes (glTF, others) whose texture was baked to per-vertex colours, if any."""
     warn = [] if warn is None else warn
     path = check_input(path)
-    suf = path.suffix.lower()
     if up not in UP_CHOICES:
         raise IngestError(f"--up must be one of {', '.join(UP_CHOICES)}, got {up!r}")
-    turn = up_axis(path, up) == "y"
+    textured: list[str] = []
+    src = _open(path, up_axis(path, up) == "y", stream_bytes, warn, textured)
+    if textured:
+        what = ("material", "materials") if path.suffix.lower() == ".obj" else ("mesh", "meshes")
+        what = what[len(textured) > 1]
+        names = ", ".join(textured[:3]) + (", ..." if len(textured) > 3 else "")
+        warn.append(f"{path}: {len(textured)} textured {what} ({names}) baked to per-vertex colours (a scene store keeps no "
+                    "textures; each vertex gets the texture's mean over its faces): detail finer than the mesh's vertices is lost")
+        if textures is not None:
+            textures[str(path)] = len(textured)
+    return src
+
+
+def _open(path: Path, turn: bool, stream_bytes: int, warn: list, textured: list):
+    suf = path.suffix.lower()
     if suf == ".ply":
         lay = read_ply_layout(path, turn)
         if lay is not None:
@@ -369,9 +404,9 @@ def open_input(path: Path, stream_bytes: int, warn: list | None = None, up: str 
                 raise IngestError(f"{path}: the mesh is empty (no triangles); nothing to ingest")
             return lay if path.stat().st_size >= stream_bytes else _read_whole_ply(lay)
     if suf == ".obj":
-        return _obj_input(path, warn, turn)
+        return _obj_input(path, warn, turn, textured)
     if suf in (".gltf", ".glb"):
-        return _scene_objects(path, _load_trimesh(path), turn)
+        return _scene_objects(path, _load_trimesh(path), turn, textured)
     m = _load_trimesh(path)
     p = np.asarray(m.vertices, np.float64)
     f = np.asarray(m.faces, np.int64).reshape(-1, 3)
@@ -380,7 +415,9 @@ def open_input(path: Path, stream_bytes: int, warn: list | None = None, up: str 
     n = None if n is None else n.astype(np.float32)
     if turn:
         p, n = turn_y_up(p), turn_y_up(n)
-    return MemorySoup(path, p, _trimesh_colors(m), n, f)
+    if is_textured(m):
+        textured.append(path.name)
+    return MemorySoup(path, p, trimesh_colors(m), n, f)
 
 
 def _read_whole_ply(lay: PlyLayout) -> MemorySoup:

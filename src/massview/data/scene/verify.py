@@ -44,7 +44,8 @@ def scene_info(path) -> dict:
             "objects_by_level_count": {int(k): int(v) for k, v in zip(*np.unique(sk.levels, return_counts=True))},
             "bounds": [lo.round(4).tolist(), hi.round(4).tolist()],
             "decoded_bytes_level0": int(sk.level_bytes[:, 0].sum()), "record_bytes": raw, "geometry_disk_bytes": disk,
-            "compression_ratio": round(raw / disk, 3) if disk else None, "disk_bytes": _dir_size(path)}
+            "compression_ratio": round(raw / disk, 3) if disk else None, "disk_bytes": _dir_size(path),
+            **{k: a[k] for k in ("textures_baked", "triangles_removed") if k in a}}  # (prepare scene; older stores lack them)
 
 
 def _who(st: SceneStore, owners: dict, gid: int) -> str:

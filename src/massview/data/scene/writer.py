@@ -21,9 +21,10 @@ from .groups import build_groups, kd_paths
 from .mesh import Mesh, crc32, decoded_bytes, encode_record
 from .store import FORMAT, FORMAT_VERSION, GEOMETRY_TABLES, GROUP_FIELDS, SKELETON_FIELDS
 
-__all__ = ["SceneWriter", "CHUNK_BYTES", "occluder_flags"]
+__all__ = ["SceneWriter", "CHUNK_BYTES", "CHECKPOINT_BYTES", "occluder_flags", "enclosing_store"]
 
 CHUNK_BYTES = 32 * 1024
+CHECKPOINT_BYTES = 64 << 20  # records written between two checkpoints (what an interrupted build keeps)
 SHARD_CHUNKS = 512
 _ROWS = 16384
 
@@ -44,15 +45,24 @@ def occluder_flags(radius: np.ndarray, triangles0: np.ndarray, closed: np.ndarra
     return big & closed & (triangles0 <= 4096)
 
 
+def enclosing_store(path) -> Path | None:
+    """The zarr store (a folder with a ``zarr.json``) that ``path`` would lie inside, or None."""
+    p = Path(path).resolve()
+    return next((d for d in p.parents if (d / "zarr.json").is_file()), None)
+
+
 class SceneWriter:
     """Create (or resume) a scene store at ``path``. ``params`` identify the build: an
     incomplete store with equal params is resumed, anything else needs ``overwrite``."""
 
     def __init__(self, path, params: dict, attrs: dict | None = None, levels_max: int = 8, path_depth: int = 0,
-                 overwrite: bool = False, checkpoint_bytes: int = 64 << 20):
+                 overwrite: bool = False, checkpoint_bytes: int = CHECKPOINT_BYTES):
         import zarr
 
         self.path = Path(path)
+        outer = enclosing_store(self.path)
+        if outer is not None:
+            raise StoreError(f"{self.path} is inside the store {outer}; choose an output outside every store")
         self.L, self.D = int(levels_max), int(path_depth)
         self.checkpoint_bytes = checkpoint_bytes
         self.resumed = self._open_existing(params, overwrite)

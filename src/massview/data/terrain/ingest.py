@@ -60,7 +60,7 @@ from .deviation import coarse_lattice
 from .layout import TerrainLayout
 from .metadata import Metadata, MetadataBuilder, compute_metadata, write_colors, write_metadata
 from .sources import RasterSource, place_ortho
-from .store import ChunkWriter, TerrainStore, block_view, create_store, wide_row
+from .store import ChunkWriter, TerrainStore, block_view, create_store, rows_done, wide_row
 from .workers import BufferPool, resolve_workers, run_ordered
 
 __all__ = ["prepare_terrain", "PrepareResult", "fill_nodata", "compute_metadata", "write_metadata", "Metadata"]
@@ -81,6 +81,7 @@ class PrepareResult:
     input_bytes: int
     warnings: list[str]
     stages: dict = field(default_factory=dict)  # {stage: (wall s, CPU s, system s, minor faults) of the whole process}
+    rows_kept: int = 0  # level-0 block rows an interrupted run had finished (resumed: not read or written again)
 
     @property
     def filled_fraction(self) -> float:
@@ -208,6 +209,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     place = place_ortho(src, ortho) if ortho is not None else None  # (so is an orthophoto of another place)
     restarted: list[str] = []
     g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite, restarted)
+    kept = (rows_done(out) or (0, 0))[0] if resumed else 0
     prog = progress or (lambda phase, adv, total: None)
     from .roettger import DEFAULT_C_MIN, TableBuilder  # T2's per-node table (Röttger d2)
 
@@ -224,7 +226,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     g.attrs.update({"height_range": [meta.zlo, meta.zhi], "color": None if color is None else ("orthophoto" if ortho else "computed")})
     g.attrs["complete"] = True
     seconds = time.perf_counter() - t0
-    res = PrepareResult(Path(out), lay, seconds, filled, resumed, src.rows * src.cols * src.dtype.itemsize, [], stages)
+    res = PrepareResult(Path(out), lay, seconds, filled, resumed, src.rows * src.cols * src.dtype.itemsize, [], stages, kept)
     if restarted:
         res.warnings.append(f"{out}: an interrupted prepare was there, but its {', '.join(restarted)} differed from this run's; "
                             "it was started again from the beginning")

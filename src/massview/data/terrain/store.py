@@ -39,7 +39,7 @@ import numpy as np
 from ...core.errors import BlockNotFoundError, CorruptBlockError, StoreError
 from .layout import TerrainLayout
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "create_shade_arrays", "dir_size", "ChunkWriter", "make_chunk_root", "write_chunk_file", "block_view", "wide_row",
+__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "rows_done", "create_shade_arrays", "dir_size", "ChunkWriter", "make_chunk_root", "write_chunk_file", "block_view", "wide_row",
            "ArrayChunkWriter", "array_chunk_writer"]
 
 FORMAT = "massview-terrain"
@@ -115,6 +115,21 @@ def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, ov
         new.create(f"blocks/{lv}/done", "done", shape=(nb, nb), chunks=(nb, nb), dtype="uint8", fill_value=0)
     create_shade_arrays(g, layout, new)
     return g, False
+
+
+def rows_done(path) -> tuple[int, int] | None:
+    """(level-0 block rows flagged done, level-0 block rows) of an incomplete store at ``path``
+    (what a resumed prepare does not read or write again), or None where there is no such store."""
+    import zarr
+
+    try:
+        g = zarr.open_group(str(path), mode="r")
+        if g.attrs.get("format") != FORMAT or g.attrs.get("complete"):
+            return None
+        done = np.asarray(g["blocks/0/done"][...])
+    except Exception:  # noqa: BLE001 - no store, or one stopped before its arrays existed
+        return None
+    return int(done.all(axis=1).sum()), int(done.shape[0])
 
 
 def create_shade_arrays(g, layout: TerrainLayout, new: _ArraysLike | None = None) -> None:
