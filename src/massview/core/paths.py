@@ -34,25 +34,12 @@ import numpy as np
 
 from .camera import Camera, look_at_quaternion
 from .errors import ConfigError
+from .framing import framed_camera, scene_clip
 
 __all__ = ["BUILTIN_PATHS", "CameraPath", "KeyframePath", "ParametricPath", "load_path", "scene_clip", "walk_eye_z"]
 
 BUILTIN_PATHS = ("turn", "zoom", "forward", "orbit", "flyover", "walkthrough")
 _LOOPS = ("turn", "orbit")  # closed: a full circle, t = 1 is t = 0
-
-
-def scene_clip(lo, hi, positions=None) -> tuple[float, float]:
-    """Clip planes (near, far) in world units fitted to the box ``lo``..``hi``: near = 2e-4 of
-    the box diagonal, far = 4 diagonals — reaching further when ``positions`` (n, 3) lie far
-    outside the box, so the whole box stays inside the far plane from every position."""
-    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    diag = float(max(np.linalg.norm(hi - lo), 1e-9))
-    far = diag * 4.0
-    if positions is not None and len(positions):
-        c = (lo + hi) / 2
-        reach = float(np.max(np.linalg.norm(np.asarray(positions, np.float64) - c, axis=1))) + diag / 2
-        far = max(far, reach * 1.5)
-    return diag * 2e-4, far
 
 
 class CameraPath:
@@ -232,26 +219,13 @@ class ParametricPath(CameraPath):
         """As :meth:`CameraPath.camera`; ``orbit`` keeps its direction to the scene's middle but
         stands back just far enough that all 8 corners of the box are in view, with a 5 % margin,
         for this image's aspect (at 0.75 of the box's width it cut off the near corners of a
-        square terrain, and more of a long scene)."""
+        square terrain, and more of a long scene), its near plane just before the box (depth
+        stays precise: at 2e-4 of the diagonal, far/near was ~20000)."""
         if self.name != "orbit":
             return super().camera(t, width, height)
         t = min(max(float(t), 0.0), 1.0)
-        c = (self.lo + self.hi) / 2
-        v = self.pose(t)[0] - c
-        v /= np.linalg.norm(v)  # from the middle towards the eye
-        right = np.cross(-v, [0.0, 0.0, 1.0])
-        right /= np.linalg.norm(right)
-        up = np.cross(right, -v)
-        ty = math.tan(math.radians(self.fovy) / 2)
-        tx = ty * width / max(height, 1)
-        corners = np.array([[x, y, z] for x in (self.lo[0], self.hi[0]) for y in (self.lo[1], self.hi[1])
-                            for z in (self.lo[2], self.hi[2])]) - c
-        d = max(float(np.max(corners @ v + 1.05 * np.maximum(np.abs(corners @ right) / tx, np.abs(corners @ up) / ty))), 1e-9)
-        eye = c + v * d
-        near, far = scene_clip(self.lo, self.hi, eye[None])
-        nearest = float(np.min(d - corners @ v))  # the box's least view depth: at a corner (it is convex)
-        near = max(near, 0.9 * nearest)  # just before it: depth stays precise (at 2e-4 of the diagonal, far/near was ~20000)
-        return Camera(tuple(eye), look_at_quaternion(eye, c), fovy=self.fovy, near=near, far=far, width=width, height=height)
+        v = self.pose(t)[0] - (self.lo + self.hi) / 2  # from the middle towards the eye
+        return framed_camera(self.lo, self.hi, v, width, height, self.fovy, centred=False)
 
     def pose(self, t):
         c = (self.lo + self.hi) / 2
