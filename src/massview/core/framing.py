@@ -1,8 +1,9 @@
 """Framing a box: clip planes fitted to it (:func:`scene_clip`), and where a camera looking
 at it from a given direction stands so that the whole box is in view, centred.
 
-Shared by the ``orbit`` path (:mod:`massview.core.paths`) and the web viewer's first view of
-a polygon scene (:func:`overview_camera`). World units, +z up; directions point from the box's middle
+Shared by the ``orbit`` path, the ``walkthrough`` and ``flyover`` paths round a scene with no
+ground to walk on (:mod:`massview.core.paths`) and the web viewer's first view of a polygon
+scene (:func:`overview_camera`). World units, +z up; directions point from the box's middle
 towards the eye.
 """
 
