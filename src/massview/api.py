@@ -184,11 +184,11 @@ def _fitted_path(name: str, scene, exaggeration: float = 1.0):
     if not isinstance(scene, Scene):
         with Scene(scene) as s:
             return _fitted_path(name, s, exaggeration)
-    from .lod.walk import plan_walk
+    from .lod.walk import fit_path
 
     walk = name == "walkthrough"
-    route = plan_walk(name, *scene.bounds, scene.obstacles) if walk else None
-    return load_path(name, *scene.bounds, route=route, ground=scene.ground(exaggeration) if walk else None)
+    return fit_path(name, *scene.bounds, scene.obstacles if walk or name == "flyover" else None,
+                    scene.ground(exaggeration) if walk else None)
 
 
 def _size(size) -> tuple[int, int]:

@@ -21,7 +21,8 @@ from collections import deque
 import numpy as np
 
 from ..core.config import RenderConfig
-from ..core.paths import load_path
+from ..systems import scene_kind
+from .view_cmd import start_camera
 
 __all__ = ["run_view_reliefboards"]
 
@@ -70,7 +71,7 @@ def _serve(parent, backends, objects, opts, args, cfg: RenderConfig) -> int:
         signal.signal(sig, lambda *a: stop.update(flag=True))
     logging.basicConfig(level=logging.WARNING, format="massview viewer: %(message)s", stream=sys.stderr)
     lo, hi = objects.bounds
-    start = load_path("flyover", lo, hi).camera(0.0, cfg.width, cfg.height)
+    start = start_camera(scene_kind(args.scene), lo, hi, cfg.width, cfg.height)
     settings = {"decomposition": "reliefboards", "compositor": "none", "tau": cfg.tau, "color_by_rank": cfg.color_by_rank}
     state = ViewerState(start, settings, {"decomposition": ["reliefboards"], "compositor": ["none"]},
                         float(np.linalg.norm((hi - lo)[:2])) * 0.02)

@@ -26,9 +26,8 @@ from PIL import Image as PILImage
 from ..core.camera import Camera, Viewport
 from ..core.config import RenderConfig
 from ..core.image import Image
-from ..core.paths import load_path
 from ..core.stats import clear_run_outputs, summarize
-from ..lod.walk import plan_walk
+from ..lod.walk import fit_path
 from ..parallel.decompose import parse_decomposition
 from ..systems import display_tiles, open_system
 from ..systems.frameloop import render_frames
@@ -92,9 +91,8 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
     if hasattr(system, "split_label"):  # a system that splits the frame its own way (M1, T2)
         decomposition, compositor = system.split_label(cfg)
     if rank == 0 and cameras is None:
-        route = plan_walk(cfg.path, *system.bounds, getattr(system, "obstacles", None))
         ground = system.ground(cfg) if cfg.path == "walkthrough" and hasattr(system, "ground") else None
-        cameras = load_path(cfg.path, *system.bounds, route=route, ground=ground).cameras(cfg.frames, cfg.width, cfg.height)
+        cameras = fit_path(cfg.path, *system.bounds, getattr(system, "obstacles", None), ground).cameras(cfg.frames, cfg.width, cfg.height)
     nframes = comm.bcast(len(cameras) if rank == 0 else None, root=0)
     is_display = any(r == rank for r, _ in display_tiles(cfg, n))
     if rank == 0 and out is not None:

@@ -7,7 +7,7 @@ with the chosen decomposition and compositor, and rank 0 streams the composited 
 with per-frame figures (fps, triangles per rank, imbalance, bytes per frame). With no page
 open the ranks render nothing and wait without spinning (they kept rendering at 40–75 % CPU
 each). Closing the page does not stop the job; Ctrl-C (SIGINT to the ranks) stops every rank
-at the next frame.
+at the next frame. The first view is :func:`start_camera`'s.
 """
 
 from __future__ import annotations
@@ -23,13 +23,26 @@ import numpy as np
 
 from ..core.config import RenderConfig
 from .viewer.state import VIEWER_COLORMAPS
+from ..core.framing import overview_camera
 from ..core.paths import load_path
 from ..parallel.composite import COMPOSITORS
 from ..parallel.decompose import SORT_FIRST_LAYOUTS, parse_decomposition
 from ..parallel.exchange import any_rank, polite_bcast
 from ..systems import render_frame
 
-__all__ = ["run_view"]
+__all__ = ["run_view", "start_camera"]
+
+
+def start_camera(kind: str, lo, hi, width: int, height: int):
+    """The viewer's first camera for a scene of ``kind`` (:func:`massview.systems.scene_kind`)
+    in the box ``lo``..``hi``: a scene store's frames the whole box, centred
+    (:func:`massview.core.framing.overview_camera`) — ``flyover``'s start left a glTF assembly
+    cut at the right edge and showed a single object's corner at the bottom right; a terrain's
+    and ``builtin:objects``' (wide, flat fields) stay the start of ``flyover``, low over the
+    west end looking along it."""
+    if kind == "scene":
+        return overview_camera(lo, hi, width, height)
+    return load_path("flyover", lo, hi).camera(0.0, width, height)
 
 
 def _jpeg(tile, quality: int = 80) -> bytes:
@@ -59,7 +72,7 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
 
         logging.basicConfig(level=logging.WARNING, format="massview viewer: %(message)s", stream=sys.stderr)
         lo, hi = system.bounds
-        start = load_path("flyover", lo, hi).camera(0.0, cfg.width, cfg.height)
+        start = start_camera(scene.kind, lo, hi, cfg.width, cfg.height)
         modes = [f"sort-first:{m}" for m in SORT_FIRST_LAYOUTS] + (
             [f"sort-last:{m}" for m in system.sort_last_modes] if system.sort_last_modes else ["sort-last"])
         kind, mode = parse_decomposition(cfg.decomposition, system.sort_last_modes)

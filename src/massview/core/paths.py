@@ -19,7 +19,12 @@ bounding box, +z up. ``walkthrough`` walks through a model at eye height (1.7 un
 bottom of the box, or 30 % of the box height if that is lower), looking ahead: given the
 scene's object boxes, along a way round them (:mod:`massview.lod.walk`), looking at the way
 10 units ahead (a third of it, if that is less) and ending that far before its end; else along
-x with a gentle sway in y.
+x with a gentle sway in y. A scene's :class:`Footing` (:func:`massview.lod.walk.scene_footing`)
+says what the walker stands on instead (a ground slab's top), how high its eye is (scaled in
+a scene whose objects are far taller than a person: a model in millimetres) — the look ahead
+scales with it — and whether there is ground to walk on at all: round a single object with
+none, ``walkthrough`` walks and ``flyover`` flies an arc round it looking at it, framed
+(:mod:`massview.core.framing`), so it is in every frame.
 """
 
 from __future__ import annotations
@@ -34,25 +39,12 @@ import numpy as np
 
 from .camera import Camera, look_at_quaternion
 from .errors import ConfigError
+from .framing import direction, framed_camera, scene_clip
 
-__all__ = ["BUILTIN_PATHS", "CameraPath", "KeyframePath", "ParametricPath", "load_path", "scene_clip", "walk_eye_z"]
+__all__ = ["BUILTIN_PATHS", "CameraPath", "Footing", "KeyframePath", "ParametricPath", "load_path", "scene_clip", "walk_eye_z"]
 
 BUILTIN_PATHS = ("turn", "zoom", "forward", "orbit", "flyover", "walkthrough")
 _LOOPS = ("turn", "orbit")  # closed: a full circle, t = 1 is t = 0
-
-
-def scene_clip(lo, hi, positions=None) -> tuple[float, float]:
-    """Clip planes (near, far) in world units fitted to the box ``lo``..``hi``: near = 2e-4 of
-    the box diagonal, far = 4 diagonals — reaching further when ``positions`` (n, 3) lie far
-    outside the box, so the whole box stays inside the far plane from every position."""
-    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    diag = float(max(np.linalg.norm(hi - lo), 1e-9))
-    far = diag * 4.0
-    if positions is not None and len(positions):
-        c = (lo + hi) / 2
-        reach = float(np.max(np.linalg.norm(np.asarray(positions, np.float64) - c, axis=1))) + diag / 2
-        far = max(far, reach * 1.5)
-    return diag * 2e-4, far
 
 
 class CameraPath:
@@ -188,13 +180,36 @@ class KeyframePath(CameraPath):
         return cls(times, positions, targets, orients, float(fovy), near, far, source)
 
 
+@dataclass(frozen=True)
+class Footing:
+    """Where ``walkthrough`` walks in a polygon scene: on ``ground`` (world z: a floor's top, or
+    the box's bottom), the eye ``eye`` units above it; ``walkable`` False where nothing is there
+    to walk on or among (a single object: ``walkthrough`` and ``flyover`` go round it instead).
+    Made from the objects' boxes by :func:`massview.lod.walk.scene_footing`."""
+
+    ground: float
+    eye: float
+    walkable: bool = True
+
+    def __post_init__(self):
+        if not (math.isfinite(self.ground) and math.isfinite(self.eye) and self.eye >= 0):  # (0: a flat box's)
+            raise ConfigError(f"Footing needs a finite ground and eye height >= 0, got {self.ground}, {self.eye}")
+
+    @classmethod
+    def of_box(cls, lo, hi) -> "Footing":
+        """What a box alone says: the box's bottom, :func:`walk_eye_z` above it."""
+        return cls(float(lo[2]), walk_eye_z(lo, hi) - float(lo[2]))
+
+
 @dataclass
 class ParametricPath(CameraPath):
     """One of the built-in paths, fitted to the box ``lo``..``hi`` (world units, +z up).
     ``route``: xy waypoints (k, 2) that ``walkthrough`` walks along at eye height (planned round
     a scene's objects by :func:`massview.lod.walk.plan_walk`); without one it walks the straight
     swaying line. ``ground`` (xy (n, 2) → z (n,), :func:`massview.lod.walk.terrain_ground`):
-    the surface ``walkthrough`` walks on — a terrain's — instead of the box's bottom."""
+    the surface ``walkthrough`` walks on — a terrain's — instead of the box's bottom.
+    ``footing`` (:class:`Footing`): a polygon scene's ground, eye height and whether it has
+    ground to walk on (``walkthrough`` and ``flyover``); None: :meth:`Footing.of_box`."""
 
     name: str
     lo: np.ndarray
@@ -202,12 +217,20 @@ class ParametricPath(CameraPath):
     fovy: float = 45.0
     route: np.ndarray | None = field(default=None, compare=False, repr=False)
     ground: Callable | None = field(default=None, compare=False, repr=False)
+    footing: Footing | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         if self.name not in BUILTIN_PATHS:
             raise ConfigError(f"unknown path {self.name!r}; use one of {', '.join(BUILTIN_PATHS)} or a .json keyframe file")
         self.lo = np.asarray(self.lo, np.float64)
         self.hi = np.asarray(self.hi, np.float64)
+        if self.footing is None:
+            self.footing = Footing.of_box(self.lo, self.hi)
+
+    @property
+    def _round(self) -> bool:
+        """``walkthrough`` or ``flyover`` round a scene with no ground to walk on (framed arcs)."""
+        return self.name in ("walkthrough", "flyover") and not self.footing.walkable and self.ground is None
 
     @property
     def _size(self) -> float:
@@ -232,26 +255,26 @@ class ParametricPath(CameraPath):
         """As :meth:`CameraPath.camera`; ``orbit`` keeps its direction to the scene's middle but
         stands back just far enough that all 8 corners of the box are in view, with a 5 % margin,
         for this image's aspect (at 0.75 of the box's width it cut off the near corners of a
-        square terrain, and more of a long scene)."""
-        if self.name != "orbit":
-            return super().camera(t, width, height)
+        square terrain, and more of a long scene), its near plane just before the box (depth
+        stays precise: at 2e-4 of the diagonal, far/near was ~20000); so do ``walkthrough``
+        and ``flyover`` round a scene with no ground (:meth:`_round_direction`)."""
         t = min(max(float(t), 0.0), 1.0)
-        c = (self.lo + self.hi) / 2
-        v = self.pose(t)[0] - c
-        v /= np.linalg.norm(v)  # from the middle towards the eye
-        right = np.cross(-v, [0.0, 0.0, 1.0])
-        right /= np.linalg.norm(right)
-        up = np.cross(right, -v)
-        ty = math.tan(math.radians(self.fovy) / 2)
-        tx = ty * width / max(height, 1)
-        corners = np.array([[x, y, z] for x in (self.lo[0], self.hi[0]) for y in (self.lo[1], self.hi[1])
-                            for z in (self.lo[2], self.hi[2])]) - c
-        d = max(float(np.max(corners @ v + 1.05 * np.maximum(np.abs(corners @ right) / tx, np.abs(corners @ up) / ty))), 1e-9)
-        eye = c + v * d
-        near, far = scene_clip(self.lo, self.hi, eye[None])
-        nearest = float(np.min(d - corners @ v))  # the box's least view depth: at a corner (it is convex)
-        near = max(near, 0.9 * nearest)  # just before it: depth stays precise (at 2e-4 of the diagonal, far/near was ~20000)
-        return Camera(tuple(eye), look_at_quaternion(eye, c), fovy=self.fovy, near=near, far=far, width=width, height=height)
+        if self.name == "orbit":
+            v = self.pose(t)[0] - (self.lo + self.hi) / 2  # from the middle towards the eye
+        elif self._round:
+            v = self._round_direction(t)
+        else:
+            return super().camera(t, width, height)
+        return framed_camera(self.lo, self.hi, v, width, height, self.fovy, centred=self.name != "orbit")
+
+    def _round_direction(self, t: float) -> np.ndarray:
+        """From the middle towards the eye, round a scene with nothing to walk on: ``walkthrough``
+        walks a third of a circle in front of it (azimuth −150° to −30°) a little above its
+        middle (12°); ``flyover`` sweeps from the front-left to the back-right (−160° to 20°)
+        rising to 60° above it halfway."""
+        if self.name == "walkthrough":
+            return direction(-150.0 + 120.0 * t, 12.0)
+        return direction(-160.0 + 180.0 * t, 20.0 + 40.0 * math.sin(math.pi * t))
 
     def pose(self, t):
         c = (self.lo + self.hi) / 2
@@ -277,6 +300,9 @@ class ParametricPath(CameraPath):
             r = 0.75 * s
             eye = np.array([c[0] + r * math.cos(a), c[1] + r * math.sin(a), top + 0.35 * s])
             tgt = c
+        elif self._round:
+            eye = (self.lo + self.hi) / 2 + self._round_direction(t) * s
+            tgt = (self.lo + self.hi) / 2
         elif self.name == "walkthrough":
             eye, tgt = self._walk(t)
         else:  # flyover: a curved low pass across the scene, looking ahead and down
@@ -306,10 +332,11 @@ class ParametricPath(CameraPath):
         if self.ground is not None:  # on a terrain: eye height above the ground under the eye
             return self._walk_ground(t)
         ext = self.hi - self.lo
-        z = walk_eye_z(self.lo, self.hi)
+        z = self.footing.ground + self.footing.eye
+        look = _WALK_LOOK * max(self.footing.eye, _EYE) / _EYE  # 10 units ahead, more for a walker scaled up
         route = self._route()
         if route is not None:
-            return self._walk_route(t, *route, z)
+            return self._walk_route(t, *route, z, look)
 
         def at(u):
             return np.array([self.lo[0] + ext[0] * (0.08 + 0.84 * u),
@@ -318,16 +345,16 @@ class ParametricPath(CameraPath):
         eye = at(t)
         d = at(min(t + 0.02, 1.0)) - at(max(t - 0.02, 0.0))
         d /= max(np.linalg.norm(d), 1e-12)
-        return eye, eye + d * _WALK_LOOK + np.array([0.0, 0.0, -_WALK_DIP * _WALK_LOOK])
+        return eye, eye + d * look + np.array([0.0, 0.0, -_WALK_DIP * look])
 
     @staticmethod
-    def _walk_route(t: float, way: np.ndarray, s: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray]:
+    def _walk_route(t: float, way: np.ndarray, s: np.ndarray, z: float, look: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
         """``walkthrough`` along a planned way (xy (k, 2), cumulative length ``s``) at height
-        ``z``: looking at the way ``look`` ahead (``_WALK_LOOK`` units, at most a third of the way,
-        so a small scene's walker looks across the scene, not half out of it), a little down;
-        the eye walks the way's first ``length − look``, so its last view is along the way to
-        the way's end, not out of the scene from the end."""
-        look = min(_WALK_LOOK, s[-1] / 3)
+        ``z``: looking at the way ``look`` ahead (``_WALK_LOOK`` units for a 1.7-unit walker, at
+        most a third of the way, so a small scene's walker looks across the scene, not half out
+        of it), a little down; the eye walks the way's first ``length − look``, so its last view
+        is along the way to the way's end, not out of the scene from the end."""
+        look = min(look, s[-1] / 3)
 
         def at(d):
             return np.array([np.interp(d, s, way[:, 0]), np.interp(d, s, way[:, 1]), z])
@@ -372,14 +399,19 @@ def walk_eye_z(lo, hi) -> float:
     return float(lo[2]) + min(1.7, 0.3 * (float(hi[2]) - float(lo[2])))
 
 
-def load_path(spec: str, lo, hi, route: np.ndarray | None = None, ground: Callable | None = None) -> CameraPath:
+def load_path(spec: str, lo, hi, route: np.ndarray | None = None, ground: Callable | None = None,
+              footing: Footing | None = None) -> CameraPath:
     """A built-in path name fitted to the box lo..hi, or a keyframe ``.json`` file (its missing
     clip planes fitted to the box). ``route`` (xy waypoints, :func:`massview.lod.walk.plan_walk`):
     the way ``walkthrough`` walks; ``ground`` (a terrain's surface,
-    :func:`massview.lod.walk.terrain_ground`): what it walks on."""
+    :func:`massview.lod.walk.terrain_ground`): what it walks on; ``footing`` (a polygon scene's,
+    :func:`massview.lod.walk.scene_footing`): what ``walkthrough`` stands on and how high, and
+    whether ``walkthrough`` and ``flyover`` go round the scene instead
+    (:func:`massview.lod.walk.fit_path` gives all three as the scene has them)."""
     if spec in BUILTIN_PATHS:
         walk = spec == "walkthrough"
-        return ParametricPath(spec, lo, hi, route=route if walk else None, ground=ground if walk else None)
+        return ParametricPath(spec, lo, hi, route=route if walk else None, ground=ground if walk else None,
+                              footing=footing if spec in ("walkthrough", "flyover") else None)
     p = Path(spec)
     if p.suffix.lower() != ".json":
         raise ConfigError(f"--path {spec!r}: use one of {', '.join(BUILTIN_PATHS)} or a .json keyframe file")

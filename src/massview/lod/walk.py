@@ -22,34 +22,91 @@ objects' boxes instead:
 
 Returns None where no way exists (the caller walks the old straight line then). Planned here
 (``lod``, which may use scipy) and handed to :func:`massview.core.paths.load_path` as waypoints.
+
+Before that, :func:`scene_footing` reads from the same boxes what the walker stands on and how
+tall it is (a :class:`massview.core.paths.Footing`):
+
+* **ground**: the top of the lowest *floor* — a box covering more than a quarter of the
+  scene's footprint, no taller than a quarter of its shorter side, in the lower half of the
+  scene (a ground slab, a storey's floor) — else the box's bottom (a city whose buildings
+  stand on it). A millimetre model's ground slab at z −350..−250 put the eye 1.7 above −350,
+  inside the slab;
+* **eye height**: 1.7 units (a person in metres) unless the objects standing on the ground
+  are typically more than 50 times that (median box height above 85 units: a model in
+  millimetres, not a street); then a quarter of that median height. At most 30 % of the
+  scene's height above the ground, as before;
+* **walkable**: False where there is no floor and nothing small enough to walk among stands
+  on the ground (a single object, a sphere: the walker stood under it, its frames blank).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..core.paths import walk_eye_z
+from ..core.paths import Footing, load_path
 
-__all__ = ["walk_route", "plan_walk", "terrain_ground", "kpatch_ground"]
+__all__ = ["fit_path", "scene_footing", "walk_route", "plan_walk", "terrain_ground", "kpatch_ground"]
 
-_BAND = (0.3, 1.2)  # the walker's body, as fractions of the eye height above the box's bottom
+_BAND = (0.3, 1.2)  # the walker's body, as fractions of the eye height above the ground it stands on
 _EDGE = 25.0  # cost per cell an end lies inside the 8 % (92 %) line: above a diagonal step's most, √2 × (1 + 4²)
 _MAX_FOOTPRINT = 0.25  # of the scene's footprint: larger boxes are floors or enclosures, not obstacles
+_FLOOR_THIN = 0.25  # a floor's height, at most, as a fraction of its shorter side
+_EYE = 1.7  # a walker's eye height in metres
+_TALL = 50.0  # objects standing on the ground typically taller than this many eye heights: not metres
+_EYE_OF_TALL = 0.25  # the eye height then, as a fraction of their median height
+
+
+def fit_path(spec: str, lo, hi, obstacles=None, ground=None):
+    """The camera path ``spec`` (a ``--path`` value) fitted to a scene: its box ``lo``..``hi``,
+    the objects' boxes ``obstacles`` ((box_lo, box_hi), or None: a terrain) and a terrain's
+    ``ground`` (``xy -> z``, ``walkthrough`` only): for a polygon scene, the :func:`scene_footing`
+    and, for ``walkthrough``, the way round the objects (:func:`plan_walk`). What the CLI's
+    render, M2's job and the Python API each call."""
+    footing = None
+    if spec in ("walkthrough", "flyover") and obstacles is not None and ground is None:
+        footing = scene_footing(lo, hi, *obstacles)
+    route = plan_walk(spec, lo, hi, obstacles)
+    return load_path(spec, lo, hi, route=route, ground=ground, footing=footing)
+
+
+def scene_footing(lo, hi, box_lo, box_hi) -> Footing:
+    """What a walker in the box ``lo``..``hi`` stands on, how high its eye is and whether there
+    is ground to walk on at all, from the objects' boxes ``box_lo``..``box_hi`` ((n, 3) each; see
+    the module)."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    blo, bhi = np.asarray(box_lo, np.float64).reshape(-1, 3), np.asarray(box_hi, np.float64).reshape(-1, 3)
+    if not len(blo):
+        return Footing.of_box(lo, hi)
+    side = np.clip(bhi[:, :2] - blo[:, :2], 0, None)
+    big = np.prod(side, axis=1) > _MAX_FOOTPRINT * float(np.prod(np.clip(hi[:2] - lo[:2], 0, None)))
+    floor = big & (bhi[:, 2] - blo[:, 2] <= _FLOOR_THIN * side.min(axis=1)) & (bhi[:, 2] <= (lo[2] + hi[2]) / 2)
+    ground = float(bhi[floor, 2].min()) if floor.any() else float(lo[2])
+    room = float(hi[2]) - ground
+    stands = ~floor & (blo[:, 2] <= ground + 0.02 * room) & (bhi[:, 2] > ground)
+    tall = float(np.median(bhi[stands, 2] - ground)) if stands.any() else 0.0
+    eye = _EYE_OF_TALL * tall if tall > _TALL * _EYE else _EYE
+    eye = min(eye, 0.3 * room) if room > 0 else _EYE
+    return Footing(ground, eye, walkable=bool(floor.any() or (stands & ~big).any()))
 
 
 def plan_walk(path: str, lo, hi, obstacles) -> np.ndarray | None:
     """The route for the camera path ``path`` (a ``--path`` value) in the box ``lo``..``hi``
-    with the objects' boxes ``obstacles`` ((box_lo, box_hi), or None): :func:`walk_route` at
-    ``walkthrough``'s eye height for ``walkthrough`` in a scene with objects, else None (what
-    :func:`massview.core.paths.load_path` takes as ``route``)."""
+    with the objects' boxes ``obstacles`` ((box_lo, box_hi), or None): :func:`walk_route` on
+    the :func:`scene_footing`'s ground at its eye height for ``walkthrough`` in a scene with
+    objects and ground to walk on, else None (what :func:`massview.core.paths.load_path` takes
+    as ``route``)."""
     if path != "walkthrough" or obstacles is None:
         return None
-    return walk_route(lo, hi, *obstacles, walk_eye_z(lo, hi))
+    foot = scene_footing(lo, hi, *obstacles)
+    if not foot.walkable:
+        return None
+    return walk_route(lo, hi, *obstacles, foot.ground + foot.eye, ground_z=foot.ground)
 
 
-def walk_route(lo, hi, box_lo, box_hi, eye_z: float, cells: int = 256) -> np.ndarray | None:
+def walk_route(lo, hi, box_lo, box_hi, eye_z: float, cells: int = 256, ground_z: float | None = None) -> np.ndarray | None:
     """xy waypoints (k, 2) of a walk at height ``eye_z`` across the box ``lo``..``hi`` that
-    keeps clear of the boxes ``box_lo``..``box_hi`` ((n, 3) each), or None (see the module)."""
+    keeps clear of the boxes ``box_lo``..``box_hi`` ((n, 3) each), or None (see the module).
+    ``ground_z``: what the walker stands on (default: the box's bottom)."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     box_lo, box_hi = np.asarray(box_lo, np.float64).reshape(-1, 3), np.asarray(box_hi, np.float64).reshape(-1, 3)
     ext = hi[:2] - lo[:2]
@@ -57,8 +114,9 @@ def walk_route(lo, hi, box_lo, box_hi, eye_z: float, cells: int = 256) -> np.nda
         return None
     h = float(ext.max()) / cells
     n = np.maximum(np.ceil(ext / h).astype(int), 1)
-    body = eye_z - lo[2]
-    band = (lo[2] + _BAND[0] * body, lo[2] + _BAND[1] * body)
+    base = float(lo[2]) if ground_z is None else float(ground_z)
+    body = eye_z - base
+    band = (base + _BAND[0] * body, base + _BAND[1] * body)
     foot = np.prod(np.clip(box_hi[:, :2] - box_lo[:, :2], 0, None), axis=1)
     hit = (box_hi[:, 2] > band[0]) & (box_lo[:, 2] < band[1]) & (foot <= _MAX_FOOTPRINT * float(np.prod(ext)))
     occ = _footprints(box_lo[hit, :2], box_hi[hit, :2], lo[:2], h, n)

@@ -35,7 +35,7 @@ from ..core.config import RenderConfig
 from ..core.errors import ConfigError, MassviewError, OutputError, RankJobError
 from ..core.paths import load_path
 from ..core.stats import clear_run_outputs, summarize
-from ..lod.walk import plan_walk
+from ..lod.walk import fit_path
 
 __all__ = ["board_options", "render_reliefboards", "run_job", "run", "m2_summary"]
 
@@ -92,8 +92,8 @@ def run(comm, scene: str, cfg: RenderConfig, opts, out: Path | None, quiet: bool
     fovy = 45.0
     objects = open_board_objects(scene, opts.cluster_params(cfg.height, fovy))
     if rank == 0 and cameras is None:
-        route = plan_walk(cfg.path, *objects.bounds, objects.obstacles)  # (walkthrough: round the objects, as the other systems)
-        cameras = load_path(cfg.path, *objects.bounds, route=route).cameras(cfg.frames, cfg.width, cfg.height)
+        # (walkthrough: round the objects, on the scene's ground, as the other systems)
+        cameras = fit_path(cfg.path, *objects.bounds, objects.obstacles).cameras(cfg.frames, cfg.width, cfg.height)
     if rank == 0 and cameras and abs(cameras[0].fovy - fovy) > 1e-9:
         raise ConfigError(f"--path {cfg.path}: the reliefboards system classifies objects for fovy {fovy}, the path has {cameras[0].fovy}")
     warnings = board_warnings(objects, cameras, opts.policy) if rank == 0 else []
