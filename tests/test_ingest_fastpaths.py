@@ -98,54 +98,6 @@ def test_page_cost_times_new_and_cached_pages_and_leaves_nothing(tmp_path):
     assert isinstance(_free_page_reporting(), bool)
 
 
-def _direct_io_here(folder: Path) -> bool:
-    import os
-
-    try:
-        os.close(os.open(folder / "probe", os.O_WRONLY | os.O_CREAT | os.O_DIRECT))
-        return True
-    except (OSError, AttributeError):
-        return False
-    finally:
-        (folder / "probe").unlink(missing_ok=True)
-
-
-def test_chunks_written_past_the_page_cache_are_the_same_bytes(tmp_path, monkeypatch):
-    """Chunks of >= DIRECT_MIN bytes go out with O_DIRECT (padded to the block, then truncated):
-    the store equals one written through the page cache, file for file; and where O_DIRECT is
-    refused (EINVAL, as tmpfs does) the writer falls back and the bytes are still the same."""
-    import errno
-    import os
-
-    from massview.data.terrain import store as st
-
-    calls: list = []
-    direct = st._write_direct
-    monkeypatch.setattr(st, "_write_direct", lambda p, d: calls.append(direct(p, d)) or calls[-1])
-    monkeypatch.setattr(st, "DIRECT_MIN", 1 << 10)  # most of a small store's chunks
-    src = SyntheticSource(700, seed=4)
-    monkeypatch.setattr(st, "_DIRECT", [True])
-    prepare_terrain(src, tmp_path / "direct.zarr", block=129, K=5, workers=2)
-    monkeypatch.setattr(st, "_DIRECT", [False])
-    prepare_terrain(src, tmp_path / "cached.zarr", block=129, K=5, workers=2)
-    a, b = _files(tmp_path / "direct.zarr", meta=True), _files(tmp_path / "cached.zarr", meta=True)
-    assert sorted(a) == sorted(b) and [k for k in a if a[k] != b[k]] == []
-    assert len(calls) > 50 and all(calls) == _direct_io_here(tmp_path)
-    assert any(len(v) % 4096 for v in a.values())  # lengths that needed the padding and the truncation
-
-    real_open = os.open
-    def no_direct(path, flags, *rest, **kw):
-        if flags & os.O_DIRECT:
-            raise OSError(errno.EINVAL, "Invalid argument", path)
-        return real_open(path, flags, *rest, **kw)
-    monkeypatch.setattr(st.os, "open", no_direct)
-    monkeypatch.setattr(st, "_DIRECT", [True])
-    calls.clear()
-    prepare_terrain(src, tmp_path / "refused.zarr", block=129, K=5, workers=2)
-    assert calls[:1] == [False] and st._DIRECT == [False]  # refused once, then plain writes
-    assert _files(tmp_path / "refused.zarr", meta=True) == b
-
-
 def test_make_chunk_root_is_only_a_hint(tmp_path):
     from massview.data.terrain.store import make_chunk_root
 

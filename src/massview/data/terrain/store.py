@@ -296,74 +296,15 @@ def make_chunk_root(root: str) -> bool:
 def write_chunk_file(d: str, tail: list, data) -> None:
     """Write one chunk's encoded bytes at ``d/<tail...>``: its own folders (``i/j``, ``i/j/0`` …)
     with one ``mkdir`` each, parents first (``Path.mkdir(parents=True)`` tried the deepest
-    first: 3–5 calls, two failing), then ``open``, one ``write``, ``close`` — past the page
-    cache (:func:`_write_direct`) where the file system allows it and the chunk is large."""
+    first: 3–5 calls, two failing), then ``open``, one ``write``, ``close``."""
     for name in tail:
         try:
             os.mkdir(d)
         except FileExistsError:  # (a resumed run, or a rewritten chunk)
             pass
         d = os.path.join(d, name)
-    if len(data) >= DIRECT_MIN and _DIRECT[0] and _write_direct(d, data):
-        return
     with open(d, "wb") as fh:
         fh.write(data)
-
-
-# Chunks of at least DIRECT_MIN bytes are written with O_DIRECT: from an aligned buffer straight
-# to the device, without page-cache pages. A prepare writes each chunk once and does not read it
-# back, so those pages only cost: on a VM whose balloon reports freed pages to the host, every
-# new page-cache page faults on the host (4.2 s per GiB against 0.16 s for pages reused, issue 20),
-# ~9.5 CPU-s of a 16385² prepare. The bytes on disk are the same: the last block is padded to
-# _ALIGN and the file truncated to its length. File systems without O_DIRECT (tmpfs, some network
-# file systems: EINVAL) fall back to plain writes for the rest of the process;
-# MASSVIEW_DIRECT_IO=0 turns it off.
-DIRECT_MIN = 64 << 10
-_ALIGN = 4096
-_DIRECT = [hasattr(os, "O_DIRECT") and os.environ.get("MASSVIEW_DIRECT_IO", "1") != "0"]
-_BUFS = threading.local()
-
-
-def _write_direct(path: str, data) -> bool:
-    """Write ``data`` (bytes-like) to a new or truncated file ``path`` with O_DIRECT; False
-    (nothing written, ``_DIRECT`` off from now on) where the file system refuses O_DIRECT."""
-    import errno
-    import mmap
-
-    src = memoryview(data).cast("B")
-    n = src.nbytes
-    padded = -(-n // _ALIGN) * _ALIGN
-    buf = getattr(_BUFS, "buf", None)
-    if buf is None or len(buf) < padded:  # one page-aligned buffer per thread, grown as needed
-        if buf is not None:
-            buf.close()
-        buf = _BUFS.buf = mmap.mmap(-1, max(padded, 1 << 20))
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_DIRECT | getattr(os, "O_CLOEXEC", 0), 0o666)
-    except OSError as e:
-        if e.errno != errno.EINVAL:
-            raise
-        _DIRECT[0] = False
-        return False
-    try:
-        with memoryview(buf) as mv:
-            mv[:n] = src
-            mv[n:padded] = bytes(padded - n)
-            done = 0
-            while done < padded:
-                try:
-                    done += os.pwrite(fd, mv[done:padded], done)
-                except OSError as e:
-                    if e.errno != errno.EINVAL or done:
-                        raise
-                    _DIRECT[0] = False  # opened but refused at the write (alignment this device needs)
-                    os.ftruncate(fd, 0)
-                    return False
-        if padded != n:
-            os.ftruncate(fd, n)
-        return True
-    finally:
-        os.close(fd)
 
 
 def block_view(wide: np.ndarray, nb: int, M: int) -> np.ndarray:
