@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import json
 import os
 import re
 import sys
@@ -263,14 +264,43 @@ def cmd_render(args, argv: list[str]) -> int:
     try:
         res = api.render(args.scene, cfg.path, ranks=args.ranks, out=args.out, images=False, progress=not args.quiet, config=cfg,
                          **typed)
-    except api.RankJobError as e:  # the failing rank printed its message already
+    except api.RankJobError as e:  # the failing rank printed its message already; an interrupted one left it to us
+        if e.returncode == 130:
+            _say_interrupted(args.out)
         return e.returncode
+    except KeyboardInterrupt:  # Ctrl-C (the ranks of a --ranks N job stopped quietly)
+        _say_interrupted(args.out)
+        return 130
+    except SystemExit as e:  # SIGTERM or SIGHUP to the launcher: its status stays 128 + signal
+        if e.code in (129, 143):
+            _say_interrupted(args.out)
+        raise
     if res is not None and not args.quiet:
         from .report import print_summary
 
         print_summary(res.summary)
         print(f"wrote {args.out}/summary.json, {args.out}/stats.jsonl and the frames")
     return 0
+
+
+def _say_interrupted(out: Path) -> None:
+    """One line for a render stopped part-way: how many frames it recorded, and where."""
+    from ..parallel.runtime import in_mpi_job, world
+
+    if in_mpi_job() and world().Get_rank() != 0:
+        return
+    frames = set()
+    try:
+        with open(out / "stats.jsonl") as f:
+            for line in f:
+                try:
+                    frames.add(int(json.loads(line)["frame"]))
+                except (ValueError, KeyError, TypeError):
+                    pass  # (a last line cut short)
+    except OSError:
+        pass
+    where = f"; frames so far in {out}" if frames else ""
+    print(f"massview: interrupted after {len(frames)} frame{'' if len(frames) == 1 else 's'}{where}", file=sys.stderr, flush=True)
 
 
 _VIEW_IGNORES = ("--out", "-o", "--frames", "--path", "--reference", "--pipeline")  # render's options that view accepts and does not use
