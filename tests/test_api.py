@@ -127,11 +127,11 @@ def test_cli_defaults_render_complete_view_async():
     (lambda sc, cam: mv.render(sc, cam, ranks=2.5), "got 2.5"),  # (ran 2)
     (lambda sc, cam: mv.render(sc, cam, ranks="2"), "got '2'"),
     (lambda sc, cam: mv.path("orbit", sc, frames=2.7), "frames must be a whole number"),
-    (lambda sc, cam: mv.render(sc, cam, compositor="magic"), "--compositor must be one of"),  # (accepted on one rank)
+    (lambda sc, cam: mv.render(sc, cam, compositor="magic"), "compositor= must be one of"),  # (accepted on one rank)
     (lambda sc, cam: mv.render(sc, 5), "give a path name, a keyframe .json file, a Camera"),  # (TypeError)
-    (lambda sc, cam: mv.render(sc, cam, tau="one"), "--tau (tau=) must be a number, got 'one'"),  # (TypeError)
+    (lambda sc, cam: mv.render(sc, cam, tau="one"), "tau= must be a number, got 'one'"),  # (TypeError)
     (lambda sc, cam: mv.render(sc, "orbit", frames=True, size=(64, 48)), "frames must be a whole number"),
-    (lambda sc, cam: mv.render(sc, cam, reference="yes"), "--reference (reference=) must be True or False"),
+    (lambda sc, cam: mv.render(sc, cam, reference="yes"), "reference= must be True or False"),
     (lambda sc, cam: mv.render(sc, cam, config=3), "config= takes a RenderConfig"),  # (AttributeError)
     (lambda sc, cam: mv.camera(sc, position=(1, 1), look_at=(1, 1, 1)), "position must be 3 finite numbers"),  # (ValueError)
     (lambda sc, cam: mv.camera(sc, position=(1, 1, 1), look_at=(1, 1, 1)), "look_at is the position itself"),
@@ -150,7 +150,7 @@ def test_api_takes_the_clis_sun_string_and_a_dict_config(scene):
     cam = mv.path("orbit", scene, frames=1, size=(64, 48))[0]
     assert mv.render_config(sun="200,30").sun == (200.0, 30.0)
     assert mv.render_config({"tau": 2.0}, frames=3).tau == 2.0 and mv.render_config({"tau": 2.0}, frames=3).frames == 3
-    res = mv.render(scene, cam, config={"tau": 2})
+    res = mv.render(scene, cam, config={"compositor": "direct-send"})
     assert res.summary["frames"] == 1
     assert repr(res).startswith("RenderResult(1 frames, 64x48, 1 ranks") and len(repr(res)) < 200  # (printed every pixel)
     with pytest.raises(ConfigError, match="frame 5 of a 1-frame result"):
@@ -174,3 +174,78 @@ def test_closing_a_store_scene_frees_its_gl_pool(terrain_store):
     for _ in range(3):
         once()
     assert rss_mib() - before < 150, rss_mib() - before
+
+
+@pytest.mark.parametrize("call,needle", [
+    (lambda sc, cam: mv.render(sc, "orbit", frames=1, size="big"), "size='big': expected WIDTHxHEIGHT"),
+    (lambda sc, cam: mv.path("orbit", sc, frames=1, size=(0, 5)), "size=0x5: width and height"),
+    (lambda sc, cam: mv.render(sc, cam, tau=-1), "tau= (pixel tolerance) must be positive"),
+    (lambda sc, cam: mv.render(sc, cam, cache_mb=0), "cache_mb= and gpu_mb= must be at least 1"),
+    (lambda sc, cam: mv.render(sc, cam, decomposition="sort-middle"), "decomposition='sort-middle' is not available"),
+    (lambda sc, cam: mv.render(sc, cam, decomposition="sort-first:grid", grid="2x3"), "grid=2x3 has 6 tiles for 1 ranks"),
+    (lambda sc, cam: mv.render_config(grid="1xq"), "grid='1xq': expected ROWSxCOLS"),
+])
+def test_api_errors_name_keywords_not_flags(scene, call, needle):
+    """Called from Python, an error names the keyword (size=, tau=), not the CLI flag (--size);
+    the CLI still names its flags (test_cli_errors)."""
+    cam = mv.path("orbit", scene, frames=1, size=(64, 48))[0]
+    with pytest.raises(ConfigError) as e:
+        call(scene, cam)
+    assert needle in str(e.value) and "--" not in str(e.value), str(e.value)
+
+
+def test_size_and_frames_that_disagree_with_cameras_are_refused(scene):
+    """size= and frames= apply to a path name; with cameras they were silently ignored."""
+    cams = mv.path("orbit", scene, frames=2, size=(64, 48))
+    with pytest.raises(ConfigError, match=r"size=\(320, 240\) with cameras of 64x48"):
+        mv.render(scene, cams, size=(320, 240))
+    with pytest.raises(ConfigError, match="frames=5 with 2 cameras"):
+        mv.render(scene, cams, frames=5)
+    with pytest.raises(ConfigError, match="frames=3 with 1 camera:"):
+        mv.render_frame(scene, cams[0], frames=3)
+    res = mv.render(scene, iter(cams), frames=2, size="64x48")  # (agreeing values, and a generator of cameras, are fine)
+    assert len(res.images) == 2 and res.images[0].shape == (48, 64, 3)
+
+
+def test_grid_takes_the_clis_string_form(scene):
+    """grid="1x2" (the CLI's form) was a bare 'too many values to unpack' at the first frame."""
+    assert mv.render_config(grid="1x2").grid == (1, 2) and mv.render_config(grid=[2, 3]).grid == (2, 3)
+    mv.api.validate(scene.spec, mv.render_config(decomposition="sort-first:grid", grid="1x2"), 2)
+    cam = mv.path("orbit", scene, frames=1, size=(64, 48))[0]
+    grid = mv.render_frame(scene, cam, decomposition="sort-first:grid", grid="1x1")
+    assert np.array_equal(grid, mv.render_frame(scene, cam))
+
+
+def test_options_without_effect_warn_and_dmmr_sort_last_is_refused(scene):
+    """Terrain shading on a polygon scene and T2's options without system="roettger" change
+    nothing: one MassviewWarning naming them (the frame is the plain one); M1 with an explicit
+    sort-last would silently run sort-first:balanced: refused."""
+    cam = mv.path("orbit", scene, frames=1, size=(64, 48))[0]
+    plain = mv.render_frame(scene, cam)
+    with pytest.warns(mv.MassviewWarning) as got:
+        img = mv.render_frame(scene, cam, exaggeration=3, colormap="viridis", compute_ranks=2)
+    text = [str(w.message) for w in got]
+    assert any("exaggeration=, colormap=: no effect on builtin:objects?n=400, a polygon scene" in t for t in text), text
+    assert any("compute_ranks=: no effect without system='roettger'" in t for t in text), text
+    assert np.array_equal(img, plain)
+    with pytest.raises(ConfigError, match="system='dmmr' \\(M1\\) divides the screen.*no sort-last mode"):
+        mv.render(scene, cam, system="dmmr", decomposition="sort-last")
+
+
+def test_render_config_documents_every_field():
+    """help(RenderConfig) showed no docstring (the field comments were invisible): every field
+    is described, the testing aids are marked as such, and budgets are not called terrain-only."""
+    doc = mv.RenderConfig.__doc__ or ""
+    missing = [f.name for f in fields(mv.RenderConfig) if f"{f.name}:" not in doc and f"{f.name}," not in doc]
+    assert not missing, missing
+    aids = doc.split("Testing aids", 1)[1]
+    assert "fault:" in aids and "stage_delay:" in aids
+    assert "scene stores" in doc.split("cache_mb:", 1)[0].rsplit("\n\n", 1)[1]
+    assert "scene store" in mv.Scene.__doc__ and "scene store" in mv.open_scene.__doc__
+
+
+def test_reliefboards_result_counts_its_ranks():
+    """An M2 summary's 'ranks' counts the visualization rank's records (1); its repr said
+    '1 ranks' for ranks=2."""
+    res = mv.RenderResult([np.zeros((2, 2, 3), np.uint8)], None, {"system": "reliefboards", "backends": 1, "ranks": 1, "frames": 1}, [])
+    assert "1 frames, 2x2, 2 ranks" in repr(res)

@@ -1,6 +1,7 @@
 """Bad input gets a clear message naming the parameter, no traceback, a non-zero exit (and the
 exit itself: cli.main's last exit handler)."""
 
+import argparse
 import os
 import subprocess
 import sys
@@ -181,3 +182,52 @@ def test_render_out_in_any_store_is_refused_before_a_rank_starts(terrain_store, 
         proc = run_cli(*args, "--frames", "1", "--size", "64x48", check=False)
         assert proc.returncode != 0 and needle in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
     assert sorted(p.name for p in (tmp_path / "s.scene").iterdir()) == before
+
+
+def test_options_without_effect_get_one_warning_line_each(terrain_store, tmp_path):
+    """On builtin:objects and a scene store, --exaggeration, --colormap and --compute-ranks were
+    accepted without a word; on a terrain store without --system roettger, --compute-ranks. Now
+    one warning line per reason, the render goes on; options not typed are never judged."""
+    run_cli("generate", "scene", "city", "-o", tmp_path / "s.scene", "--size", 0.01, "-q")
+    for scene in ("builtin:objects?n=60", tmp_path / "s.scene"):
+        proc = run_cli("render", scene, "--exaggeration", 2, "--colormap", "viridis", "--compute-ranks", 2, "--frames", 1,
+                       "--size", "64x48", "--out", tmp_path / "o", "-q")
+        assert [line for line in proc.stderr.splitlines() if "warning" in line] == [
+            f"massview: warning: --exaggeration, --colormap: no effect on {scene}, a polygon scene (terrain shading and heights "
+            "only); leave them out",
+            "massview: warning: --compute-ranks: no effect without --system roettger (T2 options); leave it out"], proc.stderr
+    proc = run_cli("render", terrain_store, "--compute-ranks=2", "--exaggeration", 2, "--frames", 1, "--size", "64x48",
+                   "--out", tmp_path / "t", "-q")
+    assert proc.stderr.splitlines() == ["massview: warning: --compute-ranks: no effect without --system roettger "
+                                        "(T2 options; add it to use them); leave it out"], proc.stderr
+    plain = run_cli("render", "builtin:objects?n=60", "--frames", 1, "--size", "64x48", "--out", tmp_path / "p", "-q")
+    assert "warning" not in plain.stderr
+
+
+def test_dmmr_with_sort_last_is_refused_before_any_rank(tmp_path):
+    """--system dmmr --decomposition sort-last ran sort-first:balanced without a word (M1 divides
+    the screen); left out, the decomposition is M1's own, as before."""
+    proc = run_cli("render", "builtin:objects?n=60", "--system", "dmmr", "--decomposition", "sort-last", "--ranks", 2,
+                   "--frames", 1, "--size", "64x48", "--out", tmp_path / "o", check=False)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr and "MPI_Abort" not in proc.stderr
+    assert "--system dmmr (M1) divides the screen among its clients, it has no sort-last mode" in proc.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_bench_options_show_their_defaults():
+    """`massview bench scene --help` showed no default for --size, --frames, --tau, --cache-mb,
+    --gpu-mb, --loading (composite: --size); every option with a default now states it."""
+    from massview.app.cli import build_parser
+
+    ap = build_parser(["bench"])
+    bench = next(a for a in ap._actions if a.dest == "command").choices["bench"]
+    for name, sub in next(a for a in bench._actions if a.dest == "bench").choices.items():
+        sub.format_help()
+        for a in sub._actions:
+            if a.option_strings and a.help != argparse.SUPPRESS and a.default not in (None, False, argparse.SUPPRESS):
+                assert "default" in sub._get_formatter()._expand_help(a), (name, a.option_strings, a.help)
+    out = run_cli("bench", "scene", "--help").stdout.split("options:", 1)[1]
+    for flag, says in (("--frames FRAMES", "(default 12)"), ("--cache-mb CACHE_MB", "(default 512)"),
+                       ("--loading {async,complete}", "(default, as the viewer)")):
+        block = out.split(flag, 1)[1].split("\n  --", 1)[0]
+        assert says in " ".join(block.split()), (flag, block)

@@ -6,6 +6,7 @@ and plot (a new user's second walkthrough found a traceback, empty plots and '1 
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 from conftest import run_cli
@@ -75,3 +76,33 @@ def test_m2_summary_table():
     assert "3 (1 visualization + 2 backends)" in text and "median 387.2 ms" in text and "not reached in this run" in text
     assert "imbalance" not in text and "bytes_per_frame" not in text and "the path moves 36°" in text
     json.dumps(s)
+
+
+def test_an_interrupted_run_is_reported_as_interrupted(run2, tmp_path):
+    """No summary.json and 2 of 3 frames in stats.jsonl (a run stopped by Ctrl-C): the table was
+    printed as if the run were complete."""
+    d = _copy(run2, tmp_path)
+    (d / "summary.json").unlink()
+    lines = (d / "stats.jsonl").read_text().splitlines()
+    (d / "stats.jsonl").write_text("\n".join(line for line in lines if '"frame": 2' not in line) + "\n")
+    proc = run_cli("report", d)
+    assert "the run was interrupted after 2 frames" in proc.stderr, proc.stderr
+    assert "interrupted after 2 frames" in proc.stdout and (d / "report.png").exists()
+
+
+def test_dmmr_clients_are_plotted_by_what_they_did(tmp_path):
+    """M1's client records have no frame time (total 0: the server's frame period is the frame
+    time); the report plotted them as 0 ms. Now each client's line is the sum of its stages."""
+    from massview.app.report import load_run, rank_times
+
+    out = tmp_path / "dm"
+    run_cli("render", "builtin:objects?n=60", "--system", "dmmr", "--ranks", 2, "--frames", 2, "--size", "160x120", "--out", out, "-q")
+    _, records = load_run(out)
+    frames, ranks, ms, busy, _ = rank_times(records)
+    assert ranks == [0, 1] and busy.tolist() == [False, True]
+    client = [r for r in records if r["rank"] == 1]
+    assert all(r["times_ms"]["total"] == 0 for r in client)
+    assert (ms[:, 1] > 0).all() and np.allclose(ms[:, 1], [sum(v for k, v in r["times_ms"].items() if not k.startswith("vis_"))
+                                                         for r in sorted(client, key=lambda r: r["frame"])])
+    run_cli("report", out)
+    assert (out / "report.png").stat().st_size > 10_000

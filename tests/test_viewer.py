@@ -72,8 +72,11 @@ def test_viewer_streams_reacts_and_survives_bad_input(viewer):
     with sync_playwright() as p:
         browser = launch(p)
         page = browser.new_page()
+        errors = []  # (the page asked for /favicon.ico and logged its 404 on every load)
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
         page.goto(url)
         page.wait_for_function("window.mv && window.mv.frames >= 2 && window.mv.stats", timeout=60000)
+        assert not errors, errors
         assert page.evaluate("document.getElementById('decomposition').options.length") == 8  # 5 sort-first layouts (incl. balanced) + 3 sort-last
 
         # a key press changes the next frames (the camera moves)

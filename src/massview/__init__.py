@@ -16,13 +16,13 @@ __version__ = "0.1.0"
 from .api import Frame, RankJobError, RenderResult, Scene, camera, open_scene, path, render, render_config, render_frame, show
 from .core.camera import Camera, Viewport
 from .core.config import RenderConfig
-from .core.errors import MassviewError
+from .core.errors import MassviewError, MassviewWarning
 
 __all__ = [
     "__version__",
     "open_scene", "camera", "path", "render", "render_frame", "show", "render_config",
     "Scene", "RenderResult", "Frame", "Camera", "Viewport", "RenderConfig",
-    "MassviewError", "RankJobError",
+    "MassviewError", "MassviewWarning", "RankJobError",
 ]
 
 

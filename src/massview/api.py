@@ -34,9 +34,13 @@ was given, and returns the result on rank 0 (``None`` elsewhere).
 from __future__ import annotations
 
 import base64
+import contextlib
+import contextvars
+import functools
 import io
 import json
-from dataclasses import dataclass, fields
+import warnings
+from dataclasses import MISSING, dataclass, fields
 from pathlib import Path
 from typing import Iterable
 
@@ -44,15 +48,67 @@ import numpy as np
 
 from .core.camera import Camera, look_at_quaternion
 from .core.config import RenderConfig, parse_size
-from .core.errors import ConfigError, RankJobError
+from .core.errors import ConfigError, MassviewWarning, RankJobError
 from .core.paths import load_path, scene_clip
 
-__all__ = ["Scene", "RenderResult", "Frame", "RankJobError", "open_scene", "camera", "path", "render", "render_frame",
-           "show", "render_config"]
+__all__ = ["Scene", "RenderResult", "Frame", "RankJobError", "MassviewWarning", "open_scene", "camera", "path", "render",
+           "render_frame", "show", "render_config"]
+
+# -- how messages name options: API keywords (tau=) for Python callers, flags (--tau) for the CLI --
+_FLAG_NAMES = contextvars.ContextVar("massview_flag_names", default=False)
+
+
+@contextlib.contextmanager
+def flag_names():
+    """Inside this block the API's errors and warnings name options as CLI flags (``--tau``)
+    and warnings print as ``massview: warning:`` lines, as the CLI (which calls the API) shows
+    them; outside, errors name keywords (``tau=``) and warnings are :class:`MassviewWarning`."""
+    token = _FLAG_NAMES.set(True)
+    try:
+        yield
+    finally:
+        _FLAG_NAMES.reset(token)
+
+
+def _keyword_errors(fn):
+    """A public API function whose ConfigErrors name keywords (``size=``), not flags (``--size``)."""
+    @functools.wraps(fn)
+    def call(*args, **kw):
+        try:
+            return fn(*args, **kw)
+        except ConfigError as e:
+            if not _FLAG_NAMES.get():
+                from .app.options import keyword_text
+
+                e.args = (keyword_text(str(e)), *e.args[1:])  # (idempotent: a nested call's rewrite stays)
+            raise
+
+    return call
+
+
+def _warn(messages) -> None:
+    """Each message: a :class:`MassviewWarning` naming keywords, attributed to the caller's
+    line, for Python callers; a ``massview: warning:`` line on stderr under :func:`flag_names`."""
+    import inspect
+    import os
+    import sys
+
+    from .app.options import keyword_text
+
+    here, f, level = os.path.dirname(os.path.abspath(__file__)), inspect.currentframe(), 1
+    while f is not None and os.path.abspath(f.f_code.co_filename).startswith(here + os.sep):
+        f, level = f.f_back, level + 1
+    for m in messages:
+        if _FLAG_NAMES.get():
+            print(f"massview: warning: {m}", file=sys.stderr, flush=True)
+        else:
+            warnings.warn(keyword_text(m), MassviewWarning, stacklevel=level)
 
 
 class Scene:
-    """An open scene: a terrain store or ``builtin:objects[?n=..&seed=..]``.
+    """An open scene: a terrain store, a scene store (polygon models, ``massview prepare scene``
+    or ``massview generate scene``) or ``builtin:objects[?n=..&seed=..]`` (``kind`` is
+    ``"terrain"``, ``"scene"`` or ``"objects"``).
 
     ``bounds`` is the world-space box ``(lo, hi)`` (float64 (3,), metres, +z up) the built-in
     paths and the clip planes are fitted to. The in-process system (GL context, block caches)
@@ -163,7 +219,8 @@ def scene_bounds(spec: str, kind: str, system: str = "auto") -> tuple[np.ndarray
 
 
 def open_scene(spec: str | Path | Scene) -> Scene:
-    """Open a terrain store folder or ``builtin:objects[?n=COUNT&seed=S]`` (a :class:`Scene` is returned as is)."""
+    """Open a terrain store folder, a scene store folder or ``builtin:objects[?n=COUNT&seed=S]``
+    (a :class:`Scene` is returned as is). Nothing heavy is opened until the first render."""
     if not isinstance(spec, (str, Path, Scene)):
         raise ConfigError(f"open_scene(): give a store folder (str or Path), builtin:objects or a Scene, got {type(spec).__name__} {spec!r}")
     return spec if isinstance(spec, Scene) else Scene(spec)
@@ -201,6 +258,7 @@ def _size(size) -> tuple[int, int]:
     return parse_size(f"{w}x{h}")
 
 
+@_keyword_errors
 def camera(scene: Scene | str | None = None, *, position, look_at=None, orientation=None, fovy: float = 45.0,
            size=(1280, 1024), near: float | None = None, far: float | None = None) -> Camera:
     """A camera at ``position`` (world metres) looking at ``look_at`` (or with a unit quaternion
@@ -244,6 +302,7 @@ def _count(v, name: str) -> int:
     return int(v)
 
 
+@_keyword_errors
 def path(name_or_file: str | Path, scene: Scene | str, frames: int = 10, size=(1280, 1024)) -> list[Camera]:
     """``frames`` cameras along a built-in path (``turn``, ``zoom``, ``forward``, ``orbit``,
     ``flyover``, ``walkthrough``, fitted to the scene; ``walkthrough`` walks round its objects, or
@@ -254,6 +313,7 @@ def path(name_or_file: str | Path, scene: Scene | str, frames: int = 10, size=(1
     return _fitted_path(str(name_or_file), scene).cameras(_count(frames, "frames"), w, h)
 
 
+@_keyword_errors
 def render_config(config: RenderConfig | None = None, **options) -> RenderConfig:
     """A :class:`RenderConfig` from ``config`` (default: environment + offline defaults) and
     keyword overrides; an unknown keyword is a :class:`ConfigError` listing the known ones.
@@ -297,11 +357,18 @@ class RenderResult:
     def __repr__(self) -> str:  # (the dataclass's own would print every pixel)
         size = f"{self.images[0].shape[1]}x{self.images[0].shape[0]}" if self.images else "no images"
         fps = self.summary.get("fps")
-        return (f"RenderResult({len(self)} frames, {size}, {self.summary.get('ranks', 1)} ranks"
+        return (f"RenderResult({len(self)} frames, {size}, {_ranks(self.summary)} ranks"
                 + (f", {fps:.1f} fps" if isinstance(fps, (int, float)) else "") + (f", out={str(self.out)!r}" if self.out else "") + ")")
 
     def _repr_png_(self) -> bytes | None:
         return show(self.images[0]).png() if self.images else None
+
+
+def _ranks(summary: dict) -> int:
+    """The ranks a run used: M2's summary counts its backends (plus the visualization rank)."""
+    if summary.get("system") == "reliefboards" and isinstance(summary.get("backends"), int):
+        return summary["backends"] + 1
+    return summary.get("ranks", 1)
 
 
 def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
@@ -320,6 +387,7 @@ def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
     return cams, "cameras"
 
 
+@_keyword_errors
 def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camera] | None = None, *, ranks: int | None = None,
            out: str | Path | None = None, depth: bool = False, images: bool = True, progress: bool = False,
            frames: int | None = None, size=None, config: RenderConfig | None = None, reliefboards=None,
@@ -332,9 +400,17 @@ def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camer
     other than 0 when called collectively inside an MPI job). ``system="reliefboards"`` (M2)
     runs its own role loop (:mod:`massview.systems.reliefboards_job`); ``reliefboards``: its
     ``ReliefboardOptions`` or a dict of their fields (``t_nz``, ``epsilon_deg``, ...).
+
+    An option the scene or system does not use (``exaggeration=`` on a polygon scene,
+    ``compute_ranks=`` without ``system="roettger"``, ...) gives a :class:`MassviewWarning`;
+    ``frames=``/``size=`` that disagree with given cameras, and ``decomposition="sort-last"``
+    with ``system="dmmr"`` (which divides the screen), are a :class:`ConfigError`.
     """
     cfg = render_config(config, **options)
+    given = _given(config, options)
+    what = _given_cameras(what, frames, size)
     if cfg.system == "reliefboards":  # M2: one visualization rank and backends (issue 19)
+        from .systems import scene_kind
         from .systems.reliefboards_job import render_reliefboards
 
         if what is None or isinstance(what, (str, Path)):
@@ -342,14 +418,60 @@ def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camer
             cfg = RenderConfig(**{**cfg.to_json(), "width": w, "height": h, "frames": cfg.frames if frames is None else _count(frames, "frames")})
         spec = scene.spec if isinstance(scene, Scene) else str(scene)
         check_render_out(out, spec)
+        kind = scene_kind(spec)
+        if kind != "terrain":  # (a terrain store is refused by render_reliefboards itself)
+            _warn_options(spec, kind, cfg, given)
         return render_reliefboards(spec, what, cfg, ranks, out, images, depth, reliefboards, result=RenderResult)
     owned = not isinstance(scene, Scene)
     scene = open_scene(scene)
     try:
-        return _render(scene, what, ranks, out, depth, images, progress, frames, size, cfg)
+        return _render(scene, what, ranks, out, depth, images, progress, frames, size, cfg, given)
     finally:
         if owned:
             scene.close()
+
+
+def _given(config, options: dict) -> set[str]:
+    """The options a caller gave (judged by :func:`massview.app.options.option_warnings`):
+    keywords passed (not None), a dict config's keys, a RenderConfig's fields that differ from
+    the defaults."""
+    given = {k for k, v in options.items() if v is not None}
+    if isinstance(config, dict):
+        given |= {k for k, v in config.items() if v is not None}
+    elif isinstance(config, RenderConfig):
+        given |= {f.name for f in fields(RenderConfig) if f.default is not MISSING and getattr(config, f.name) != f.default}
+    return given
+
+
+def _given_cameras(what, frames, size):
+    """``what`` (a list where it was an iterable of cameras); ``frames=`` and ``size=`` with
+    cameras must agree with them (they apply to a path name: were silently ignored)."""
+    if what is None or isinstance(what, (str, Path)):
+        return what
+    try:
+        cams = [what] if isinstance(what, Camera) else list(what)
+    except TypeError:
+        return what  # (_cameras names what to give)
+    if not cams or not all(isinstance(c, Camera) for c in cams):
+        return what if isinstance(what, Camera) else cams
+    if frames is not None and _count(frames, "frames") != len(cams):
+        raise ConfigError(f"frames={frames!r} with {len(cams)} camera{'s' if len(cams) > 1 else ''}: cameras render one frame each; "
+                          "frames= (and size=) apply to a path name: leave frames= out")
+    w, h = cams[0].width, cams[0].height
+    if size is not None and _size(size) != (w, h):
+        raise ConfigError(f"size={size!r} with cameras of {w}x{h}: cameras carry their own image size (camera(..., size=), "
+                          "path(..., size=)); size= applies to a path name: leave it out")
+    return what if isinstance(what, Camera) else cams
+
+
+def _warn_options(spec: str, kind: str, cfg: RenderConfig, given) -> None:
+    """Warnings for given options that have no effect here (rank 0 only inside an MPI job)."""
+    from .app.options import option_warnings
+    from .parallel.runtime import in_mpi_job, world
+
+    lines = option_warnings(spec, kind, cfg, given)
+    if lines and (not in_mpi_job() or world().Get_rank() == 0):
+        _warn(lines)
 
 
 def _not_inside_the_store(out: Path, spec: str) -> None:
@@ -378,7 +500,7 @@ def check_render_out(out, spec: str) -> Path | None:
     return check_output_dir(Path(out), "--out")
 
 
-def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, size, cfg: RenderConfig) -> RenderResult | None:
+def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, size, cfg: RenderConfig, given=()) -> RenderResult | None:
     from .parallel.runtime import in_mpi_job, world
 
     nranks = world().Get_size() if in_mpi_job() else (1 if ranks is None else _count(ranks, "ranks"))
@@ -390,6 +512,7 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
         load_path(str(what), [0, 0, 0], [1, 1, 1])  # a bad name or file is reported now
     out = Path(out) if out is not None else None
     validate(scene.spec, cfg, nranks)
+    _warn_options(scene.spec, scene.kind, cfg, given)
     check_render_out(out, scene.spec)
     if nranks == 1 or in_mpi_job():
         scene.system(cfg)  # opened with this config's budgets (the bounds come from it)
@@ -401,10 +524,13 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
     return _render_job(scene, cfg, cams, label, out, depth, images, progress, nranks)
 
 
+@_keyword_errors
 def render_frame(scene: Scene | str | Path, what: Camera | str | Path | None = None, *, depth: bool = False, **kw):
     """One frame: (H, W, 3) uint8, or ``(rgb, depth)`` with ``depth=True``. ``what`` is a camera
     or a path (its first camera); other keywords as :func:`render`."""
-    res = render(scene, what, depth=depth, frames=kw.pop("frames", 1), **kw)
+    if what is None or isinstance(what, (str, Path)):
+        kw.setdefault("frames", 1)
+    res = render(scene, what, depth=depth, **kw)
     if res is None:
         return None
     return (res.images[0], res.depths[0]) if depth else res.images[0]

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import json
 import os
 import re
 import sys
@@ -109,6 +110,13 @@ def _add_roettger_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-fan-delta", dest="fan_delta", action="store_false", help="T2: resend every visible fan each frame (no change-only messages)")
 
 
+def _add_view_args(v: argparse.ArgumentParser) -> None:
+    """``view``'s own flags and defaults (after render's)."""
+    v.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0 picks a free one)")
+    v.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
+    v.set_defaults(size="960x540", out=None, loading="async")
+
+
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The whole command line; given ``argv``, the ``bench`` subcommands (whose modules import
     the renderer, MPI and the scene systems: ~0.1 s) only when ``argv`` starts with ``bench``."""
@@ -121,9 +129,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     _add_render_args(r)
     v = sub.add_parser("view", help="live parallel rendering in the browser")
     _add_render_args(v)
-    v.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0 picks a free one)")
-    v.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
-    v.set_defaults(size="960x540", out=None, loading="async")
+    _add_view_args(v)
     rep = sub.add_parser("report", help="summary table and report.png of a render folder")
     rep.add_argument("dir", type=Path, help="the --out folder of a `massview render` run (its stats.jsonl and summary.json); "
                                             "report.png is written there. A folder of M2 runs gets the figures across backend counts")
@@ -187,9 +193,21 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         from .bench import BENCHES
 
         for name, mod in BENCHES.items():
-            mod.add_arguments(bsub.add_parser(name, help=_doc_summary(mod.__doc__, name)))
+            mod.add_arguments(bsub.add_parser(name, help=_doc_summary(mod.__doc__, name), formatter_class=DefaultsHelpFormatter))
     upgrade_cmds.add_parsers(sub)
     return ap
+
+
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Help in which each option with a default states it where its own text does not: "(default
+    X)" is added (a bench's --size, --frames, --tau... showed none). Options whose default is
+    None or False, and hidden ones, are left as they are (their help says what "not given" means)."""
+
+    def add_argument(self, action) -> None:
+        if action.option_strings and action.help != argparse.SUPPRESS and action.default not in (None, False, argparse.SUPPRESS) \
+                and "default" not in (action.help or ""):
+            action.help = f"{action.help} (default %(default)s)" if action.help else "default %(default)s"
+        super().add_argument(action)
 
 
 def _doc_summary(doc: str | None, name: str) -> str:
@@ -210,23 +228,79 @@ def render_config(args) -> RenderConfig:
     return RenderConfig.from_env(**{**flags, "width": w, "height": h, "sun": parse_sun(args.sun) if hasattr(args, "sun") else None})
 
 
-def cmd_render(args) -> int:
+def typed_options(argv: list[str]) -> set[str]:
+    """The RenderConfig fields whose flags ``argv`` (a ``render``/``view`` command line) gives,
+    as argparse resolves them (abbreviations, ``--opt=value``): the line is parsed by the
+    command's own arguments once for every name, then again into a namespace that holds a
+    marker under each name — argparse fills in a default only where a name is missing, so the
+    names still marked were not typed."""
+    from dataclasses import fields
+
+    def parser() -> argparse.ArgumentParser:
+        p = argparse.ArgumentParser(prog=f"massview {argv[0]}")
+        _add_render_args(p)
+        if argv[0] == "view":
+            _add_view_args(p)
+        return p
+
+    rest = _negative_values(argv[1:])
+    unset = object()
+    marked = argparse.Namespace(**{name: unset for name in vars(parser().parse_args(rest))})
+    got = vars(parser().parse_args(rest, namespace=marked))
+    typed = {name for name, v in got.items() if v is not unset and v != []}  # ([]: no further T2 layer given)
+    if "size" in typed:
+        typed |= {"width", "height"}
+    return typed & {f.name for f in fields(RenderConfig)}
+
+
+def cmd_render(args, argv: list[str]) -> int:
     from .. import api
     from ..parallel.runtime import in_mpi_job, world
 
     cfg = render_config(args)
     if in_mpi_job() and world().Get_rank() == 0 and args.ranks and args.ranks != world().Get_size() and not _launched_by_us():
         print(f"massview: note: running on the {world().Get_size()} ranks mpiexec gave, not --ranks {args.ranks}", file=sys.stderr)
+    typed = {name: getattr(cfg, name) for name in typed_options(argv)}  # (judged by massview.app.options)
     try:
-        res = api.render(args.scene, cfg.path, ranks=args.ranks, out=args.out, images=False, progress=not args.quiet, config=cfg)
-    except api.RankJobError as e:  # the failing rank printed its message already
+        res = api.render(args.scene, cfg.path, ranks=args.ranks, out=args.out, images=False, progress=not args.quiet, config=cfg,
+                         **typed)
+    except api.RankJobError as e:  # the failing rank printed its message already; an interrupted one left it to us
+        if e.returncode == 130:
+            _say_interrupted(args.out)
         return e.returncode
+    except KeyboardInterrupt:  # Ctrl-C (the ranks of a --ranks N job stopped quietly)
+        _say_interrupted(args.out)
+        return 130
+    except SystemExit as e:  # SIGTERM or SIGHUP to the launcher: its status stays 128 + signal
+        if e.code in (129, 143):
+            _say_interrupted(args.out)
+        raise
     if res is not None and not args.quiet:
         from .report import print_summary
 
         print_summary(res.summary)
         print(f"wrote {args.out}/summary.json, {args.out}/stats.jsonl and the frames")
     return 0
+
+
+def _say_interrupted(out: Path) -> None:
+    """One line for a render stopped part-way: how many frames it recorded, and where."""
+    from ..parallel.runtime import in_mpi_job, world
+
+    if in_mpi_job() and world().Get_rank() != 0:
+        return
+    frames = set()
+    try:
+        with open(out / "stats.jsonl") as f:
+            for line in f:
+                try:
+                    frames.add(int(json.loads(line)["frame"]))
+                except (ValueError, KeyError, TypeError):
+                    pass  # (a last line cut short)
+    except OSError:
+        pass
+    where = f"; frames so far in {out}" if frames else ""
+    print(f"massview: interrupted after {len(frames)} frame{'' if len(frames) == 1 else 's'}{where}", file=sys.stderr, flush=True)
 
 
 _VIEW_IGNORES = ("--out", "-o", "--frames", "--path", "--reference", "--pipeline")  # render's options that view accepts and does not use
@@ -253,8 +327,12 @@ def cmd_view(args, argv) -> int:
 
         check_port(args.host, args.port)  # before the scene is loaded or any rank starts
         from ..core.paths import load_path
+        from ..systems import scene_kind
+        from .options import option_warnings
 
         validate(args.scene, cfg, args.ranks or 1)
+        for w in option_warnings(args.scene, scene_kind(args.scene), cfg, typed_options(argv)):
+            print(f"massview: warning: {w}", file=sys.stderr)
         load_path(cfg.path, [0, 0, 0], [1, 1, 1])
         if (args.ranks or 1) > 1:
             return relaunch(argv, args.ranks)
@@ -262,6 +340,18 @@ def cmd_view(args, argv) -> int:
     from .view_cmd import run_view
 
     return guarded(comm, run_view, comm, args, cfg)
+
+
+def _warn_m2_options(scene: str, cfg: RenderConfig, argv: list[str]) -> None:
+    """M2's parent process: a warning line per typed option it does not use (a terrain store
+    is refused by M2's own check)."""
+    from ..systems import scene_kind
+    from .options import option_warnings
+
+    kind = scene_kind(scene)
+    if kind != "terrain":
+        for w in option_warnings(scene, kind, cfg, typed_options(argv)):
+            print(f"massview: warning: {w}", file=sys.stderr)
 
 
 def _launched_by_us() -> bool:
@@ -364,45 +454,56 @@ def main(argv: list[str] | None = None) -> int:
 
         return run_m2_job(argv[1])
     args = build_parser(argv).parse_args(_negative_values(argv))
+    from ..api import flag_names
+
     try:
-        if args.command == "render" and args.system == "reliefboards":
-            from .reliefboards_cmds import cmd_render as _reliefboards
-
-            return _reliefboards(args, argv, render_config(args))
-        if args.command == "render":
-            return cmd_render(args)
-        if args.command == "view":
-            return cmd_view(args, argv)
-        if args.command == "report":
-            return cmd_report(args)
-        if args.command == "bench":
-            return cmd_bench(args)
-        if args.command == "demo":
-            from .demo import run_demo
-
-            return run_demo(args)
-        if args.command == "upgrade":
-            return upgrade_cmds.cmd_upgrade(args)
-        if args.command == "prepare" and args.what == "reliefboards":
-            from .reliefboards_cmds import cmd_prepare
-
-            return cmd_prepare(args)
-        if args.command == "prepare" and args.what == "roettger":
-            from .roettger_cmds import cmd_prepare_roettger
-
-            return cmd_prepare_roettger(args)
-        if args.command in ("generate", "prepare", "info", "verify"):
-            from . import scene_cmds, terrain_cmds
-
-            if args.command in ("info", "verify") and not Path(args.store).exists():
-                raise StoreError(f"{args.store}: no such store; make a terrain store with `massview prepare terrain INPUT -o STORE` "
-                                 "or a scene store with `massview prepare scene MESH... -o SCENE`")
-            scene = getattr(args, "what", None) == "scene" or (args.command in ("info", "verify") and scene_cmds.is_scene(args.store))
-            return getattr(scene_cmds if scene else terrain_cmds, f"cmd_{args.command}")(args)
+        with flag_names():  # the API's messages name --flags here, and its warnings are lines
+            return _dispatch(args, argv)
     except MassviewError as e:
         print(f"massview: error: {e}", file=sys.stderr)
         return 2 if isinstance(e, ConfigError) else 1
     except KeyboardInterrupt:
         print("massview: interrupted", file=sys.stderr)
         return 130
+
+
+def _dispatch(args, argv: list[str]) -> int:
+    """Run the parsed command; its status."""
+    if args.command == "render" and args.system == "reliefboards":
+        from .reliefboards_cmds import cmd_render as _reliefboards
+
+        cfg = render_config(args)
+        if not in_mpi_job():
+            _warn_m2_options(args.scene, cfg, argv)
+        return _reliefboards(args, argv, cfg)
+    if args.command == "render":
+        return cmd_render(args, argv)
+    if args.command == "view":
+        return cmd_view(args, argv)
+    if args.command == "report":
+        return cmd_report(args)
+    if args.command == "bench":
+        return cmd_bench(args)
+    if args.command == "demo":
+        from .demo import run_demo
+
+        return run_demo(args)
+    if args.command == "upgrade":
+        return upgrade_cmds.cmd_upgrade(args)
+    if args.command == "prepare" and args.what == "reliefboards":
+        from .reliefboards_cmds import cmd_prepare
+
+        return cmd_prepare(args)
+    if args.command == "prepare" and args.what == "roettger":
+        from .roettger_cmds import cmd_prepare_roettger
+
+        return cmd_prepare_roettger(args)
+    if args.command in ("generate", "prepare", "info", "verify"):
+        from . import scene_cmds, terrain_cmds
+
+        if args.command in ("info", "verify") and not Path(args.store).exists():
+            raise StoreError(f"{args.store}: no such store; make a terrain store with `massview prepare terrain INPUT -o STORE` "
+                             "or a scene store with `massview prepare scene MESH... -o SCENE`")
+        scene = getattr(args, "what", None) == "scene" or (args.command in ("info", "verify") and scene_cmds.is_scene(args.store))
+        return getattr(scene_cmds if scene else terrain_cmds, f"cmd_{args.command}")(args)
     return 0

@@ -46,6 +46,11 @@ def load_run(out: Path, notes: list | None = None) -> tuple[dict, list[dict]]:
             notes.append(f"{sfile} does not parse (the run did not finish?); the figures below are recomputed from stats.jsonl")
     if not isinstance(summary, dict):
         summary = summarize(records)
+        n = summary["frames"]
+        summary["interrupted_after"] = n
+        if not sfile.exists():
+            notes.append(f"{out}: no summary.json: the run was interrupted after {n} frame{'' if n == 1 else 's'} (or is still "
+                         "running); the figures below are of those frames")
     return summary, records
 
 
@@ -54,7 +59,8 @@ def print_summary(summary: dict, console=None) -> None:
     from rich.table import Table
 
     console = console or Console()
-    t = Table(title="massview run", show_header=True)
+    cut = summary.get("interrupted_after")
+    t = Table(title="massview run" + (f" (interrupted after {cut} frames)" if cut is not None else ""), show_header=True)
     t.add_column("figure")
     t.add_column("value", justify="right")
     if summary.get("system") == "reliefboards":  # M2: its records are the visualization rank's frames
@@ -91,6 +97,31 @@ def print_summary(summary: dict, console=None) -> None:
     console.print(t)
 
 
+NESTED_STAGES = ("total", "vis_load", "vis_issue", "vis_retrieve")  # the frame itself; parts of M1's "visibility"
+
+
+def rank_times(records: list[dict]):
+    """(frames, ranks, ms (frames, ranks), busy (ranks,) bool, triangles (frames, ranks)) for the
+    report's plots: each record's ``total`` (its frame time); a rank whose records have no
+    total (M1's clients: the server's frame period is the frame time) gets the sum of its
+    stage times instead, with ``busy`` set, rather than a line at 0 ms."""
+    frames = sorted({r["frame"] for r in records})
+    ranks = sorted({r["rank"] for r in records})
+    fi, ri = {f: i for i, f in enumerate(frames)}, {r: j for j, r in enumerate(ranks)}
+    total = np.zeros((len(frames), len(ranks)))
+    stages = np.zeros_like(total)
+    tri = np.zeros_like(total)
+    for r in records:
+        i, j = fi[r["frame"]], ri[r["rank"]]
+        t = r["times_ms"]
+        total[i, j] = t.get("total", 0.0)
+        stages[i, j] = sum(v for k, v in t.items() if k not in NESTED_STAGES)
+        tri[i, j] = r["triangles"]
+    busy = ~total.any(axis=0) & stages.any(axis=0)
+    total[:, busy] = stages[:, busy]
+    return frames, ranks, total, busy, tri
+
+
 def write_report(out: Path, records: list[dict], summary: dict) -> Path:
     if summary.get("system") == "reliefboards":
         from .reliefboards_report import write_run_report
@@ -101,24 +132,23 @@ def write_report(out: Path, records: list[dict], summary: dict) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    frames = sorted({r["frame"] for r in records})
-    ranks = sorted({r["rank"] for r in records})
-    total = np.zeros((len(frames), len(ranks)))
-    tri = np.zeros_like(total)
-    for r in records:
-        i, j = frames.index(r["frame"]), ranks.index(r["rank"])
-        total[i, j] = r["times_ms"].get("total", 0.0)
-        tri[i, j] = r["triangles"]
+    frames, ranks, total, busy, tri = rank_times(records)
     from matplotlib.ticker import MaxNLocator
 
     mark = dict(marker="o", ms=4 if len(frames) < 30 else 0)  # (one frame: a line of one point shows nothing)
     fig, (a, b) = plt.subplots(2, 1, figsize=(9, 6.5), sharex=True)
-    a.plot(frames, total.max(axis=1), "-", color="0.75", lw=5, label="frame (max over ranks)", **mark)  # under the ranks' lines
+    framed = total[:, ~busy] if (~busy).any() else total
+    a.plot(frames, framed.max(axis=1), "-", color="0.75", lw=5, label="frame (max over ranks)", **mark)  # under the ranks' lines
     for j, rk in enumerate(ranks):
-        a.plot(frames, total[:, j], lw=1.2, label=f"rank {rk}", **mark)
+        if busy[j]:  # no frame time of its own (M1's clients): the sum of its stages, dashed
+            a.plot(frames, total[:, j], "--", lw=1.2, label=f"rank {rk}: busy (sum of its stages)", **mark)
+        else:
+            a.plot(frames, total[:, j], lw=1.2, label=f"rank {rk}", **mark)
     a.set_ylabel("time (ms)")
     a.legend(fontsize=7, ncol=3)
-    a.set_title(f"{summary.get('scene', '')} · {summary.get('decomposition', '')} · {summary.get('compositor', '')} · {len(ranks)} ranks")
+    cut = summary.get("interrupted_after")
+    a.set_title(f"{summary.get('scene', '')} · {summary.get('decomposition', '')} · {summary.get('compositor', '')} · {len(ranks)} ranks"
+                + (f" · interrupted after {cut} frames" if cut is not None else ""))
     for j, rk in enumerate(ranks):
         b.plot(frames, tri[:, j] / 1e3, lw=1.5, label=f"rank {rk}", **mark)
     b.set_ylabel("triangles per rank (k)")

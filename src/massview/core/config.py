@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass, fields
 
 from .errors import ConfigError
 
-__all__ = ["RenderConfig", "parse_size", "parse_sun"]
+__all__ = ["RenderConfig", "parse_size", "parse_sun", "parse_grid"]
 
 
 def parse_size(spec: str) -> tuple[int, int]:
@@ -27,16 +27,102 @@ def parse_size(spec: str) -> tuple[int, int]:
     return w, h
 
 
+def parse_grid(spec) -> tuple[int, int]:
+    """``"ROWSxCOLS"`` (the CLI's form) or (rows, cols) → (rows, cols), both ≥ 1."""
+    import numbers
+
+    try:
+        r, c = (int(v) for v in spec.lower().split("x")) if isinstance(spec, str) else spec
+        ok = all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in (r, c))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or r < 1 or c < 1:
+        raise ConfigError(f"--grid {spec!r}: expected ROWSxCOLS with both at least 1, e.g. 2x3 or (2, 3)")
+    return int(r), int(c)
+
+
 CODEC_NAMES = ("auto", "none", "lz4", "blosc2")  # massview.parallel.codec.CODEC_CHOICES (checked by tests/test_codec_composite.py)
 COMPOSITOR_NAMES = ("direct-send", "binary-swap", "radix-k")  # massview.parallel.composite.COMPOSITORS (kept here so that the CLI's parser need not import mpi4py)
 
 
 @dataclass(frozen=True)
 class RenderConfig:
+    """Every option of a render, one field each: a CLI flag of ``massview render``/``view``
+    (``cache_mb`` is ``--cache-mb``) and a keyword of :func:`massview.render`. Frozen and
+    checked on construction; it is what travels to every rank.
+
+    Decomposition and compositing:
+        decomposition: ``sort-last[:MODE]`` or ``sort-first[:LAYOUT]`` (LAYOUT horizontal,
+            vertical, grid, kd, balanced; MODE for a terrain kpatch, linear, quadtree; for a scene
+            store visible, static). Default ``sort-last``.
+        compositor: sort-last depth compositing: direct-send, binary-swap (default), radix-k.
+        radix_k: k of radix-k (default 4).
+        codec: sub-image codec between ranks: auto (default: none and raw rows on one node,
+            blosc2 across nodes), none, lz4, blosc2.
+        grid: (rows, cols) or ``"ROWSxCOLS"`` for ``sort-first:grid`` (default: chosen for the
+            rank count).
+        wall: ``"CxR"``: C×R display ranks each write their own tile.
+        tile_targets: sort-first into tile-sized targets (equal to ~1e-4 of pixels).
+        pipeline: ``"on"``: composite and deliver frame i on a thread while frame i+1 is drawn.
+
+    Frames:
+        width, height: image size in pixels (default 1280×1024; the API's ``size=``).
+        frames: frames of the path (default 10).
+        path: a built-in path name or a keyframe ``.json`` file (default ``orbit``).
+        reference: also render each frame on one rank and report the difference.
+        color_by_rank: tint each rank's contribution.
+        egl_device: the EGL device index (default: the first; ``MASSVIEW_EGL_DEVICE``).
+
+    Level of detail and memory (terrain stores and scene stores; ``builtin:objects`` is drawn
+    whole from memory):
+        tau: pixel tolerance of the LOD (default 1).
+        cache_mb: RAM block cache per rank, MiB (default 256).
+        gpu_mb: GL block pool per rank, MiB (default 256).
+        loading: ``"complete"`` (default: wait for every block the view needs, final-quality
+            frames) or ``"async"`` (never wait: draw coarser meanwhile; the viewer's).
+
+    Terrain shading (terrain stores only):
+        exaggeration: vertical exaggeration at view time (default 1; the LOD bound accounts for it).
+        sun: (azimuth ° clockwise from north, altitude °), as gdaldem (default (315, 45)); also
+            the CLI's ``"AZ,ALT"`` string.
+        colormap: a matplotlib colormap name, ``hypsometric``, ``ortho``, ``none`` (grey) or
+            ``auto`` (default: ``ortho`` where the store has an orthophoto).
+        haze: aerial perspective strength (0 = off; default 1: 30 % towards the sky across the terrain).
+
+    Systems:
+        system: ``"auto"`` (by scene: T1 for a terrain, the scene renderer otherwise),
+            ``"roettger"`` (T2), ``"dmmr"`` (M1) or ``"reliefboards"`` (M2).
+
+    T2 (``system="roettger"``, terrain stores):
+        layers: further stores drawn as stacked layers.
+        compute_ranks: computation ranks; the other ranks visualize (default 1).
+        paper_partition: the paper's overlapping (2^m+1)² portions instead of the exact partition.
+        triangle_budget: at most N triangles per frame.
+        roettger_C: minimum global resolution C (default: the store table's C_min).
+        roettger_c: desired global resolution c (default: from ``tau``).
+        fan_delta: send only the fans that changed since the previous frame (default True).
+
+    M1 (``system="dmmr"``: rank 0 server, other ranks clients; scene stores and builtin:objects):
+        visible_frames: frames a passed occlusion query keeps an object visible (default 4).
+        query_threshold: samples (pixels) a box must pass to count as visible (default 0).
+        occlusion: occlusion culling on the clients, ``"on"`` (default) or ``"off"``.
+        query_hierarchy: queries through the group tree (``"on"``, default) or one per object box.
+        occluder_lod: depth pre-pass at the rendered level (``"exact"``, default) or the coarsest.
+        stage_pipeline: divide i / visibility i-1 / render i-2 concurrently (``"on"``, default).
+        client_cache_mb: client RAM cache, MiB (default: the scene's object bytes / clients).
+        record_ids: each client record lists the object ids it drew (``drawn_ids``).
+        id_check: clients also render an ID buffer of their sub-frustum (``idbuffer_ids``,
+            ``idbuffer_missed``).
+
+    Testing aids (not user options; no CLI help):
+        fault: ``"RANK:FRAME"``: raise on that rank at that frame.
+        stage_delay: M1: ``"divide:MS,visibility:MS,render:MS"`` sleeps per stage.
+    """
+
     decomposition: str = "sort-last"
     compositor: str = "binary-swap"
     radix_k: int = 4
-    codec: str = "auto"  # sub-image codec: auto (none + raw rows on one node, else blosc2), none, lz4, blosc2
+    codec: str = "auto"
     width: int = 1280
     height: int = 1024
     frames: int = 10
@@ -47,36 +133,34 @@ class RenderConfig:
     reference: bool = False
     color_by_rank: bool = False
     tau: float = 1.0
-    cache_mb: int = 256  # terrain: RAM block cache budget (MiB)
-    gpu_mb: int = 256  # terrain: GL block pool budget (MiB)
-    loading: str = "complete"  # terrain: "complete" (wait for every block the view needs: offline frames) or "async" (never wait: the viewer)
-    exaggeration: float = 1.0  # terrain: vertical exaggeration at view time (the LOD bound accounts for it)
-    sun: tuple[float, float] = (315.0, 45.0)  # terrain: sun azimuth (° clockwise from north), altitude (°), as gdaldem
-    colormap: str = "auto"  # terrain: matplotlib colormap name, hypsometric, ortho, none (grey), auto (ortho if any)
-    haze: float = 1.0  # terrain: aerial perspective strength (0 = off; 1 = 30 % towards the sky across the terrain)
+    cache_mb: int = 256
+    gpu_mb: int = 256
+    loading: str = "complete"
+    exaggeration: float = 1.0
+    sun: tuple[float, float] = (315.0, 45.0)
+    colormap: str = "auto"
+    haze: float = 1.0
     egl_device: int | None = None
-    fault: str | None = None  # testing aid: "RANK:FRAME" raises on that rank at that frame
-    pipeline: str = "off"  # "on": composite/deliver frame i on a thread while frame i+1 is drawn
-    # T2 (--system roettger): computation ranks, partition, budget, Röttger's C and c, layers
-    system: str = "auto"  # "auto" (by scene), "roettger" (T2), "dmmr" (M1) or "reliefboards" (M2)
-    layers: tuple[str, ...] = ()  # further stores drawn as stacked layers (T2)
+    fault: str | None = None  # testing aid
+    pipeline: str = "off"
+    system: str = "auto"
+    layers: tuple[str, ...] = ()
     compute_ranks: int = 1
     paper_partition: bool = False
     triangle_budget: int | None = None
-    roettger_C: float | None = None  # None: the store table's C_min
-    roettger_c: float | None = None  # None: from --tau (massview.lod.roettger.default_c)
-    fan_delta: bool = True  # send only the fans that changed since the previous frame
-    # M1 (--system dmmr): server + clients
-    visible_frames: int = 4  # dmmr: frames a passed occlusion query keeps an object visible
-    query_threshold: int = 0  # dmmr: samples (pixels) a box must pass to count as visible
-    occlusion: str = "on"  # dmmr: occlusion culling on the clients, "on" or "off"
-    query_hierarchy: str = "on"  # dmmr: occlusion queries through the group tree ("on") or one per object box ("off")
-    occluder_lod: str = "exact"  # dmmr: depth pre-pass at the rendered level ("exact") or the coarsest ("coarse")
-    stage_pipeline: str = "on"  # dmmr: divide i / visibility i-1 / render i-2 concurrently, or "off"
-    client_cache_mb: int | None = None  # dmmr: client RAM cache (default: scene object bytes / clients)
-    stage_delay: str | None = None  # testing aid: "divide:MS,visibility:MS,render:MS" sleeps per stage
-    record_ids: bool = False  # dmmr: each client record lists the object ids it drew ("drawn_ids")
-    id_check: bool = False  # dmmr: clients also render an ID buffer of their sub-frustum ("idbuffer_ids", "idbuffer_missed")
+    roettger_C: float | None = None
+    roettger_c: float | None = None
+    fan_delta: bool = True
+    visible_frames: int = 4
+    query_threshold: int = 0
+    occlusion: str = "on"
+    query_hierarchy: str = "on"
+    occluder_lod: str = "exact"
+    stage_pipeline: str = "on"
+    client_cache_mb: int | None = None
+    stage_delay: str | None = None  # testing aid
+    record_ids: bool = False
+    id_check: bool = False
 
     def __post_init__(self) -> None:
         self._check_types()
@@ -108,6 +192,8 @@ class RenderConfig:
             raise ConfigError("--reference checks that the frame equals one rank's, and --color-by-rank tints each rank's part, so "
                               "the two differ by design (only --system roettger tints its reference alike): drop one of them")
         object.__setattr__(self, "layers", tuple(self.layers))
+        if self.grid is not None:
+            object.__setattr__(self, "grid", parse_grid(self.grid))
         self._check_shading()
         self._check_dmmr()
 

@@ -19,12 +19,18 @@ __all__ = [
     "IngestError",
     "OutputError",
     "RankJobError",
+    "MassviewWarning",
     "describe",
 ]
 
 
 class MassviewError(Exception):
     """Base class of all massview errors."""
+
+
+class MassviewWarning(UserWarning):
+    """Something given has no effect (an option the scene or system does not use); the work
+    goes on. The CLI prints it as one ``massview: warning:`` line."""
 
 
 class ConfigError(MassviewError, ValueError):

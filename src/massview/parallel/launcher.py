@@ -3,11 +3,14 @@
 ``mpiexec`` is started in a session of its own, so a terminal's Ctrl-C reaches this process
 only, and this process stands for the whole job: SIGINT, SIGTERM and SIGHUP sent to it (by a
 terminal, ``kill``, ``timeout``, systemd, a notebook's ``send_signal``) are forwarded to
-``mpiexec``. MPICH's hydra ``mpiexec`` (the ``mpich`` wheel's) forwards SIGINT and SIGTERM to
+``mpiexec`` as SIGTERM. MPICH's hydra ``mpiexec`` (the ``mpich`` wheel's) forwards SIGTERM to
 every rank (its proxies and ranks each run in a session of their own, so signalling a process
-group would reach ``mpiexec`` alone); a second SIGINT makes it kill the ranks ("force abort").
-SIGHUP is forwarded as SIGTERM (hydra has no use for it). A job still running ``grace`` seconds
-after the first signal is killed: ``mpiexec`` and every process below it (SIGKILL).
+group would reach ``mpiexec`` alone), where it raises KeyboardInterrupt as SIGINT does
+(:func:`massview.parallel.runtime.interrupt_on_sigterm`; the viewer handles both alike); a
+forwarded SIGINT would make hydra print two lines of its own ("Sending Ctrl-C to processes as
+requested", "Press Ctrl-C again to force abort") under the one this process prints. A second
+signal kills the job at once, and a job still running ``grace`` seconds after the first is
+killed: ``mpiexec`` and every process below it (SIGKILL).
 
 Once the job has ended, a signal is handed on to the caller as if the job had not been there:
 the handler that was installed before is called (Python's default SIGINT handler raises
@@ -108,7 +111,7 @@ def run_job(cmd: list[str], env: dict[str, str], grace: float = STOP_GRACE_S) ->
 
     def forward(signum, frame):
         got.append(signum)
-        _send(proc, signal.SIGTERM if signum == getattr(signal, "SIGHUP", None) else signum)
+        _send(proc, signal.SIGTERM)
 
     previous = _install(forward)
     try:
@@ -121,13 +124,14 @@ def run_job(cmd: list[str], env: dict[str, str], grace: float = STOP_GRACE_S) ->
                 pass
             if got and deadline is None:
                 deadline = time.monotonic() + grace
-            if deadline is not None and time.monotonic() > deadline:
-                print(f"massview: the job did not stop within {grace:g} s of {signal.Signals(got[0]).name}; killing it",
-                      file=sys.stderr, flush=True)
+            twice = len(got) > 1
+            if deadline is not None and deadline != float("inf") and (twice or time.monotonic() > deadline):
+                why = "asked to stop twice" if twice else f"the job did not stop within {grace:g} s of {signal.Signals(got[0]).name}"
+                print(f"massview: {why}; killing it", file=sys.stderr, flush=True)
                 _kill_tree(proc)
                 deadline = float("inf")
     except BaseException:  # KeyboardInterrupt where no handler could be installed, or anything else: no job left behind
-        _send(proc, signal.SIGINT)
+        _send(proc, signal.SIGTERM)
         try:
             proc.wait(timeout=grace)
         except subprocess.TimeoutExpired:

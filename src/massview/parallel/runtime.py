@@ -80,22 +80,44 @@ def world():
 
 def guarded(comm, fn, *args, **kw):
     """Run ``fn`` on this rank; on an exception print it once, prefixed by the rank, and abort
-    every rank with exit status 1 (a single-rank run exits the same way, without MPI_Abort)."""
+    every rank with exit status 1 (a single-rank run exits the same way, without MPI_Abort).
+
+    An interruption (KeyboardInterrupt: SIGINT, or SIGTERM through :func:`interrupt_on_sigterm`)
+    of a job that massview launched itself (:func:`relaunch`) aborts with status 130 quietly:
+    no line from the rank and none from MPICH's ``MPI_Abort`` (this rank's stderr is closed just
+    before it), since the launching process, which stopped the job, says it once. Any other
+    exception, and an interruption under an external ``mpiexec``, prints as above."""
     try:
         return fn(*args, **kw)
     except BaseException as e:  # noqa: BLE001 - any failure must end every rank
         rank, size = comm.Get_rank(), comm.Get_size()
+        interrupted = isinstance(e, KeyboardInterrupt)
+        quiet = interrupted and size > 1 and os.environ.get("MASSVIEW_UNDER_MPI") == "1"
         prefix = f"massview: error on rank {rank} of {size}: " if size > 1 else "massview: error: "
         if isinstance(e, MassviewError):
             msg = prefix + str(e)
-        elif isinstance(e, KeyboardInterrupt):
+        elif interrupted:
             msg = prefix + "interrupted"
         else:
             msg = prefix + f"{type(e).__name__}: {e}\n" + "".join(traceback.format_exception(e))
-        print(msg, file=sys.stderr, flush=True)
+        if not quiet:
+            print(msg, file=sys.stderr, flush=True)
         if size > 1:
-            comm.Abort(130 if isinstance(e, KeyboardInterrupt) else 1)
-        raise SystemExit(130 if isinstance(e, KeyboardInterrupt) else 1) from None
+            if quiet:
+                _close_stderr()
+            comm.Abort(130 if interrupted else 1)
+        raise SystemExit(130 if interrupted else 1) from None
+
+
+def _close_stderr() -> None:
+    """Point file descriptor 2 at /dev/null (what this process writes is flushed first)."""
+    try:
+        sys.stderr.flush()
+        fd = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(fd, 2)
+        os.close(fd)
+    except OSError:
+        pass
 
 
 def self_comm():

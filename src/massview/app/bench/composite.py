@@ -70,7 +70,7 @@ def add_arguments(p) -> None:
     from ...parallel.codec import CODEC_CHOICES
 
     p.add_argument("--ranks", default="2,3,4", help="rank counts, comma-separated (default 2,3,4)")
-    p.add_argument("--size", default="1280x1024")
+    p.add_argument("--size", default="1280x1024", help="image WIDTHxHEIGHT composited (default 1280x1024)")
     p.add_argument("--repeat", type=int, default=5, help="timed repetitions per case (default 5)")
     p.add_argument("--codec", default="auto", help=f"sub-image codecs compared in each job, comma-separated: {', '.join(CODEC_CHOICES)} "
                    "(default auto, as render uses)")

@@ -90,12 +90,51 @@ def _copy_baseline(src: Path, dst: Path) -> float:
     return dt
 
 
+# Measured here (README, "scene ingest"): 50.6 M triangles -> a 1.14 GB PLY and an 879 MiB store;
+# one 8.25 M-triangle plant copy -> 190 MB, prepared at 45.9 k triangles/s on an idle 2-core host.
+PLY_BYTES_PER_TRIANGLE = 22.6
+STORE_BYTES_PER_TRIANGLE = 18.2
+PREPARE_TRIANGLES_PER_S = 45e3
+PLANT_TRIANGLES = 8.4e6  # per copy at --size 1 (approximately; the count printed after writing is exact)
+
+
+def _ply_path(work: Path, triangles: float, size: float) -> tuple[Path, int]:
+    copies = max(1, math.ceil(triangles / (PLANT_TRIANGLES * size)))
+    return work / f"plant_s{size:g}_x{copies}.ply", copies
+
+
+def plan(work: Path, triangles: float, size: float, keep: bool) -> tuple[str, int]:
+    """What the ingest part will write and roughly how much disk and time it takes, as one
+    paragraph, and the bytes it needs free in ``work`` at its peak (the PLY, if not there yet,
+    plus the larger of its one-off copy and the store)."""
+    ply, copies = _ply_path(work, triangles, size)
+    tris = copies * PLANT_TRIANGLES * size
+    ply_b, store_b = tris * PLY_BYTES_PER_TRIANGLE, tris * STORE_BYTES_PER_TRIANGLE
+    have = ply.exists()
+    if have:
+        ply_b = ply.stat().st_size
+        first = f"reuses {ply} ({_size(ply_b)})"
+    else:
+        first = (f"writes {ply}: a binary PLY of ~{tris / 1e6:.1f} M triangles ({copies} plant cop{'y' if copies == 1 else 'ies'}, "
+                 f"~{_size(ply_b)}; kept for later runs)")
+    need = (0 if have else ply_b) + max(ply_b, store_b)
+    minutes = tris / PREPARE_TRIANGLES_PER_S / 60
+    took = f"roughly {minutes:.0f} min" if minutes >= 1 else "under a minute"
+    text = (f"bench scene-ingest {first}, copies it once (the disk baseline; removed) and prepares a scene store of "
+            f"~{_size(store_b)} beside it ({'kept' if keep else 'removed afterwards; --keep keeps it'}): "
+            f"~{_size(need)} of free disk needed; prepare takes {took} on 2 idle cores "
+            f"({PREPARE_TRIANGLES_PER_S / 1e3:.0f} k triangles/s measured). Smaller: --triangles 5e6.")
+    return text, int(need)
+
+
+def _size(nbytes: float) -> str:
+    return f"{nbytes / 1e9:.2f} GB" if nbytes >= 1e9 else f"{nbytes / 1e6:.0f} MB"
+
+
 def _ply(work: Path, triangles: float, size: float, console) -> Path:
     from ...data.generators.scenes import scene_nodes
 
-    per_copy = 8.4e6 * size  # plant triangles per copy (approximately; the count printed is exact)
-    copies = max(1, math.ceil(triangles / per_copy))
-    ply = work / f"plant_s{size:g}_x{copies}.ply"
+    ply, copies = _ply_path(work, triangles, size)
     if not ply.exists():
         console.print(f"writing {ply} ({copies} plant copies, {len(scene_nodes('plant', size)[0]) * copies:,} nodes; once, kept) ...")
         t0 = time.perf_counter()
@@ -111,7 +150,6 @@ def _ingest(args, console) -> int:
     from ...data.scene.plystream import read_ply_layout
 
     work = Path(args.workdir)
-    work.mkdir(parents=True, exist_ok=True)
     ply = _ply(work, args.triangles, args.size, console)
     lay = read_ply_layout(ply)
     nbytes = ply.stat().st_size
@@ -149,6 +187,17 @@ def run(args) -> int:
     from rich.console import Console
 
     console = Console()
+    if not args.skip_ingest:  # what the ingest part will write, before any part starts
+        from ...core.errors import ConfigError
+
+        work = Path(args.workdir)
+        work.mkdir(parents=True, exist_ok=True)
+        text, need = plan(work, args.triangles, args.size, args.keep)
+        console.print(text, soft_wrap=True)  # (the paths stay whole, to copy)
+        free = shutil.disk_usage(work).free
+        if need > free:
+            raise ConfigError(f"bench scene-ingest needs ~{need / 1e9:.2f} GB free in {work}, {free / 1e9:.2f} GB are: "
+                              "give a smaller --triangles or another --workdir")
     if not args.skip_simplifiers:
         _compare_simplifiers(console)
     return 0 if args.skip_ingest else _ingest(args, console)
