@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -38,6 +39,66 @@ def clean_env(**extra) -> dict:
     child starts its own job with its defaults), plus ``extra``."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PMI_", "MPI_", "HYDRA_", "MASSVIEW_"))}
     return {**env, **extra}
+
+
+def descendants(pid: int) -> dict[int, int]:
+    """Every process below ``pid`` now (children, their children, ...), from /proc: pid -> its
+    start time (so a pid the system has since reused is told apart)."""
+    children: dict[int, list[tuple[int, int]]] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            st = _stat(int(d))
+            if st is not None:
+                children.setdefault(st[0], []).append((int(d), st[1]))
+    out: dict[int, int] = {}
+    todo = [pid]
+    while todo:
+        for c, start in children.get(todo.pop(), []):
+            out[c] = start
+            todo.append(c)
+    return out
+
+
+def _stat(pid: int) -> tuple[int, int] | None:
+    """(parent pid, start time) of ``pid``, or None when it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            f = fh.read().rsplit(")", 1)[1].split()
+        return int(f[1]), int(f[19])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def stop_job(proc: subprocess.Popen, sig=signal.SIGINT, timeout: float = 60) -> str:
+    """Stop a ``--ranks`` job (a viewer, a render) started with ``start_new_session=True``:
+    ``sig`` to its process group, as a terminal's Ctrl-C, then wait up to ``timeout`` s. Whatever
+    of it is still running then — the launcher, and ``mpiexec`` and its ranks, which run in a
+    session of their own — is killed (SIGKILL) and the test fails: a job left running would
+    slow every later test. Returns the job's output (stdout, with stderr if merged)."""
+    tree = descendants(proc.pid)
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            pass
+    late = out = None
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        late = f"the job still ran {timeout:g} s after {signal.Signals(sig).name}; killed it and every process below it"
+        tree.update(descendants(proc.pid))
+        proc.kill()
+    for pid, start in tree.items():  # (after a clean stop these are gone already)
+        st = _stat(pid)
+        if st is not None and st[1] == start:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+    if late:
+        out, _ = proc.communicate()  # (only now: the job's processes held its output pipe open)
+        raise AssertionError(f"{late}\n{(out or '')[-2000:]}")
+    return out or ""
 
 
 def run_cli(*args, timeout=300, check=True) -> subprocess.CompletedProcess:

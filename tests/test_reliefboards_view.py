@@ -2,11 +2,10 @@
 panel shows requests in flight and the angle-error histogram, boards get tinted on request,
 Ctrl-C stops every rank."""
 
-import os
-import signal
 
 import pytest
 
+from conftest import stop_job
 from test_viewer import CHROMIUM, launch, start_viewer  # noqa: F401 - skips without chromium
 
 pytestmark = pytest.mark.mpi
@@ -31,8 +30,6 @@ def test_reliefboards_viewer_panel_and_tint():
             page.wait_for_function("window.mv.stats.color_by_rank === true", timeout=60000)
             browser.close()
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
-        out, _ = proc.communicate(timeout=120)
+        out = stop_job(proc, timeout=120)
     assert proc.returncode == 0, out
     assert "viewer stopped" in out

@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import io
 import json
-import os
 import re
-import signal
 import socket
 import subprocess
 import sys
@@ -23,7 +21,7 @@ import pytest
 import trimesh
 from PIL import Image
 
-from conftest import clean_env, run_cli
+from conftest import clean_env, run_cli, stop_job
 
 BG = np.array([22, 26, 34])  # massview.core.image.BACKGROUND_RGBA: a scene's empty pixels
 W, H = 192, 144
@@ -63,9 +61,7 @@ def first_frame(store) -> np.ndarray:
                     assert json.loads(msg)["type"] in ("hello", "stats", "role")
         return frames[-1]
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGINT)
-        proc.communicate(timeout=60)
+        stop_job(proc)
 
 
 def drawn(img: np.ndarray) -> np.ndarray:

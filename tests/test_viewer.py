@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from conftest import clean_env
+from conftest import clean_env, stop_job
 
 pytestmark = pytest.mark.mpi
 
@@ -37,17 +37,20 @@ def start_viewer(store, ranks=2, host=None, size="480x270", extra=()):
                             stderr=subprocess.STDOUT, text=True, env=env, start_new_session=True)
     line = ""
     t0 = time.monotonic()
-    while "serving http" not in line:
-        line = proc.stdout.readline()
-        assert line or proc.poll() is None, "viewer exited early"
-        assert time.monotonic() - t0 < 120
+    try:
+        while "serving http" not in line:
+            line = proc.stdout.readline()
+            assert line or proc.poll() is None, "viewer exited early"
+            assert time.monotonic() - t0 < 120, "the viewer did not serve within 120 s"
+    except BaseException:
+        stop_job(proc, timeout=10)  # (no job left running behind a failed start)
+        raise
     return re.search(r"http://\S+", line).group(0), port, proc
 
 
 def stop_viewer(proc):
     if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C on the whole job, as a terminal would
-        out, _ = proc.communicate(timeout=60)
+        out = stop_job(proc)  # Ctrl-C on the whole job, as a terminal would; killed (and failed) if it does not stop
         assert proc.returncode == 0, out
         assert "viewer stopped" in out
 
@@ -224,8 +227,7 @@ def test_with_no_page_open_the_ranks_render_nothing_and_do_not_spin(terrain_stor
         time.sleep(4.0)
         after = _cpu_seconds(port)
     finally:
-        os.killpg(proc.pid, signal.SIGINT)
-        out, _ = proc.communicate(timeout=60)
+        out = stop_job(proc)
     assert "viewer stopped after 0 frames" in out, out[-2000:]
     used = {p: after[p] - before[p] for p in before if p in after}
     assert len(used) >= 2 and max(used.values()) < 1.0, used  # a spinning rank would take ~4 CPU-s (2 at least on 2 busy cores)
