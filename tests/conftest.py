@@ -15,6 +15,13 @@ from PIL import Image
 
 from massview.data.terrain import ArraySource
 
+# A shell without job control (a script's `make test &`) starts background commands with SIGINT
+# ignored, and an ignored signal stays ignored in every child: the jobs the tests stop with
+# Ctrl-C (viewers, launchers) would then not stop. Give this process the default handler back,
+# so its children start with SIGINT at its default.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
 SMALL_SCENE = "builtin:objects?n=400"
 SMALL_SIZE = "320x240"
 
