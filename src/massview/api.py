@@ -420,7 +420,7 @@ def render(scene: Scene | str | Path, what: str | Path | Camera | Iterable[Camer
         check_render_out(out, spec)
         kind = scene_kind(spec)
         if kind != "terrain":  # (a terrain store is refused by render_reliefboards itself)
-            _warn_options(spec, kind, cfg, given)
+            warn_options(spec, kind, cfg, given)
         return render_reliefboards(spec, what, cfg, ranks, out, images, depth, reliefboards, result=RenderResult)
     owned = not isinstance(scene, Scene)
     scene = open_scene(scene)
@@ -464,8 +464,10 @@ def _given_cameras(what, frames, size):
     return what if isinstance(what, Camera) else cams
 
 
-def _warn_options(spec: str, kind: str, cfg: RenderConfig, given) -> None:
-    """Warnings for given options that have no effect here (rank 0 only inside an MPI job)."""
+def warn_options(spec: str, kind: str, cfg: RenderConfig, given) -> None:
+    """Warnings for the ``given`` options that have no effect on ``spec`` with ``cfg``
+    (:func:`massview.app.options.option_warnings`), through :func:`_warn` (rank 0 only inside an
+    MPI job): the API's and the CLI's one way to say so."""
     from .app.options import option_warnings
     from .parallel.runtime import in_mpi_job, world
 
@@ -484,10 +486,12 @@ def _not_inside_the_store(out: Path, spec: str) -> None:
         if o == st or st in o.parents:
             raise ConfigError(f"--out {out}: is {'the input store' if o == st else 'inside the input store'} {spec}; "
                               "give a folder outside it for the frames, stats and summary")
-    for d in (o, *o.parents):
-        if (d / "zarr.json").is_file():
-            raise ConfigError(f"--out {out}: {'is' if d == o else 'is inside'} the store {d}; "
-                              "give a folder outside it for the frames, stats and summary")
+    from .data.scene.writer import enclosing_store
+
+    d = o if (o / "zarr.json").is_file() else enclosing_store(o)
+    if d is not None:
+        raise ConfigError(f"--out {out}: {'is' if d == o else 'is inside'} the store {d}; "
+                          "give a folder outside it for the frames, stats and summary")
 
 
 def check_render_out(out, spec: str) -> Path | None:
@@ -512,7 +516,7 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
         load_path(str(what), [0, 0, 0], [1, 1, 1])  # a bad name or file is reported now
     out = Path(out) if out is not None else None
     validate(scene.spec, cfg, nranks)
-    _warn_options(scene.spec, scene.kind, cfg, given)
+    warn_options(scene.spec, scene.kind, cfg, given)
     check_render_out(out, scene.spec)
     if nranks == 1 or in_mpi_job():
         scene.system(cfg)  # opened with this config's budgets (the bounds come from it)

@@ -326,13 +326,12 @@ def cmd_view(args, argv) -> int:
                   "and nothing is written)", file=sys.stderr)
 
         check_port(args.host, args.port)  # before the scene is loaded or any rank starts
+        from ..api import warn_options
         from ..core.paths import load_path
         from ..systems import scene_kind
-        from .options import option_warnings
 
         validate(args.scene, cfg, args.ranks or 1)
-        for w in option_warnings(args.scene, scene_kind(args.scene), cfg, typed_options(argv)):
-            print(f"massview: warning: {w}", file=sys.stderr)
+        warn_options(args.scene, scene_kind(args.scene), cfg, typed_options(argv))
         load_path(cfg.path, [0, 0, 0], [1, 1, 1])
         if (args.ranks or 1) > 1:
             return relaunch(argv, args.ranks)
@@ -345,13 +344,12 @@ def cmd_view(args, argv) -> int:
 def _warn_m2_options(scene: str, cfg: RenderConfig, argv: list[str]) -> None:
     """M2's parent process: a warning line per typed option it does not use (a terrain store
     is refused by M2's own check)."""
+    from ..api import warn_options
     from ..systems import scene_kind
-    from .options import option_warnings
 
     kind = scene_kind(scene)
     if kind != "terrain":
-        for w in option_warnings(scene, kind, cfg, typed_options(argv)):
-            print(f"massview: warning: {w}", file=sys.stderr)
+        warn_options(scene, kind, cfg, typed_options(argv))
 
 
 def _launched_by_us() -> bool:

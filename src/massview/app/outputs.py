@@ -49,8 +49,10 @@ def check_output_file(path: Path, option: str = "output") -> Path:
     """The folder that will hold ``path`` exists (created if needed) and is writable, and
     ``path`` itself is not a folder unless it is to become one (stores), nor inside a massview
     (zarr) store, where it would be written among the store's arrays."""
+    from ..data.scene.writer import enclosing_store
+
     path = Path(path)
-    outer = next((d for d in path.resolve().parents if (d / "zarr.json").is_file()), None)
+    outer = enclosing_store(path)
     if outer is not None:
         raise ConfigError(f"{option} {path}: is inside the store {outer}; a store cannot hold another — choose a path outside it")
     parent = path.parent if str(path.parent) else Path(".")

@@ -41,7 +41,7 @@ from .camera import Camera, look_at_quaternion
 from .errors import ConfigError
 from .framing import direction, framed_camera, scene_clip
 
-__all__ = ["BUILTIN_PATHS", "CameraPath", "Footing", "KeyframePath", "ParametricPath", "load_path", "scene_clip", "walk_eye_z"]
+__all__ = ["BUILTIN_PATHS", "EYE_HEIGHT", "CameraPath", "Footing", "KeyframePath", "ParametricPath", "load_path", "scene_clip", "walk_eye_z"]
 
 BUILTIN_PATHS = ("turn", "zoom", "forward", "orbit", "flyover", "walkthrough")
 _LOOPS = ("turn", "orbit")  # closed: a full circle, t = 1 is t = 0
@@ -239,7 +239,7 @@ class ParametricPath(CameraPath):
     def clip(self):
         near, far = scene_clip(self.lo, self.hi)
         if self.name == "walkthrough" and self.ground is not None:  # 1.7 units above a surface that reaches
-            near = min(near, 0.25 * _EYE)                       # up to the eye's feet: the near plane inside
+            near = min(near, 0.25 * EYE_HEIGHT)                   # up to the eye's feet: the near plane inside
         return near, far                                          # the eye height, not 2e-4 of the whole box
 
     def cameras(self, frames: int, width: int, height: int) -> list[Camera]:
@@ -333,7 +333,7 @@ class ParametricPath(CameraPath):
             return self._walk_ground(t)
         ext = self.hi - self.lo
         z = self.footing.ground + self.footing.eye
-        look = _WALK_LOOK * max(self.footing.eye, _EYE) / _EYE  # 10 units ahead, more for a walker scaled up
+        look = _WALK_LOOK * max(self.footing.eye, EYE_HEIGHT) / EYE_HEIGHT  # 10 units ahead, more for a walker scaled up
         route = self._route()
         if route is not None:
             return self._walk_route(t, *route, z, look)
@@ -382,12 +382,12 @@ class ParametricPath(CameraPath):
         look = min(_LOOK, 0.05 * span) if span > 0 else _LOOK
         ahead = p + d * look
         gz = self.ground(np.stack([p, ahead]))
-        eye = np.array([p[0], p[1], gz[0] + _EYE])
+        eye = np.array([p[0], p[1], gz[0] + EYE_HEIGHT])
         tgt = np.array([ahead[0], ahead[1], eye[2] + 0.5 * (gz[1] - gz[0]) - 0.6])
         return eye, tgt
 
 
-_EYE = 1.7  # walkthrough's eye height above the ground (world units: metres for georeferenced data)
+EYE_HEIGHT = 1.7  # walkthrough's eye height above the ground (world units: metres for georeferenced data)
 _WALK_LOOK = 10.0  # how far ahead a walker in a scene looks (world units; at most a third of a planned way)
 _WALK_DIP = 0.06  # and how far down, per unit ahead
 _LOOK = 30.0  # how far ahead a walker on a terrain looks (world units)
@@ -396,7 +396,7 @@ _LOOK = 30.0  # how far ahead a walker on a terrain looks (world units)
 def walk_eye_z(lo, hi) -> float:
     """``walkthrough``'s eye height: 1.7 units above the box's bottom, or 30 % of its height
     if that is lower."""
-    return float(lo[2]) + min(1.7, 0.3 * (float(hi[2]) - float(lo[2])))
+    return float(lo[2]) + min(EYE_HEIGHT, 0.3 * (float(hi[2]) - float(lo[2])))
 
 
 def load_path(spec: str, lo, hi, route: np.ndarray | None = None, ground: Callable | None = None,

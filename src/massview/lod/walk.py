@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.paths import Footing, load_path
+from ..core.paths import EYE_HEIGHT, Footing, load_path
 
 __all__ = ["fit_path", "scene_footing", "walk_route", "plan_walk", "terrain_ground", "kpatch_ground"]
 
@@ -51,7 +51,6 @@ _BAND = (0.3, 1.2)  # the walker's body, as fractions of the eye height above th
 _EDGE = 25.0  # cost per cell an end lies inside the 8 % (92 %) line: above a diagonal step's most, √2 × (1 + 4²)
 _MAX_FOOTPRINT = 0.25  # of the scene's footprint: larger boxes are floors or enclosures, not obstacles
 _FLOOR_THIN = 0.25  # a floor's height, at most, as a fraction of its shorter side
-_EYE = 1.7  # a walker's eye height in metres
 _TALL = 50.0  # objects standing on the ground typically taller than this many eye heights: not metres
 _EYE_OF_TALL = 0.25  # the eye height then, as a fraction of their median height
 
@@ -84,8 +83,8 @@ def scene_footing(lo, hi, box_lo, box_hi) -> Footing:
     room = float(hi[2]) - ground
     stands = ~floor & (blo[:, 2] <= ground + 0.02 * room) & (bhi[:, 2] > ground)
     tall = float(np.median(bhi[stands, 2] - ground)) if stands.any() else 0.0
-    eye = _EYE_OF_TALL * tall if tall > _TALL * _EYE else _EYE
-    eye = min(eye, 0.3 * room) if room > 0 else _EYE
+    eye = _EYE_OF_TALL * tall if tall > _TALL * EYE_HEIGHT else EYE_HEIGHT
+    eye = min(eye, 0.3 * room) if room > 0 else EYE_HEIGHT
     return Footing(ground, eye, walkable=bool(floor.any() or (stands & ~big).any()))
 
 
