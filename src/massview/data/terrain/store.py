@@ -6,7 +6,7 @@ Layout (readable with plain zarr; ``M`` = block size, ``nb_l = 2^(L-l)``)::
            rows, cols (input samples), padded (S), spacing [dx, dy] (metres), vertical_scale,
            crs (WKT or null), transform (GDAL 6-tuple or null), nodata {value, filled},
            source, height_range [min, max], color ("computed" | "orthophoto" | null)
-    heights/<l>     float32 (nb_l, nb_l, M, M), chunk (1, 1, M, M), blosc zstd+shuffle:
+    heights/<l>     float32 (nb_l, nb_l, M, M), chunk (1, 1, M, M), blosc lz4 5 + shuffle (_compressor):
                     block (i, j) = finest samples rows (i(M-1)+r)2^l, cols (j(M-1)+c)2^l
     shade/<l>       float16 (nb_l, nb_l, M, M, 3), chunk (1, 1, M, M, 3): slope ∂h/∂x, ∂h/∂y
                     (per metre, x east, y north) and height fraction, mip-filtered (colors.py)
