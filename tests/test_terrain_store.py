@@ -457,3 +457,43 @@ def test_geotiff_scale_offset_south_up_feet_and_rotation(tmp_path):
     assert any("US survey foot" in w and "--vertical-scale 0.304801" in w for w in res.warnings), res.warnings
     with pytest.raises(IngestError, match="rotated or sheared.*gdalwarp"):
         write("rot.tif", h, Affine(21.2, 21.2, 500000, 21.2, -21.2, 4000000))
+
+
+def test_single_block_reads_are_zarrs_values_and_fall_back_on_damage(tmp_path):
+    """get_block / get_shade / get_color decode a block's chunk file directly (no zarr event
+    loop): the same values, bit for bit, as zarr's own read of every block at every level; a
+    truncated chunk still fails with the file named and a missing one still reads as missing,
+    through zarr's read."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from massview.core.errors import BlockNotFoundError, CorruptBlockError
+
+    a = synthetic_heights(0, 400, 0, 400, 400, 5)
+    np.save(tmp_path / "d.npy", a)
+    rgb = np.random.default_rng(3).integers(0, 256, (3, 400, 400), dtype=np.uint8)
+    with rasterio.open(tmp_path / "o.tif", "w", driver="GTiff", width=400, height=400, count=3, dtype="uint8",
+                       transform=from_origin(0, 400, 1, 1)) as ds:
+        ds.write(rgb)
+    run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", tmp_path / "s.zarr", "--color", tmp_path / "o.tif", "--block", "129", "-q")
+    s = TerrainStore(tmp_path / "s.zarr")
+    n = 0
+    for lv in range(s.layout.levels):
+        for i in range(s.layout.blocks(lv)):
+            for j in range(s.layout.blocks(lv)):
+                direct = [s._direct_block("heights", lv, i, j, "<f4"), s._direct_block("shade", lv, i, j, "<f2", (3,)),
+                          s._direct_block("color", lv, i, j, "u1", (3,))]
+                assert all(d is not None for d in direct)  # (the fast path is taken)
+                got = [s.get_block(lv, i, j), s.get_shade(lv, i, j), s.get_color(lv, i, j)]
+                want = [np.asarray(s.group[f"{w}/{lv}"][i, j]) for w in ("heights", "shade", "color")]
+                for g, d, w in zip(got, direct, want):
+                    assert g.dtype == w.dtype and g.shape == w.shape and g.tobytes() == w.tobytes() == d.tobytes()
+                n += 1
+    assert n >= 15  # (4×4 + 2×2 + 1 blocks)
+    chunk = s.chunk_path(0, 1, 2)
+    chunk.write_bytes(chunk.read_bytes()[:100])
+    with pytest.raises(CorruptBlockError, match=r"block \(level 0, 1, 2\).*" + str(chunk.name)):
+        TerrainStore(tmp_path / "s.zarr").get_block(0, 1, 2)
+    chunk.unlink()
+    with pytest.raises(BlockNotFoundError, match=r"block \(level 0, 1, 2\) is missing"):
+        TerrainStore(tmp_path / "s.zarr").get_block(0, 1, 2)

@@ -362,7 +362,8 @@ class TerrainStore:
         self._heights = [self.array(f"heights/{lv}") for lv in range(self.layout.levels)]
         for lv, h in enumerate(self._heights):
             self.check_array(f"heights/{lv}", h, raise_=True)
-        self._blosc = None  # the heights' blosc codec for direct chunk reads (False: not blosc)
+        self._shade: dict = {}  # level → the open shade/<level> array (_shade_array)
+        self._codecs: dict = {}  # (what, level) → the array's blosc codec object for direct chunk reads, or False (_block_codec)
         self.has_color = "color" in self.group and self.attrs.get("color") == "orthophoto"
         self.has_shade = "shade" in self.group and not upgrading
         self._color = [self.group[f"color/{lv}"] for lv in range(self.layout.levels)] if self.has_color else None
@@ -471,11 +472,57 @@ class TerrainStore:
         tail = "/0/0/0" if what in ("color", "shade") else "/0/0"
         return self.path / what / str(level) / "c" / f"{i}/{j}{tail}"
 
+    def _block_codec(self, what: str, level: int):
+        """The blosc codec object of ``<what>/<level>`` when its chunks are single blocks stored
+        as little-endian bytes + blosc (what prepare writes), else False (read through zarr)."""
+        key = (what, level)
+        codec = self._codecs.get(key)
+        if codec is None:
+            from zarr.codecs import BloscCodec, BytesCodec
+
+            arr = self._heights[level] if what == "heights" else self._color[level] if what == "color" else self._shade_array(level)
+            codecs, meta = arr.metadata.codecs, arr.metadata
+            ok = (len(codecs) == 2 and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
+                  and (codecs[0].endian is None or codecs[0].endian.value == "little")
+                  and tuple(meta.chunk_grid.chunk_shape) == (1, 1) + tuple(meta.shape[2:]))
+            codec = self._codecs[key] = codecs[1]._blosc_codec if ok else False
+        return codec
+
+    def _shade_array(self, level: int):
+        """``shade/<level>``, opened once."""
+        if level not in self._shade:
+            self._shade[level] = self.group[f"shade/{level}"]
+        return self._shade[level]
+
+    def _direct_block(self, what: str, level: int, i: int, j: int, dtype: str, tail: tuple = ()) -> np.ndarray | None:
+        """Block (level, i, j) of ``what`` decoded straight from its chunk file with the array's
+        blosc codec (the same values as zarr's read, ~10× faster: no event-loop round trip),
+        or None where the file is missing, is not one block's chunk, or does not decode — the
+        caller then reads through zarr, which gives the fill value or names the damage."""
+        blosc = self._block_codec(what, level)
+        if blosc is False:
+            return None
+        M = self.layout.M
+        out = np.empty((M, M) + tail, dtype)
+        try:
+            fd = os.open(self.chunk_path(level, i, j, what), os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+            try:
+                data = os.read(fd, out.nbytes + 17)
+            finally:
+                os.close(fd)
+            if not 16 <= len(data) <= out.nbytes + 16 or int.from_bytes(data[4:8], "little") != out.nbytes:  # blosc header: nbytes
+                return None
+            blosc.decode(data, out=out.reshape(-1).view(np.uint8))
+        except (OSError, RuntimeError, ValueError, TypeError):
+            return None
+        return out
+
     def get_block(self, level: int, i: int, j: int) -> np.ndarray:
         """Heights of block (level, i, j): float32 (M, M), rows = +y."""
         self._check_key(level, i, j)
         try:
-            b = np.asarray(self._heights[level][i, j])
+            b = self._direct_block("heights", level, i, j, "<f4")
+            b = np.asarray(self._heights[level][i, j]) if b is None else b
         except Exception as e:  # noqa: BLE001 - codec errors come in many types
             raise CorruptBlockError(f"{self.path}: block (level {level}, {i}, {j}) does not decode ({type(e).__name__}: {e}); "
                                     f"the file {self.chunk_path(level, i, j)} is damaged — re-run prepare with --overwrite") from None
@@ -509,13 +556,8 @@ class TerrainStore:
         with one call), or None when any chunk is missing, longer than a block's chunk can be,
         does not decode to a whole block, or the codecs are not bytes + blosc — the caller then
         reads through zarr, which names the bad block."""
-        if self._blosc is None:
-            from zarr.codecs import BloscCodec, BytesCodec
-
-            codecs = self._heights[0].metadata.codecs
-            ok = len(codecs) == 2 and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
-            self._blosc = codecs[1]._blosc_codec if ok else False
-        if self._blosc is False:
+        blosc = self._block_codec("heights", level)
+        if blosc is False:
             return None
         M, nb = self.layout.M, self.layout.blocks(level)
         if out is None or out.shape != (nb, M, M) or out.dtype != np.dtype("<f4") or not out.flags.c_contiguous:
@@ -535,7 +577,7 @@ class TerrainStore:
                     os.close(fd)
                 if not 16 <= len(data) <= cap or int.from_bytes(data[4:8], "little") != out[j].nbytes:  # blosc header: nbytes
                     return None
-                self._blosc.decode(data, out=out[j].reshape(-1).view(np.uint8))
+                blosc.decode(data, out=out[j].reshape(-1).view(np.uint8))
         except (OSError, RuntimeError, ValueError, TypeError):  # missing, damaged or wrong-sized chunk
             return None
         finally:
@@ -546,6 +588,9 @@ class TerrainStore:
         if not self.has_color:
             return None
         self._check_key(level, i, j)
+        b = self._direct_block("color", level, i, j, "u1", (3,))
+        if b is not None:
+            return b
         try:
             return np.asarray(self._color[level][i, j])
         except Exception as e:  # noqa: BLE001
@@ -555,8 +600,11 @@ class TerrainStore:
         """Shading maps of block (level, i, j): float16 (M, M, 3) = slope x, slope y, height
         fraction (see :mod:`colors`)."""
         self._check_key(level, i, j)
+        b = self._direct_block("shade", level, i, j, "<f2", (3,))
+        if b is not None:
+            return b
         try:
-            return np.asarray(self.group[f"shade/{level}"][i, j])
+            return np.asarray(self._shade_array(level)[i, j])
         except Exception as e:  # noqa: BLE001
             raise CorruptBlockError(f"{self.path}: shading block (level {level}, {i}, {j}) does not decode ({e}); "
                                     "re-run `massview upgrade` or prepare with --overwrite") from None
