@@ -29,7 +29,7 @@ import numpy as np
 from ..lod.kpatch import lookup_blocks, refine_uniform
 from .colormaps import LIGHT_WEIGHTS, Shading, haze_start
 from .terrain_gbuffer import GBuffers
-from .terrain_pool import BlockPool, layer_bytes, pack_payload
+from .terrain_pool import BlockPool, layer_bytes, pack_payload, payload_bytes, payload_parts
 from .terrain_programs import TerrainPrograms, program
 from .terrain_plain import VERTEX_BYTES, PlainMeshRenderer, pack_block  # noqa: F401  (re-exported)
 
@@ -43,7 +43,7 @@ from .terrain_plain import VERTEX_BYTES, PlainMeshRenderer, pack_block  # noqa: 
 # Deferred above this many triangles a pixel.
 DEFERRED_ABOVE = 0.04
 
-__all__ = ["DEFERRED_ABOVE", "VERTEX_BYTES", "pack_block", "pack_payload", "layer_bytes", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
+__all__ = ["DEFERRED_ABOVE", "VERTEX_BYTES", "pack_block", "pack_payload", "payload_bytes", "payload_parts", "layer_bytes", "BlockPool", "TerrainRenderer", "PlainMeshRenderer"]
 
 
 

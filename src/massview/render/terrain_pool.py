@@ -18,16 +18,33 @@ import numpy as np
 
 from ..core.errors import ConfigError
 
-__all__ = ["pack_payload", "layer_bytes", "BlockPool"]
+__all__ = ["pack_payload", "payload_bytes", "payload_parts", "layer_bytes", "BlockPool"]
+
+
+def payload_bytes(M: int, ortho: bool) -> int:
+    """The bytes of one block's :func:`pack_payload` array."""
+    return M * M * (4 + 6 + (3 if ortho else 0))
+
+
+def payload_parts(buf: np.ndarray, M: int, ortho: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(heights float32 (M, M), shading float16 (M, M, 3), colour uint8 (M, M, 3) or None):
+    writable views of the uint8 payload ``buf`` (:func:`payload_bytes` long), to fill in place."""
+    h, s = M * M * 4, M * M * 6
+    return (buf[:h].view(np.float32).reshape(M, M), buf[h:h + s].view(np.float16).reshape(M, M, 3),
+            buf[h + s:h + s + M * M * 3].reshape(M, M, 3) if ortho else None)
 
 
 def pack_payload(heights: np.ndarray, shade: np.ndarray, ortho: np.ndarray | None) -> np.ndarray:
     """One uint8 array per block for the RAM cache and the GL pool: float32 (M, M) heights (the
-    vertices), float16 (M, M, 3) shading maps, (M, M, 3) uint8 orthophoto colour if any."""
-    parts = [np.ascontiguousarray(heights, np.float32).view(np.uint8).ravel(), np.ascontiguousarray(shade, np.float16).view(np.uint8).ravel()]
-    if ortho is not None:
-        parts.append(np.ascontiguousarray(ortho, np.uint8).ravel())
-    return np.concatenate(parts)
+    vertices), float16 (M, M, 3) shading maps, (M, M, 3) uint8 orthophoto colour if any (the
+    layout :func:`payload_parts` views)."""
+    M = heights.shape[0]
+    out = np.empty(payload_bytes(M, ortho is not None), np.uint8)
+    h, s, c = payload_parts(out, M, ortho is not None)
+    h[...], s[...] = heights, shade
+    if c is not None:
+        c[...] = ortho
+    return out
 
 
 def layer_bytes(M: int, texel: int) -> int:

@@ -47,7 +47,7 @@ from ..parallel.exchange import agree_all, any_rank
 from ..parallel.runtime import return_free_heap
 from ..render.context import create_context, release_gl, renderer_string
 from ..render.colormaps import Shading, paint_sky
-from ..render.terrain import BlockPool, TerrainRenderer, pack_payload
+from ..render.terrain import BlockPool, TerrainRenderer, payload_bytes, payload_parts
 from ..render.view import ViewRenderer
 
 __all__ = ["TerrainSystem", "SORT_LAST_MODES"]
@@ -62,16 +62,21 @@ def _morton(i: np.ndarray, j: np.ndarray) -> np.ndarray:
     return out
 
 
-def _mapped(a: np.ndarray) -> np.ndarray:
-    """A copy of uint8 ``a`` in its own anonymous mapping, unmapped when the last reference goes.
-    A staged block's bytes then leave the process when the GL pool takes it, instead of staying
-    in a loader thread's malloc arena (glibc keeps freed blocks below 32 MiB there:
-    :func:`massview.parallel.runtime.reuse_freed_memory`), so the RAM budget bounds resident bytes."""
+def _mapping(nbytes: int) -> np.ndarray:
+    """A uint8 array of ``nbytes`` in its own anonymous mapping, unmapped when the last reference
+    goes. A staged block's bytes then leave the process when the GL pool takes it, instead of
+    staying in a loader thread's malloc arena (glibc keeps freed blocks below 32 MiB there:
+    :func:`massview.parallel.runtime.reuse_freed_memory`), so the RAM budget bounds resident
+    bytes. Its pages are mapped at once (``MAP_POPULATE``, where the platform has it): one
+    call instead of a page fault per 4 KiB as the block is decoded into it."""
     import mmap
 
-    out = np.frombuffer(mmap.mmap(-1, max(a.nbytes, 1)), np.uint8, a.nbytes)
-    out[:] = a.reshape(-1)
-    return out
+    flags = getattr(mmap, "MAP_PRIVATE", 0) | getattr(mmap, "MAP_ANONYMOUS", 0) | getattr(mmap, "MAP_POPULATE", 0)
+    try:
+        m = mmap.mmap(-1, max(nbytes, 1), flags=flags) if flags else mmap.mmap(-1, max(nbytes, 1))
+    except (OSError, ValueError):
+        m = mmap.mmap(-1, max(nbytes, 1))
+    return np.frombuffer(m, np.uint8, nbytes)
 
 
 class TerrainSystem:
@@ -111,10 +116,16 @@ class TerrainSystem:
         return h
 
     def _load(self, key):
+        """Block ``key``'s payload (:func:`pack_payload`'s layout), decoded straight into its
+        own mapping (:func:`_mapping`)."""
         lv, i, j = key
-        h = self.store.get_block(lv, i, j)
-        color, shade = self.store.get_color(lv, i, j), self.store.get_shade(lv, i, j)
-        return _mapped(pack_payload(h, shade, color))
+        out = _mapping(payload_bytes(self.lay.M, self.store.has_color))
+        h, shade, color = payload_parts(out, self.lay.M, self.store.has_color)
+        self.store.get_block(lv, i, j, out=h)
+        self.store.get_shade(lv, i, j, out=shade)
+        if color is not None:
+            self.store.get_color(lv, i, j, out=color)
+        return out
 
     def shading(self, cfg: RenderConfig) -> Shading:
         cmap = cfg.colormap
