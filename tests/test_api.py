@@ -122,15 +122,15 @@ def test_cli_defaults_render_complete_view_async():
 
 
 @pytest.mark.parametrize("call,needle", [
-    (lambda sc, cam: mv.render(sc, "orbit", frames=0, size=(64, 48)), "frames must be a whole number ≥ 1, got 0"),  # (rendered 10)
-    (lambda sc, cam: mv.render(sc, cam, ranks=0), "ranks must be a whole number ≥ 1, got 0"),  # (ran 1 rank)
+    (lambda sc, cam: mv.render(sc, "orbit", frames=0, size=(64, 48)), "frames= must be a whole number ≥ 1, got 0"),  # (rendered 10)
+    (lambda sc, cam: mv.render(sc, cam, ranks=0), "ranks= must be a whole number ≥ 1, got 0"),  # (ran 1 rank)
     (lambda sc, cam: mv.render(sc, cam, ranks=2.5), "got 2.5"),  # (ran 2)
     (lambda sc, cam: mv.render(sc, cam, ranks="2"), "got '2'"),
-    (lambda sc, cam: mv.path("orbit", sc, frames=2.7), "frames must be a whole number"),
+    (lambda sc, cam: mv.path("orbit", sc, frames=2.7), "frames= must be a whole number"),
     (lambda sc, cam: mv.render(sc, cam, compositor="magic"), "compositor= must be one of"),  # (accepted on one rank)
     (lambda sc, cam: mv.render(sc, 5), "give a path name, a keyframe .json file, a Camera"),  # (TypeError)
     (lambda sc, cam: mv.render(sc, cam, tau="one"), "tau= must be a number, got 'one'"),  # (TypeError)
-    (lambda sc, cam: mv.render(sc, "orbit", frames=True, size=(64, 48)), "frames must be a whole number"),
+    (lambda sc, cam: mv.render(sc, "orbit", frames=True, size=(64, 48)), "frames= must be a whole number"),
     (lambda sc, cam: mv.render(sc, cam, reference="yes"), "reference= must be True or False"),
     (lambda sc, cam: mv.render(sc, cam, config=3), "config= takes a RenderConfig"),  # (AttributeError)
     (lambda sc, cam: mv.camera(sc, position=(1, 1), look_at=(1, 1, 1)), "position must be 3 finite numbers"),  # (ValueError)

@@ -92,3 +92,33 @@ def test_sort_last_linear_splits_the_terrain_into_slabs(terrain_store, tmp_path)
     assert s["max_abs_diff"] == 0
     tri = s["triangles_per_rank"]
     assert min(tri) > 0.1 * max(tri), tri
+
+
+@pytest.fixture(scope="module")
+def steep_scene(tmp_path_factory):
+    """A terrain whose relief is ~6 % of its extent (a real mountain DEM's ratio): 1 km of relief
+    over 257² samples 60 m apart."""
+    d = tmp_path_factory.mktemp("steep")
+    a = np.random.default_rng(5).normal(0, 1, (257, 257)).cumsum(0).cumsum(1).astype(np.float32)
+    a = (a - a.min()) / (a.max() - a.min()) * 1000
+    np.save(d / "steep.npy", a)
+    run_cli("prepare", "terrain", d / "steep.npy", "-o", d / "steep.zarr", "--spacing", 60, "-q")
+    return d / "steep.zarr"
+
+
+@pytest.mark.parametrize("name", ["flyover", "turn", "forward", "zoom"])
+def test_built_in_paths_fly_over_the_exaggerated_relief(tmp_path, steep_scene, name):
+    """The built-in paths are fitted to the terrain as drawn at the render's exaggeration: at 10×
+    every camera is above the exaggerated top and the first frame shows terrain (it was all sky,
+    or the terrain's underside, with the paths fitted to the 1× box), through the API and the CLI
+    alike."""
+    scene = mv.open_scene(steep_scene)
+    lo, hi = scene.bounds
+    top10 = lo[2] + 10 * (hi[2] - lo[2])
+    cams = mv.path(name, scene, frames=3, size=(160, 120), exaggeration=10)
+    assert all(c.position[2] > top10 for c in cams)
+    res = mv.render(scene, cams[:1], exaggeration=10, depth=True)
+    assert terrain_fraction(res.depths[0]) > 0.05 and res.summary["triangles_per_frame"] > 0
+    scene.close()
+    run_cli("render", steep_scene, "--path", name, "--frames", 1, "--size", "160x120", "--exaggeration", 10, "--out", tmp_path, "-q")
+    assert np.array_equal(load_png(tmp_path / "frames" / "00000.png"), res.images[0])

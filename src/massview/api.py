@@ -125,7 +125,7 @@ class Scene:
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         if self._bounds is None:
-            b = self._system.bounds if self._system is not None else scene_bounds(self.spec, self.kind)
+            b = self._system.bounds if self._system is not None and self.kind != "terrain" else scene_bounds(self.spec, self.kind)
             self._bounds = tuple(np.asarray(v, np.float64) for v in b)
         return self._bounds
 
@@ -241,10 +241,12 @@ def _fitted_path(name: str, scene, exaggeration: float = 1.0):
     if not isinstance(scene, Scene):
         with Scene(scene) as s:
             return _fitted_path(name, s, exaggeration)
+    from .core.paths import exaggerated_box
     from .lod.walk import fit_path
 
     walk = name == "walkthrough"
-    return fit_path(name, *scene.bounds, scene.obstacles if walk or name == "flyover" else None,
+    box = exaggerated_box(*scene.bounds, exaggeration) if scene.kind == "terrain" else scene.bounds
+    return fit_path(name, *box, scene.obstacles if walk or name == "flyover" else None,
                     scene.ground(exaggeration) if walk else None)
 
 
@@ -298,19 +300,23 @@ def _count(v, name: str) -> int:
     import numbers
 
     if isinstance(v, bool) or not isinstance(v, numbers.Real) or not float(v).is_integer() or v < 1:
-        raise ConfigError(f"{name} must be a whole number ≥ 1, got {v!r}")
+        raise ConfigError(f"{name}= must be a whole number ≥ 1, got {v!r}")
     return int(v)
 
 
 @_keyword_errors
-def path(name_or_file: str | Path, scene: Scene | str, frames: int = 10, size=(1280, 1024)) -> list[Camera]:
+def path(name_or_file: str | Path, scene: Scene | str, frames: int = 10, size=(1280, 1024),
+         exaggeration: float = 1.0) -> list[Camera]:
     """``frames`` cameras along a built-in path (``turn``, ``zoom``, ``forward``, ``orbit``,
     ``flyover``, ``walkthrough``, fitted to the scene; ``walkthrough`` walks round its objects, or
     at eye height on a terrain)
     or a keyframe ``.json`` file (clip planes fitted to the
-    scene unless the file gives ``near``/``far``)."""
+    scene unless the file gives ``near``/``far``). ``exaggeration``: a terrain's, as you will
+    render it (``render(..., exaggeration=)``): the path flies over, and walks on, the relief as
+    drawn at it."""
     w, h = _size(size)
-    return _fitted_path(str(name_or_file), scene).cameras(_count(frames, "frames"), w, h)
+    e = render_config(exaggeration=exaggeration).exaggeration  # (checked as render's own option)
+    return _fitted_path(str(name_or_file), scene, e).cameras(_count(frames, "frames"), w, h)
 
 
 @_keyword_errors

@@ -92,7 +92,8 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
         decomposition, compositor = system.split_label(cfg)
     if rank == 0 and cameras is None:
         ground = system.ground(cfg) if cfg.path == "walkthrough" and hasattr(system, "ground") else None
-        cameras = fit_path(cfg.path, *system.bounds, getattr(system, "obstacles", None), ground).cameras(cfg.frames, cfg.width, cfg.height)
+        box = system.bounds_at(cfg) if hasattr(system, "bounds_at") else system.bounds  # (T2's bounds are drawn ones already)
+        cameras = fit_path(cfg.path, *box, getattr(system, "obstacles", None), ground).cameras(cfg.frames, cfg.width, cfg.height)
     nframes = comm.bcast(len(cameras) if rank == 0 else None, root=0)
     is_display = any(r == rank for r, _ in display_tiles(cfg, n))
     if rank == 0 and out is not None:

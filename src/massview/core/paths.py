@@ -317,6 +317,7 @@ class ParametricPath(CameraPath):
             d[2] = 0
             d /= max(np.linalg.norm(d), 1e-12)
             tgt = eye + d * s * 0.2 + np.array([0, 0, -0.035 * s])
+            tgt[2] = min(tgt[2], c[2])  # relief deeper than ~5 % of the size (an exaggerated one): look down to its middle
         return eye, look_at_quaternion(eye, tgt)
 
     def _route(self):
@@ -391,6 +392,15 @@ EYE_HEIGHT = 1.7  # walkthrough's eye height above the ground (world units: metr
 _WALK_LOOK = 10.0  # how far ahead a walker in a scene looks (world units; at most a third of a planned way)
 _WALK_DIP = 0.06  # and how far down, per unit ahead
 _LOOK = 30.0  # how far ahead a walker on a terrain looks (world units)
+
+
+def exaggerated_box(lo, hi, exaggeration: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """A terrain's world box ``lo..hi`` (at 1×) as drawn at ``exaggeration``: heights scaled about
+    the lowest one (T1's and T2's ``base + e·(z − base)``), so the top rises and the bottom stays.
+    The box the built-in paths and clip planes are fitted to at that exaggeration."""
+    lo, hi = np.array(lo, np.float64), np.array(hi, np.float64)
+    hi[2] = lo[2] + float(exaggeration) * (hi[2] - lo[2])
+    return lo, hi
 
 
 def walk_eye_z(lo, hi) -> float:

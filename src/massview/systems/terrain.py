@@ -135,7 +135,18 @@ class TerrainSystem:
 
     @property
     def bounds(self):
+        """The terrain's world box at the exaggeration of the current hierarchy (the last
+        frame's; 1 until a frame is drawn at another)."""
         return self.h.bounds()
+
+    def bounds_at(self, cfg: RenderConfig):
+        """The world box as drawn at ``cfg.exaggeration``: what paths and clip planes are fitted
+        to (:func:`massview.core.paths.exaggerated_box` of the 1× box)."""
+        from ..core.paths import exaggerated_box
+        from ..lod.kpatch import world_box
+
+        h = self.h
+        return exaggerated_box(*world_box(self.lay, h.zmin[0].src[0], h.zmax[0].src[0], (h.dx, h.dy), h.vs), cfg.exaggeration)
 
     def ground(self, cfg: RenderConfig | None = None):
         """The surface the ``walkthrough`` path walks on, at ``cfg``'s exaggeration
