@@ -59,7 +59,8 @@ def test_keyframes_without_clip_planes_do_not_clip_a_large_scene(tmp_path, large
     reach = max(np.linalg.norm(corners - p, axis=1).max() for p in fitted.positions)
     assert fitted.far > reach and fitted.near < 0.01 * reach
     _, img = mv.render_frame(scene, str(tmp_path / "k.json"), size=(240, 180), depth=True)
-    _, old = mv.render_frame(scene, str(_keyframes(tmp_path / "old.json", {"near": 0.1, "far": 10000})), size=(240, 180), depth=True)
+    with pytest.warns(mv.MassviewWarning, match="does not look at the scene"):  # (its far plane ends short of the terrain)
+        _, old = mv.render_frame(scene, str(_keyframes(tmp_path / "old.json", {"near": 0.1, "far": 10000})), size=(240, 180), depth=True)
     assert terrain_fraction(img) > 0.3 and terrain_fraction(img) > 3 * terrain_fraction(old)
     explicit = load_path(str(_keyframes(tmp_path / "e.json", {"near": 2.0, "far": 5e5})), lo, hi)
     assert explicit.clip() == (2.0, 5e5)  # given clip planes are kept
@@ -122,3 +123,30 @@ def test_built_in_paths_fly_over_the_exaggerated_relief(tmp_path, steep_scene, n
     scene.close()
     run_cli("render", steep_scene, "--path", name, "--frames", 1, "--size", "160x120", "--exaggeration", 10, "--out", tmp_path, "-q")
     assert np.array_equal(load_png(tmp_path / "frames" / "00000.png"), res.images[0])
+
+
+def test_cameras_that_see_nothing_and_ineffective_colour_options_are_warned(tmp_path, steep_scene):
+    """Keyframes in a terrain's CRS coordinates (far off its world box) render sky only: the run
+    says so and names the box; a camera that sees the terrain, and the built-in paths, get no
+    such warning. --colormap ortho on a store without an orthophoto and a washing-out --haze
+    are warned too (walk5 H3, M3, M8)."""
+    kf = tmp_path / "utm.json"
+    kf.write_text(json.dumps({"keyframes": [{"time": 0, "position": [345000, 5135000, 6000], "look_at": [372500, 5135000, 1000]},
+                                            {"time": 1, "position": [346000, 5135000, 6000], "look_at": [372500, 5135000, 1000]}]}))
+    proc = run_cli("render", steep_scene, "--path", kf, "--frames", 2, "--size", "64x48", "--out", tmp_path / "a", "-q")
+    assert "none of the 2 cameras looks at the scene (x 0..15360, y -15360..0, z 0..1000; world metres" in proc.stderr
+    assert summary(tmp_path / "a")["triangles_per_frame"] == 0
+    proc = run_cli("render", steep_scene, "--path", "orbit", "--frames", 2, "--size", "64x48", "--out", tmp_path / "b", "-q",
+                   "--colormap", "ortho", "--haze", 10)
+    assert "looks at the scene" not in proc.stderr and "look at the scene" not in proc.stderr
+    assert "--colormap ortho draws grey terrain here" in proc.stderr and "has no orthophoto" in proc.stderr
+    assert "--haze 10 hides most of the terrain" in proc.stderr
+    s = mv.open_scene(steep_scene)
+    with pytest.warns(mv.MassviewWarning, match="the camera does not look at the scene"):
+        mv.render(s, mv.camera(s, position=(7000, -7000, 3000), look_at=(7000, -7000, 9000), size=(64, 48)))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", mv.MassviewWarning)
+        mv.render(s, mv.camera(s, position=(7000, -7000, 3000), look_at=(7000, -7000, 0), size=(64, 48)))
+    s.close()

@@ -49,7 +49,7 @@ import numpy as np
 from .core.camera import Camera, look_at_quaternion
 from .core.config import RenderConfig, parse_size
 from .core.errors import ConfigError, MassviewWarning, RankJobError
-from .core.paths import load_path, scene_clip
+from .core.paths import BUILTIN_PATHS, load_path, scene_clip
 
 __all__ = ["Scene", "RenderResult", "Frame", "RankJobError", "MassviewWarning", "open_scene", "camera", "path", "render",
            "render_frame", "show", "render_config"]
@@ -449,6 +449,24 @@ def _given(config, options: dict) -> set[str]:
     return given
 
 
+def _blind(cams: list[Camera], scene: Scene, cfg: RenderConfig) -> str | None:
+    """A warning when no camera's view volume reaches the scene's box (as drawn at
+    ``cfg.exaggeration``): keyframes written in the wrong coordinates (a terrain's CRS instead
+    of its world metres), every frame all sky. Conservative: a camera counts as seeing the box
+    unless one of its planes has all 8 corners outside."""
+    from .core.paths import exaggerated_box
+
+    lo, hi = exaggerated_box(*scene.bounds, cfg.exaggeration) if scene.kind == "terrain" else scene.bounds
+    corners = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    if any(((c.frustum_planes() @ corners.T) >= 0).any(axis=1).all() for c in cams):
+        return None
+    where = ("world metres: x east = column × dx from the west edge, y north = −row × dy from the north edge, "
+             "not the store's CRS coordinates" if scene.kind == "terrain" else "world units")
+    box = ", ".join(f"{a} {lo[k]:.6g}..{hi[k]:.6g}" for k, a in enumerate("xyz"))
+    who = f"none of the {len(cams)} cameras looks" if len(cams) > 1 else "the camera does not look"
+    return f"{who} at the scene ({box}; {where}): every frame will be sky only"
+
+
 def _given_cameras(what, frames, size):
     """``what`` (a list where it was an iterable of cameras); ``frames=`` and ``size=`` with
     cameras must agree with them (they apply to a path name: were silently ignored)."""
@@ -527,6 +545,9 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
     if nranks == 1 or in_mpi_job():
         scene.system(cfg)  # opened with this config's budgets (the bounds come from it)
     cams, label = _cameras(scene, what, cfg)
+    blind = None if isinstance(what, str) and what in BUILTIN_PATHS else _blind(cams, scene, cfg)
+    if blind and (not in_mpi_job() or world().Get_rank() == 0):
+        _warn([blind])
     cfg = RenderConfig(**{**cfg.to_json(), "width": cams[0].width, "height": cams[0].height, "frames": len(cams)})
     validate(scene.spec, cfg, nranks)
     if in_mpi_job() or nranks == 1:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import fields
+from pathlib import Path
 
 from ..core.config import RenderConfig
 from ..core.errors import ConfigError
@@ -32,6 +33,20 @@ COMPOSITING = ("compositor", "radix_k")
 
 def _flags(names) -> str:
     return ", ".join("--no-fan-delta" if n == "fan_delta" else f"--{n.replace('_', '-')}" for n in names)
+
+
+HAZE_WARN = 4.0  # --haze above this washes a terrain out to the sky colour (walk5: 5 strongly faded, 50 a ghost)
+
+
+def _has_orthophoto(spec: str) -> bool:
+    """Whether the terrain store ``spec`` holds an orthophoto (its root attribute ``color``)."""
+    import json
+
+    try:
+        attrs = json.loads((Path(spec) / "zarr.json").read_text()).get("attributes", {})
+    except (OSError, ValueError, AttributeError):
+        return True  # (unreadable: the store's own open names the problem)
+    return attrs.get("color") == "orthophoto"
 
 
 def option_warnings(spec: str, kind: str, cfg: RenderConfig, given) -> list[str]:
@@ -59,6 +74,14 @@ def option_warnings(spec: str, kind: str, cfg: RenderConfig, given) -> list[str]
         check(M1_OPTIONS, "without --system dmmr (M1 options)")
     if kind == "objects" and system == "auto":
         check(STORE_BUDGETS, f"on {spec} (its objects are drawn whole from memory: no LOD, no block caches)")
+    if kind == "terrain" and "colormap" in given and cfg.colormap == "ortho":
+        if system == "roettger":
+            out.append("--colormap ortho draws grey terrain here: T2 (--system roettger) has no orthophoto colouring; use a "
+                       "colour map (hypsometric, gist_earth, …) or T1 (leave --system out)")
+        elif not _has_orthophoto(spec):
+            out.append(f"--colormap ortho draws grey terrain here: {spec} has no orthophoto (prepare it with --color IMAGE)")
+    if kind == "terrain" and "haze" in given and cfg.haze > HAZE_WARN:
+        out.append(f"--haze {cfg.haze:g} hides most of the terrain in the sky colour (above {HAZE_WARN:g}; 0.5–2 reads as distance)")
     sort_first = cfg.decomposition.startswith("sort-first") or system in ("dmmr", "roettger", "reliefboards")
     if sort_first:
         what = f"with --system {system}" if system != "auto" else f"with --decomposition {cfg.decomposition}"
@@ -68,7 +91,7 @@ def option_warnings(spec: str, kind: str, cfg: RenderConfig, given) -> list[str]
 
 API_KEYWORDS = frozenset({f.name for f in fields(RenderConfig)} | {"size", "frames", "ranks", "out", "depth", "images"})
 _VALUE_WORDS = frozenset({"auto", "roettger", "dmmr", "reliefboards", "on", "off", "async", "complete", "exact", "coarse",
-                          "direct-send", "binary-swap", "radix-k", "none", "lz4", "blosc2"})
+                          "direct-send", "binary-swap", "radix-k", "none", "lz4", "blosc2", "ortho"})
 _FLAG = re.compile(r"--([A-Za-z][\w-]*)(?: \((\w+)=\))?(?: ('[^']*'|\"[^\"]*\"|[\w.:+-]+))?")
 
 
