@@ -179,6 +179,26 @@ def test_partition_is_exact_contiguous_and_balanced(C):
     assert max(sizes) - min(sizes) <= 1
 
 
+@pytest.mark.parametrize("C", [2, 3, 5])
+@pytest.mark.parametrize("extent", [(0.49, 0.73), (1.0, 0.2), (0.3, 1.0)])
+def test_partition_of_a_non_square_dem_shares_the_data(C, extent):
+    """A DEM filling only part of its padded square: every rank's run holds near-equal counts of
+    the nodes with data (before, a rank could own padding alone and draw nothing: walk5 M1),
+    the runs still cover every node once, and the depth goes deeper only as far as needed."""
+    from massview.lod.roettger import data_nodes
+
+    L = partition_depth(C, extent)
+    assert L >= partition_depth(C) and data_nodes(L, extent).sum() >= 4**partition_depth(C)
+    parts = portion_nodes(L, C, extent)
+    allnodes = np.concatenate(parts)
+    assert len({tuple(x) for x in allnodes}) == 4**L == len(allnodes)
+    data = data_nodes(L, extent)
+    counts = [int(data[p[:, 0], p[:, 1]].sum()) for p in parts]
+    assert min(counts) > 0 and max(counts) - min(counts) <= 1
+    full = portion_nodes(partition_depth(C), C, (1.0, 1.0))
+    assert all(np.array_equal(a, b) for a, b in zip(full, portion_nodes(partition_depth(C), C)))  # square: as before
+
+
 def test_a_rank_reads_only_its_portion(stores):
     info = LayerInfo.of(stores["real"])
     whole = LayerPortion(info, np.array([[0, 0]]), 0)

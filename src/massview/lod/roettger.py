@@ -59,7 +59,7 @@ from ..core.errors import ConfigError
 from ..data.terrain.roettger import C_RANGE, k_factor, local_d2, propagate_into
 
 __all__ = ["RoettgerParams", "Fans", "LodResult", "C_RANGE", "k_factor", "default_c", "local_d2", "propagate_into",
-           "select_leaves", "emit_fans", "morton2", "node_ranges", "partition_depth", "portion_nodes", "portion_owner"]
+           "select_leaves", "emit_fans", "morton2", "node_ranges", "partition_depth", "data_nodes", "portion_nodes", "portion_owner"]
 
 def default_c(tau: float, fovy_deg: float, height_px: int) -> float:
     """The desired resolution c for a pixel tolerance τ: c = √3 / (τ · pixel angle), so that
@@ -282,30 +282,50 @@ def morton2(row: np.ndarray, col: np.ndarray) -> np.ndarray:
 
 
 # -- exact partition (T2, Gouranton et al. §3.1 made exact) ------------------------------------
-def partition_depth(C: int) -> int:
-    """The smallest depth L with 4^L >= C, one deeper when C is not a power of 4."""
+def partition_depth(C: int, extent: tuple[float, float] = (1.0, 1.0), max_depth: int | None = None) -> int:
+    """The smallest depth L with 4^L >= C, one deeper when C is not a power of 4; for a DEM
+    that fills only ``extent`` (rows, cols fractions) of its padded square, deeper until as
+    many nodes hold data as the square would have (at most ``max_depth``), so the portions
+    still split the data finely enough to share it among C ranks."""
     L = 0
     while 4**L < C:
         L += 1
-    return L if 4**L == C else L + 1
+    L = L if 4**L == C else L + 1
+    want = 4**L
+    while int(data_nodes(L, extent).sum()) < want and (max_depth is None or L < max_depth):
+        L += 1
+    return L
 
 
-def portion_nodes(depth: int, C: int) -> list[np.ndarray]:
+def data_nodes(depth: int, extent: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
+    """(2^depth, 2^depth) bool: the depth-``depth`` nodes that hold data of a DEM filling the
+    fractions ``extent`` = ((rows−1)/(S−1), (cols−1)/(S−1)) of its padded square (the rest is
+    edge-replicated padding, never drawn)."""
+    N = 2**depth
+    k = np.arange(N, dtype=np.float64) / N
+    return (k[:, None] < float(extent[0])) & (k[None, :] < float(extent[1]))
+
+
+def portion_nodes(depth: int, C: int, extent: tuple[float, float] = (1.0, 1.0)) -> list[np.ndarray]:
     """The depth-``depth`` nodes of each of C computation ranks: contiguous Morton-order runs
-    of near-equal node count (rank k gets runs k); each (m, 2) int64 rows/cols."""
+    holding near-equal counts of the nodes with data (:func:`data_nodes`; padding-only nodes go
+    with the run they fall in; for a square DEM that fills its square, near-equal node counts);
+    rank k gets run k; each (m, 2) int64 rows/cols."""
     N = 2**depth
     rr, cc = np.meshgrid(np.arange(N, dtype=np.int64), np.arange(N, dtype=np.int64), indexing="ij")
     rr, cc = rr.ravel(), cc.ravel()
     order = np.argsort(morton2(rr, cc), kind="stable")
     nodes = np.stack([rr[order], cc[order]], 1)
-    cuts = [round(k * len(nodes) / C) for k in range(C + 1)]
+    pos = np.flatnonzero(data_nodes(depth, extent)[nodes[:, 0], nodes[:, 1]])
+    D = len(pos)
+    cuts = [0] + [int(pos[i]) if (i := round(k * D / C)) < D else len(nodes) for k in range(1, C)] + [len(nodes)]
     return [nodes[cuts[k]: cuts[k + 1]] for k in range(C)]
 
 
-def portion_owner(depth: int, C: int) -> np.ndarray:
+def portion_owner(depth: int, C: int, extent: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
     """(2^depth, 2^depth) int64: the computation rank owning each depth-``depth`` node."""
     N = 2**depth
     own = np.zeros((N, N), np.int64)
-    for k, nodes in enumerate(portion_nodes(depth, C)):
+    for k, nodes in enumerate(portion_nodes(depth, C, extent)):
         own[nodes[:, 0], nodes[:, 1]] = k
     return own

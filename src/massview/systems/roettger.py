@@ -72,18 +72,27 @@ def validate(scene: str, cfg: RenderConfig, nranks: int) -> None:
         if c * r != vis:
             raise ConfigError(f"--wall {cfg.wall} needs {c * r} visualization ranks (one per tile); the run has {vis} "
                               f"(--ranks {nranks} minus --compute-ranks {cfg.compute_ranks})")
-    depth0 = partition_depth(cfg.compute_ranks)
+    infos = []
     for spec in (scene, *cfg.layers):
         info = LayerInfo.of(spec)  # a missing store or table fails here with its message
+        infos.append(info)
         if cfg.roettger_C is not None:
             RoettgerParams(C=cfg.roettger_C)  # the proven range
             if cfg.roettger_C < info.C_min:
                 raise ConfigError(f"--roettger-C {cfg.roettger_C:g} is below the C_min {info.C_min:g} the table of {spec} was "
                                   f"propagated for; use --roettger-C >= {info.C_min:g} or re-run "
                                   f"`massview prepare roettger {spec} --min-C {cfg.roettger_C:g}`")
+    depth0 = partition_depth(cfg.compute_ranks, data_extent(infos), min(i.n for i in infos) - 1)
+    for spec, info in zip((scene, *cfg.layers), infos):
         if depth0 > info.n - 1:
             raise ConfigError(f"{spec} is too small for {cfg.compute_ranks} computation ranks (partition depth {depth0}, its "
                               f"quadtree has {info.n} levels); use fewer --compute-ranks")
+
+
+def data_extent(infos) -> tuple[float, float]:
+    """The fractions (rows, cols) of the padded square that hold data, over all layers: the
+    portions share the data, not the padding (:func:`massview.lod.roettger.portion_nodes`)."""
+    return (max((i.rows - 1) / (i.S - 1) for i in infos), max((i.cols - 1) / (i.S - 1) for i in infos))
 
 
 def _vis_layout(cfg: RenderConfig) -> str:
@@ -150,13 +159,14 @@ class RoettgerSystem:
                 raise ConfigError(f"--roettger-C {C:g} is below the C_min {i.C_min:g} the table of {i.path} was propagated for; "
                                   f"use --roettger-C >= {i.C_min:g} or re-run `massview prepare roettger {i.path} --min-C {C:g}`")
         self.C = C
-        self.depth0 = partition_depth(len(self.comp_ranks))
+        self._extent = data_extent(self.infos)
+        self.depth0 = partition_depth(len(self.comp_ranks), self._extent, min(i.n for i in self.infos) - 1)
         self.bytes_read = 0
         if rc.role == "computation":
             if cfg.paper_partition:
                 self.portions = [PaperPortion(i, rc.role_rank, len(self.comp_ranks)) for i in self.infos]
             else:
-                nodes = portion_nodes(self.depth0, len(self.comp_ranks))[rc.role_rank]
+                nodes = portion_nodes(self.depth0, len(self.comp_ranks), self._extent)[rc.role_rank]
                 self.portions = [LayerPortion(i, nodes, self.depth0) for i in self.infos]
             self.bytes_read = sum(p.bytes_read for p in self.portions)
             self.senders = {v: FanSender(len(self.infos)) for v in self.vis_ranks}
@@ -354,7 +364,7 @@ class RoettgerSystem:
             N = 2**self.depth0
             every = np.stack(np.meshgrid(np.arange(N), np.arange(N), indexing="ij"), -1).reshape(-1, 2)
             self._reference = [LayerPortion(i, every, self.depth0) for i in self.infos]
-            self._owner = portion_owner(self.depth0, len(self.comp_ranks))
+            self._owner = portion_owner(self.depth0, len(self.comp_ranks), self._extent)
         params = self.params(camera, c)
         t0 = time.perf_counter()
         out = [p.fans(p.select(camera.position, params)) for p in self._reference]  # Morton order of the whole DEM

@@ -357,13 +357,31 @@ class TerrainSystem:
             return vis[int(round(a * n)): int(round(b * n))]
         span0 = self.lay.M - 1  # both: the finest M-block under the patch centroid
         cx, cy = (f.ax[vis] + f.lx[vis] + f.rx[vis]) // 3, (f.ay[vis] + f.ly[vis] + f.ry[vis]) // 3
+        ny, nx = self._data_blocks()
         if mode == "linear":  # that block's origin x (the paper's O_M(x) of the block the patch drew from put
-            nb0 = self.lay.blocks(0)  # every patch of a coarse block on rank 0: they all start at x = 0)
-            x = np.minimum(cx // span0, nb0 - 1) / float(nb0)
-            return vis[(x >= a) & (x < b)]
-        # quadtree: Morton order of that block
-        z = _morton(cy // span0, cx // span0) / float(4**self.lay.L)
-        return vis[(z >= a) & (z < b)]
+            x = np.minimum(cx // span0, nx - 1) / float(nx)  # every patch of a coarse block on rank 0: they all start at x = 0),
+            return vis[(x >= a) & (x < b)]  # as a share of the blocks that hold data (not of the padded square)
+        # quadtree: Morton order of that block, cut into runs of equal counts of the blocks that hold data
+        z = _morton(cy // span0, cx // span0)
+        return vis[(z >= self._morton_cut(a)) & (z < self._morton_cut(b))]
+
+    def _data_blocks(self) -> tuple[int, int]:
+        """(rows, columns) of the level-0 blocks that hold data: a non-square DEM's padded square
+        has whole rows or columns of padding blocks, which the sort-last database splits skip."""
+        M = self.lay.M
+        return max(-(-(self.lay.rows - 1) // (M - 1)), 1), max(-(-(self.lay.cols - 1) // (M - 1)), 1)
+
+    def _morton_cut(self, a: float) -> int:
+        """The Morton code where the share ``a`` (0..1) of the data blocks, in Morton order,
+        begins (0 at 0, 4^L at 1): ``sort-last:quadtree`` gives each rank a run of equal counts
+        of them. For a square DEM filling its blocks this is ceil(a·4^L), the plain split."""
+        codes = getattr(self, "_morton_codes", None)
+        if codes is None:
+            ny, nx = self._data_blocks()
+            i, j = np.meshgrid(np.arange(ny, dtype=np.int64), np.arange(nx, dtype=np.int64), indexing="ij")
+            codes = self._morton_codes = np.sort(_morton(i.ravel(), j.ravel()))
+        k = int(np.ceil(a * len(codes) - 1e-9))
+        return 0 if k <= 0 else int(4**self.lay.L) if k >= len(codes) else int(codes[k])
 
     def render(self, task: Task, camera: Camera, cfg: RenderConfig, stats: FrameStats, tint=(0, 0, 0, 0)) -> Image:
         _, _, terrain, view = self._renderers()
