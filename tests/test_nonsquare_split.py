@@ -37,3 +37,17 @@ def test_every_rank_draws_a_share_of_a_non_square_dem(tmp_path, wide_store, args
     per_rank = s["triangles_per_rank"][1:] if "roettger" in args else s["triangles_per_rank"]  # (T2's rank 0 draws what it is sent)
     assert s["max_abs_diff"] == 0
     assert min(per_rank) > 0.1 * max(per_rank), per_rank
+    if "roettger" in args:  # the summary names the system and the roles; imbalance is over the computation ranks
+        assert s["system"] == "roettger" and s["roles"] == ["visualization", "computation", "computation"]
+        assert s["imbalance"] == pytest.approx(max(per_rank) / np.mean(per_rank), rel=1e-3)  # (one frame)
+
+
+def test_imbalance_is_over_the_ranks_that_share_the_work():
+    """A role that never draws (T2's visualization rank, M1's server) does not count in the
+    imbalance: [0, 10, 10] triangles is balanced work, not an imbalance of 1.5."""
+    from massview.core.stats import summarize
+
+    recs = [{"frame": 0, "rank": r, "triangles": t, "times_ms": {"total": 1.0}, "bytes_sent": 0} for r, t in enumerate([0, 10, 30])]
+    assert summarize(recs)["imbalance"] == pytest.approx(30 / (40 / 3))
+    assert summarize(recs, work_ranks=[1, 2])["imbalance"] == pytest.approx(1.5)
+    assert summarize(recs, work_ranks=[])["imbalance"] == pytest.approx(30 / (40 / 3))  # (none given: all)

@@ -141,8 +141,11 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
     all_kept = comm.gather(kept, root=0) if keep else None
     if rank != 0:
         return None
+    roles = system.rank_roles(n) if hasattr(system, "rank_roles") else None  # (T2, M1: ranks with a role each)
+    extra = {"system": cfg.system, "roles": roles} if roles else {}
     summary = summarize(
-        records, scene=name, decomposition=decomposition, compositor=compositor, size=[cfg.width, cfg.height],
+        records, work_ranks=[r for r, role in enumerate(roles) if role in system.work_roles] if roles else None, **extra,
+        scene=name, decomposition=decomposition, compositor=compositor, size=[cfg.width, cfg.height],
         path=path_label or cfg.path, wall=cfg.wall,
         tile_targets=cfg.tile_targets, codec=cfg.codec, renderer=system.renderer,
         peak_rss_mib_per_rank=[round(v / 2**20, 1) for v in rss], pipeline=cfg.pipeline, wall_s=round(wall_s, 3),

@@ -79,7 +79,7 @@ def print_summary(summary: dict, console=None) -> None:
             t.add_row("warning", w)
         console.print(t)
         return
-    for key in ("scene", "decomposition", "compositor", "ranks", "wall", "frames", "size", "mean_frame_ms", "fps",
+    for key in ("scene", "system", "decomposition", "compositor", "ranks", "roles", "wall", "frames", "size", "mean_frame_ms", "fps",
                 "triangles_per_frame", "imbalance", "bytes_per_frame", "max_abs_diff", "diff_fraction", "renderer"):
         if key in summary and summary[key] is not None:
             v = summary[key]
@@ -89,6 +89,10 @@ def print_summary(summary: dict, console=None) -> None:
                 v = f"{v / 1e6:.3f} M"
             elif key == "size":
                 v = "x".join(str(a) for a in v)
+            elif key == "roles":
+                v = ", ".join(f"{r}: {role}" for r, role in enumerate(v))
+            elif key == "imbalance" and summary.get("roles"):
+                v = f"{v} (over the {'computation ranks' if summary.get('system') == 'roettger' else 'clients'})"
             t.add_row(key, str(v))
     if "triangles_per_rank" in summary:
         t.add_row("triangles_per_rank", ", ".join(f"{v / 1e3:.1f}k" for v in summary["triangles_per_rank"]))
@@ -147,10 +151,14 @@ def write_report(out: Path, records: list[dict], summary: dict) -> Path:
     a.set_ylabel("time (ms)")
     a.legend(fontsize=7, ncol=3)
     cut = summary.get("interrupted_after")
-    a.set_title(f"{summary.get('scene', '')} · {summary.get('decomposition', '')} · {summary.get('compositor', '')} · {len(ranks)} ranks"
+    system = summary.get("system")
+    a.set_title(f"{summary.get('scene', '')} · " + (f"--system {system} · " if system not in (None, "auto") else "")
+                + f"{summary.get('decomposition', '')} · {summary.get('compositor', '')} · {len(ranks)} ranks"
                 + (f" · interrupted after {cut} frames" if cut is not None else ""))
+    roles = summary.get("roles") or []
     for j, rk in enumerate(ranks):
-        b.plot(frames, tri[:, j] / 1e3, lw=1.5, label=f"rank {rk}", **mark)
+        role = f" ({roles[rk]})" if rk < len(roles) and roles[rk] else ""
+        b.plot(frames, tri[:, j] / 1e3, lw=1.5, label=f"rank {rk}{role}", **mark)
     b.set_ylabel("triangles per rank (k)")
     b.set_xlabel("frame")
     b.xaxis.set_major_locator(MaxNLocator(integer=True))

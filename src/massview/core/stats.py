@@ -101,8 +101,11 @@ def read_stats(path) -> list[dict]:
         return [json.loads(line) for line in f if line.strip()]
 
 
-def summarize(records: list[dict], **extra) -> dict:
-    """Summary of per-frame per-rank records: frame time is the max ``total`` over ranks."""
+def summarize(records: list[dict], work_ranks=None, **extra) -> dict:
+    """Summary of per-frame per-rank records: frame time is the max ``total`` over ranks.
+    ``imbalance`` (max ÷ mean triangles a frame) is over ``work_ranks`` where given: the ranks
+    that share the drawing (T2's computation ranks, M1's clients), not those that never draw
+    by their role."""
     frames = sorted({r["frame"] for r in records})
     ranks = sorted({r["rank"] for r in records})
     if not frames:
@@ -118,9 +121,10 @@ def summarize(records: list[dict], **extra) -> dict:
         total[i, j] = r["times_ms"].get("total", 0.0)
         sent[i, j] = r["bytes_sent"]
     frame_ms = total.max(axis=1)
-    mean_tri = tri.mean(axis=1)
+    work = [ri[r] for r in (work_ranks or ()) if r in ri] or list(range(len(ranks)))
+    mean_tri = tri[:, work].mean(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        imb = np.where(mean_tri > 0, tri.max(axis=1) / np.where(mean_tri > 0, mean_tri, 1), 1.0)
+        imb = np.where(mean_tri > 0, tri[:, work].max(axis=1) / np.where(mean_tri > 0, mean_tri, 1), 1.0)
     stage_means = {}
     for s in STAGES:
         vals = [r["times_ms"].get(s, 0.0) for r in records]

@@ -133,6 +133,13 @@ class DmmrSystem:
         kind, layout = parse_decomposition(cfg.decomposition, ("default",))
         return "balanced" if kind == "sort-last" or layout == "kd" else layout
 
+    work_roles = ("client",)  # the ranks whose triangles the summary's imbalance compares
+
+    @staticmethod
+    def rank_roles(n: int) -> list[str]:
+        """Each of the ``n`` ranks' role: rank 0 the server, the others clients (one rank is both)."""
+        return ["server"] + ["client"] * (n - 1) if n > 1 else ["server and client"]
+
     def split_label(self, cfg: RenderConfig) -> tuple[str, str]:
         """(decomposition, compositor) as the summary names them: the server divides the
         frustum (Algorithm 1, load-balanced, or equal tiles) and assembles the clients'

@@ -120,6 +120,18 @@ class RoettgerSystem:
         sort-first tiles (or wall tiles) of what the computation ranks send."""
         return (f"wall {cfg.wall}" if cfg.wall else f"sort-first:{_vis_layout(cfg)}"), "tile-assembly"
 
+    work_roles = ("computation",)  # the ranks whose triangles the summary's imbalance compares
+
+    def rank_roles(self, n: int) -> list[str]:
+        """Each of the ``n`` ranks' role: visualization first, computation last."""
+        from ..parallel.roles import assign_roles
+
+        out = [""] * n
+        for name, ranks in assign_roles(roles(self.cfg), n).items():
+            for r in ranks:
+                out[r] = name
+        return out
+
     def __init__(self, specs, cfg: RenderConfig):
         self.specs = [str(s) for s in specs]
         self.cfg = cfg
