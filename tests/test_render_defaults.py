@@ -150,3 +150,30 @@ def test_cameras_that_see_nothing_and_ineffective_colour_options_are_warned(tmp_
         warnings.simplefilter("error", mv.MassviewWarning)
         mv.render(s, mv.camera(s, position=(7000, -7000, 3000), look_at=(7000, -7000, 0), size=(64, 48)))
     s.close()
+
+
+def test_keyframe_files_that_show_nothing_useful_are_warned_or_named(tmp_path, steep_scene):
+    """Keyframes all at one time render keyframe 0 every frame (a still): warned. A camera under
+    the terrain's lowest point inside its extent: warned. A keyframe without 'look_at' is named
+    in one sentence that mentions 'orientation' (walk5 M5, L1)."""
+    def kf(name, frames):
+        p = tmp_path / f"{name}.json"
+        p.write_text(json.dumps({"keyframes": frames}))
+        return p
+
+    same = kf("same", [{"time": 0, "position": [7000, -7000, 3000], "look_at": [7000, -6000, 0]},
+                       {"time": 0, "position": [8000, -7000, 3000], "look_at": [8000, -6000, 0]}])
+    proc = run_cli("render", steep_scene, "--path", same, "--frames", 2, "--size", "64x48", "--out", tmp_path / "a", "-q")
+    assert "all 2 keyframes have time 0: every frame shows keyframe 0" in proc.stderr
+    under = kf("under", [{"time": 0, "position": [7000, -7000, -500], "look_at": [9000, -7000, -300]}])
+    proc = run_cli("render", steep_scene, "--path", under, "--frames", 1, "--size", "64x48", "--out", tmp_path / "b", "-q")
+    assert "camera 0 is 500 m below the terrain's lowest point" in proc.stderr
+    good = kf("good", [{"time": 0, "position": [7000, -7000, 3000], "look_at": [7000, -6000, 0]},
+                       {"time": 1, "position": [8000, -7000, 3000], "look_at": [8000, -6000, 0]}])
+    proc = run_cli("render", steep_scene, "--path", good, "--frames", 2, "--size", "64x48", "--out", tmp_path / "c", "-q")
+    assert "warning" not in proc.stderr
+    nolook = kf("nolook", [{"time": 0, "position": [7000, -7000, 3000], "look_at": [7000, -6000, 0]},
+                           {"time": 1, "position": [8000, -7000, 3000]}])
+    proc = run_cli("render", steep_scene, "--path", nolook, "--frames", 2, "--size", "64x48", "--out", tmp_path / "d", "-q", check=False)
+    assert proc.returncode != 0 and "keyframe 1 has no 'look_at' [x, y, z] (or give every keyframe an 'orientation'" in proc.stderr
+    assert proc.stderr.count("nolook.json") == 1 and "Traceback" not in proc.stderr

@@ -381,7 +381,12 @@ def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
     if isinstance(what, Camera):
         return [what], "camera"
     if isinstance(what, (str, Path)):
-        return _fitted_path(str(what), scene, cfg.exaggeration).cameras(cfg.frames, cfg.width, cfg.height), str(what)
+        p = _fitted_path(str(what), scene, cfg.exaggeration)
+        times = getattr(p, "times", None)  # (a keyframe file's)
+        if times is not None and len(times) > 1 and float(np.ptp(times)) == 0.0 and cfg.frames > 1:
+            _warn_rank0([f"{what}: all {len(times)} keyframes have time {float(times[0]):g}: every frame shows keyframe 0 "
+                         "(a still); give them increasing times"])
+        return p.cameras(cfg.frames, cfg.width, cfg.height), str(what)
     try:
         cams = list(what)
     except TypeError:
@@ -467,6 +472,28 @@ def _blind(cams: list[Camera], scene: Scene, cfg: RenderConfig) -> str | None:
     return f"{who} at the scene ({box}; {where}): every frame will be sky only"
 
 
+def _buried(cams: list[Camera], scene: Scene, cfg: RenderConfig) -> str | None:
+    """A warning for the first camera inside a terrain's box below its lowest point (under the
+    ground: the frame shows the terrain's underside)."""
+    if scene.kind != "terrain":
+        return None
+    lo, hi = scene.bounds
+    for n, c in enumerate(cams):
+        x, y, z = c.position
+        if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and z < lo[2]:
+            return (f"camera {n} is {lo[2] - z:.6g} m below the terrain's lowest point (z {lo[2]:.6g}) inside its extent: "
+                    "its frame shows the terrain from below")
+    return None
+
+
+def _warn_rank0(lines) -> None:
+    """:func:`_warn` on rank 0 only inside an MPI job; nothing for no lines."""
+    from .parallel.runtime import in_mpi_job, world
+
+    if lines and (not in_mpi_job() or world().Get_rank() == 0):
+        _warn(lines)
+
+
 def _given_cameras(what, frames, size):
     """``what`` (a list where it was an iterable of cameras); ``frames=`` and ``size=`` with
     cameras must agree with them (they apply to a path name: were silently ignored)."""
@@ -545,9 +572,8 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
     if nranks == 1 or in_mpi_job():
         scene.system(cfg)  # opened with this config's budgets (the bounds come from it)
     cams, label = _cameras(scene, what, cfg)
-    blind = None if isinstance(what, str) and what in BUILTIN_PATHS else _blind(cams, scene, cfg)
-    if blind and (not in_mpi_job() or world().Get_rank() == 0):
-        _warn([blind])
+    if not (isinstance(what, str) and what in BUILTIN_PATHS):
+        _warn_rank0([m for m in (_blind(cams, scene, cfg), _buried(cams, scene, cfg)) if m])
     cfg = RenderConfig(**{**cfg.to_json(), "width": cams[0].width, "height": cams[0].height, "frames": len(cams)})
     validate(scene.spec, cfg, nranks)
     if in_mpi_job() or nranks == 1:

@@ -157,18 +157,23 @@ class KeyframePath(CameraPath):
         fovy = data.get("fovy", 45.0)
         if not (isinstance(fovy, (int, float)) and 0 < fovy < 180):
             raise ConfigError(f"{source}: 'fovy' must be a number of degrees between 0 and 180, got {fovy!r}")
+        lacking = [i for i, k in enumerate(kfs) if "position" not in k]
+        if lacking:
+            raise ConfigError(f"{source}: keyframe {lacking[0]} has no 'position' [x, y, z]")
+        if not all("look_at" in k for k in kfs) and not all("orientation" in k for k in kfs):
+            i = next(i for i, k in enumerate(kfs) if "look_at" not in k)
+            raise ConfigError(f"{source}: keyframe {i} has no 'look_at' [x, y, z] (or give every keyframe an 'orientation' "
+                              "[w, x, y, z] quaternion instead)")
         try:
             times = np.array([float(k.get("time", i)) for i, k in enumerate(kfs)])
             positions = np.array([[float(v) for v in k["position"]] for k in kfs])
             if all("look_at" in k for k in kfs):
                 targets = np.array([[float(v) for v in k["look_at"]] for k in kfs])
                 orients = None
-            elif all("orientation" in k for k in kfs):
+            else:
                 targets = None
                 orients = np.array([[float(v) for v in k["orientation"]] for k in kfs])
                 orients /= np.linalg.norm(orients, axis=1, keepdims=True)
-            else:
-                raise ConfigError(f"{source}: every keyframe needs 'look_at' (or every one 'orientation')")
         except (KeyError, TypeError, ValueError) as e:
             raise ConfigError(f"{source}: malformed keyframe ({e}); each needs 'time', 'position' [x,y,z] and 'look_at' [x,y,z]") from None
         if positions.shape[1:] != (3,) or np.any(np.diff(times) < 0):
