@@ -177,3 +177,15 @@ def test_keyframe_files_that_show_nothing_useful_are_warned_or_named(tmp_path, s
     proc = run_cli("render", steep_scene, "--path", nolook, "--frames", 2, "--size", "64x48", "--out", tmp_path / "d", "-q", check=False)
     assert proc.returncode != 0 and "keyframe 1 has no 'look_at' [x, y, z] (or give every keyframe an 'orientation'" in proc.stderr
     assert proc.stderr.count("nolook.json") == 1 and "Traceback" not in proc.stderr
+
+
+def test_render_video_has_every_frame_and_a_later_run_removes_a_stale_one(tmp_path, steep_scene):
+    """``render --video`` writes OUT/video.mp4 with one video frame per rendered frame (walk5
+    M7: only the demo wrote a video); a later run into the same folder without --video removes
+    it with the other outputs of the earlier run, so no video of old frames stays beside new ones."""
+    import imageio_ffmpeg
+
+    run_cli("render", steep_scene, "--path", "flyover", "--frames", 5, "--size", "96x64", "--video", "--out", tmp_path, "-q")
+    assert imageio_ffmpeg.count_frames_and_secs(str(tmp_path / "video.mp4"))[0] == 5
+    run_cli("render", steep_scene, "--path", "orbit", "--frames", 2, "--size", "96x64", "--out", tmp_path, "-q")
+    assert not (tmp_path / "video.mp4").exists() and len(list((tmp_path / "frames").glob("*.png"))) == 2

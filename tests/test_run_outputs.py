@@ -12,7 +12,7 @@ from conftest import SMALL_SCENE, SMALL_SIZE, run_cli
 
 
 def test_clear_run_outputs_removes_only_a_runs_files(tmp_path):
-    made = ["summary.json", "stats.jsonl", "frames/00000.png", "frames/00004.png", "depth/00001.npy",
+    made = ["summary.json", "stats.jsonl", "report.png", "video.mp4", "frames/00000.png", "frames/00004.png", "depth/00001.npy",
             "wall/r0c1/00002.png", "wall_depth/r1c0/00003.npy"]
     kept = ["notes.txt", "frames/cover.png", "frames/0001.png", "wall/readme.txt", "mine/00000.png", "wall/other/00000.png",
             "demo.mp4"]

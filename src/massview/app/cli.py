@@ -87,6 +87,7 @@ def _add_render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pipeline", choices=("on", "off"), default=None,
                    help="render: on = composite and deliver frame i on a thread while frame i+1 is drawn (same images); off = one frame after the other (default)")
     p.add_argument("--reference", action="store_true", help="also render each frame on one rank and report max_abs_diff and diff_fraction")
+    p.add_argument("--video", action="store_true", help="render: also write OUT/video.mp4 of the frames (H.264, 30 fps)")
     p.add_argument("--out", "-o", type=Path, default=Path("out/render"), help="output folder (default out/render)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary table")
     p.add_argument("--fault", default=None, help=argparse.SUPPRESS)
@@ -275,11 +276,20 @@ def cmd_render(args, argv: list[str]) -> int:
         if e.code in (129, 143):
             _say_interrupted(args.out)
         raise
+    video = None
+    if res is not None and getattr(args, "video", False):
+        from .demo import write_video
+
+        try:
+            video = write_video(Path(args.out) / "frames", Path(args.out) / "video.mp4")
+        except FileNotFoundError:
+            print(f"massview: warning: --video: {args.out}/frames holds no frames (a --wall run writes its tiles under wall/); "
+                  "no video written", file=sys.stderr)
     if res is not None and not args.quiet:
         from .report import print_summary
 
         print_summary(res.summary)
-        print(f"wrote {args.out}/summary.json, {args.out}/stats.jsonl and the frames")
+        print(f"wrote {args.out}/summary.json, {args.out}/stats.jsonl and the frames" + (f", and {video}" if video else ""))
     return 0
 
 
@@ -303,7 +313,7 @@ def _say_interrupted(out: Path) -> None:
     print(f"massview: interrupted after {len(frames)} frame{'' if len(frames) == 1 else 's'}{where}", file=sys.stderr, flush=True)
 
 
-_VIEW_IGNORES = ("--out", "-o", "--frames", "--path", "--reference", "--pipeline")  # render's options that view accepts and does not use
+_VIEW_IGNORES = ("--out", "-o", "--frames", "--path", "--reference", "--pipeline", "--video")  # render's options that view accepts and does not use
 
 
 def cmd_view(args, argv) -> int:

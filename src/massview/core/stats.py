@@ -63,14 +63,15 @@ _FRAME_DIRS = ("frames", "depth")  # and wall/rRcC/, wall_depth/rRcC/ (one folde
 def clear_run_outputs(out) -> int:
     """Remove what an earlier run left in the output folder ``out`` before a new run writes
     there: first its ``summary.json`` (so a new run that is interrupted never leaves a folder
-    that looks finished), then ``stats.jsonl`` and the numbered frames and depth arrays in
+    that looks finished), then ``stats.jsonl``, ``report.png`` and ``video.mp4`` (made from the
+    old frames), and the numbered frames and depth arrays in
     ``frames/``, ``depth/``, ``wall/…/`` and ``wall_depth/…/`` (a 2-frame run after a 5-frame
     one left frames 2–4 of the old run beside the new ones), and those folders where that
     leaves them empty. Nothing else is touched: files of other names, other folders. Returns
     how many files were removed."""
     out = os.fspath(out)
     removed = 0
-    for name in ("summary.json", "stats.jsonl"):
+    for name in ("summary.json", "stats.jsonl", "report.png", "video.mp4"):
         try:
             os.unlink(os.path.join(out, name))
             removed += 1
