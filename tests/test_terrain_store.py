@@ -422,6 +422,27 @@ def test_verify_of_an_interrupted_store_says_to_finish_it_not_to_overwrite_it(tm
     assert "--overwrite" not in proc.stderr + proc.stdout
 
 
+def test_info_and_verify_say_what_the_store_holds(tmp_path):
+    """``info`` gives the world box keyframe files use and says what ``color: computed`` means;
+    on an interrupted store it gives no compression ratio (it printed 7258 for a store with no
+    heights written); ``verify`` names colour only where the store has it; ``prepare`` says
+    "1 level" (walk5 L2, L3, L4, L6, L7)."""
+    a = synthetic_heights(0, 200, 0, 250, 250, 3)
+    np.save(tmp_path / "d.npy", a)
+    proc = run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", tmp_path / "s.zarr", "--block", 257, "--spacing", 10)
+    assert " 1 level of 257² blocks" in proc.stdout
+    info = json.loads(run_cli("info", tmp_path / "s.zarr", "--json").stdout)
+    assert info["world_box"][0][:2] == [0.0, -1990.0] and info["world_box"][1][:2] == [2490.0, 0.0]
+    out = run_cli("info", tmp_path / "s.zarr").stdout
+    assert "keyframe files" in out and "colour map at render time" in out
+    proc = run_cli("verify", tmp_path / "s.zarr", "-q")
+    assert "(heights, shading)" in proc.stdout and "colour" not in proc.stdout
+    with pytest.raises(KeyboardInterrupt):
+        prepare_terrain(FlakySource(synthetic_heights(0, 600, 0, 500, 600, 9), 0), tmp_path / "r.zarr", block=129)
+    info = json.loads(run_cli("info", tmp_path / "r.zarr", "--json", check=False).stdout)
+    assert not info["complete"] and info["compression_ratio"] is None and info["world_box"] is None
+
+
 def test_geotiff_scale_offset_south_up_feet_and_rotation(tmp_path):
     """GeoTIFF georeference and band tags a user's file may carry: the band's scale and offset
     are applied (they were ignored: relief 10× too high), a south-up raster is read north-up (it

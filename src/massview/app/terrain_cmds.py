@@ -132,11 +132,12 @@ def cmd_prepare(args) -> int:
         how = f"resumed {res.path} ({res.rows_kept} of {res.layout.blocks(0)} block rows of level 0 were already written)"
     else:
         how = f"started {res.path} over (the interrupted run had finished no block row)"
+    _warn(res.warnings)  # (first: they describe the run the lines below report)
+    lv = res.layout.levels
     print(f"{how}: {res.layout.rows}x{res.layout.cols} samples, "
-          f"{res.layout.levels} levels of {res.layout.M}² blocks, {res.filled} nodata samples filled, "
+          f"{lv} level{'' if lv == 1 else 's'} of {res.layout.M}² blocks, {res.filled} nodata sample{'' if res.filled == 1 else 's'} filled, "
           f"{res.seconds:.1f} s ({mb / max(res.seconds, 1e-9):.1f} MB/s)")
     print("stages (wall, CPU of all threads, of it system): " + "; ".join(f"{k} {v[0]:.1f} s, {v[1]:.1f} s, {v[2]:.1f} s" for k, v in res.stages.items()))
-    _warn(res.warnings)
     if os.environ.get("MASSVIEW_STAGES_FILE"):  # for `massview bench ingest`
         Path(os.environ["MASSVIEW_STAGES_FILE"]).write_text(json.dumps(res.stages))
     return 0
@@ -173,8 +174,25 @@ def store_info(path: Path) -> dict:
         "filled_fraction": round(int((a.get("nodata") or {}).get("filled", 0)) / max(lay.rows * lay.cols, 1), 6),
         "source": a.get("source"),
         "color": a.get("color"), "disk_bytes": disk, "height_disk_bytes": hdisk, "raw_height_bytes": raw,
-        "compression_ratio": round(raw / hdisk, 3) if hdisk else None,
+        "compression_ratio": round(raw / hdisk, 3) if hdisk and a.get("complete") else None,  # (of a whole store only)
+        "world_box": _world_box(st) if a.get("complete") else None,
     }
+
+
+def _world_box(st) -> list[list[float]] | None:
+    """[[x, y, z] lo, [x, y, z] hi] in world metres (what keyframe files and ``mv.camera`` use:
+    x east = column × dx, y north = −row × dy, z = height × vertical scale)."""
+    from ..lod.kpatch import world_box
+
+    try:
+        lo, hi = world_box(st.layout, *st.height_ranges(0), st.spacing, st.vertical_scale)
+    except Exception:  # noqa: BLE001 - a damaged metadata array: info still prints the rest
+        return None
+    return [[round(float(v), 3) for v in lo], [round(float(v), 3) for v in hi]]
+
+
+_COLOR_TEXT = {None: "none (grey, or a colour map at render time)", "computed": "computed: a colour map at render time (no colour arrays)",
+               "orthophoto": "orthophoto (color/ arrays)"}
 
 
 def cmd_info(args) -> int:
@@ -195,6 +213,13 @@ def cmd_info(args) -> int:
                 v = crs_name(v)
             if k in ("disk_bytes", "height_disk_bytes", "raw_height_bytes"):
                 v = f"{v / 2**20:.1f} MiB"
+            elif k == "color":
+                v = _COLOR_TEXT.get(v, v)
+            elif k == "world_box" and v:
+                v = (", ".join(f"{a} {lo:.6g}..{hi:.6g}" for a, lo, hi in zip("xyz", *v))
+                     + " (world metres: keyframe files and mv.camera use these)")
+            elif k in ("compression_ratio", "world_box") and v is None:
+                v = "— (the store is incomplete)" if not info["complete"] else "—"
             t.add_row(k, str(v))
         Console().print(t)
     if not info["complete"]:
@@ -212,6 +237,9 @@ def cmd_verify(args) -> int:
         for p in problems:
             print(f"massview: verify: {p}", file=sys.stderr)
         raise StoreError(f"{args.store}: {len(problems)} problem(s) found")
-    print(f"{args.store}: OK — every array has its layout's shape, every block (heights, shading, colour) and the Röttger table "
+    from ..data.terrain import TerrainStore
+
+    what = "heights, shading, colour" if TerrainStore(Path(args.store)).has_color else "heights, shading"
+    print(f"{args.store}: OK — every array has its layout's shape, every block ({what}) and the Röttger table "
           "decode, metadata and the table match the data, errors are saturated")
     return 0
