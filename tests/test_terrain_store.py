@@ -518,3 +518,17 @@ def test_single_block_reads_are_zarrs_values_and_fall_back_on_damage(tmp_path):
     chunk.unlink()
     with pytest.raises(BlockNotFoundError, match=r"block \(level 0, 1, 2\) is missing"):
         TerrainStore(tmp_path / "s.zarr").get_block(0, 1, 2)
+
+
+def test_int16_voids_without_nodata_get_a_hint(tmp_path):
+    """A raw int16 DEM whose lowest sample is −32768 (SRTM's void marker) prepared without
+    --nodata keeps those as heights; the run now says so and names the option (walk5 L9); with
+    --nodata −32768 the samples are filled and nothing is said."""
+    a = (np.random.default_rng(0).random((300, 400)) * 600).astype("<i2")
+    a[100:110, 50:60] = -32768
+    a.tofile(tmp_path / "v.raw")
+    proc = run_cli("prepare", "terrain", tmp_path / "v.raw", "--shape", "300x400", "--dtype", "<i2", "-o", tmp_path / "a.zarr")
+    assert "its lowest height is -32768" in proc.stderr and "--nodata -32768" in proc.stderr
+    proc = run_cli("prepare", "terrain", tmp_path / "v.raw", "--shape", "300x400", "--dtype", "<i2", "--nodata", "-32768",
+                   "-o", tmp_path / "b.zarr")
+    assert "lowest height" not in proc.stderr and "100 nodata samples filled" in proc.stdout

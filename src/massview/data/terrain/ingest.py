@@ -237,6 +237,11 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
                             "neighbours; check the nodata value (--nodata) and the extent")
     if src.bands > 1:
         res.warnings.append(f"{src.name} has {src.bands} bands; band 1 was used as the elevation")
+    dt = np.dtype(src.dtype)
+    if dt.kind == "i" and src.nodata is None and meta.zlo == float(np.iinfo(dt).min):
+        lo = int(np.iinfo(dt).min)
+        res.warnings.append(f"{src.name}: its lowest height is {lo}, the smallest {dt.name} and the usual void marker (SRTM's); "
+                            f"if those samples are voids, prepare again with --nodata {lo} (they are heights of {lo} now)")
     unit, factor = src.linear_unit()
     if factor != 1.0:
         res.warnings.append(f"{src.name}: its CRS measures in {unit} ({factor:.6g} m), so the sample spacing was converted to metres; "
