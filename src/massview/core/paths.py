@@ -322,7 +322,8 @@ class ParametricPath(CameraPath):
             d[2] = 0
             d /= max(np.linalg.norm(d), 1e-12)
             tgt = eye + d * s * 0.2 + np.array([0, 0, -0.035 * s])
-            tgt[2] = min(tgt[2], c[2])  # relief deeper than ~5 % of the size (an exaggerated one): look down to its middle
+            if self.hi[2] - c[2] > 0.1 * s:  # relief deeper than ~20 % of the size (a strongly exaggerated one):
+                tgt[2] = min(tgt[2], c[2])  # look down to its middle height (ahead at the top, the frame was all sky)
         return eye, look_at_quaternion(eye, tgt)
 
     def _route(self):
