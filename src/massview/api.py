@@ -52,7 +52,7 @@ from .core.errors import ConfigError, MassviewWarning, RankJobError
 from .core.paths import BUILTIN_PATHS, load_path, scene_clip
 
 __all__ = ["Scene", "RenderResult", "Frame", "RankJobError", "MassviewWarning", "open_scene", "camera", "path", "render",
-           "render_frame", "show", "render_config"]
+           "render_frame", "show", "render_config", "prepare_terrain", "terrain_info", "verify_terrain"]
 
 # -- how messages name options: API keywords (tau=) for Python callers, flags (--tau) for the CLI --
 _FLAG_NAMES = contextvars.ContextVar("massview_flag_names", default=False)
@@ -703,3 +703,57 @@ def show(img, frame: int = 0) -> Frame:
         img = img.color
     return Frame(img)
 
+
+
+# -- terrain stores: what `massview prepare terrain`, `info` and `verify` do --------------------
+
+def prepare_terrain(input: str | Path, out: str | Path, *, color: str | Path | None = None, nodata: float | None = None,
+                    spacing=None, crs: str | None = None, block: int = 257, vertical_scale: float = 1.0,
+                    overwrite: bool = False, workers: int = 0, array: str | None = None, shape: tuple[int, int] | None = None,
+                    dtype: str | None = None, progress: bool = False):
+    """Prepare the terrain store ``out`` from the DEM file ``input`` (GeoTIFF/COG, ``.npy``,
+    ``.npz`` with ``array=``, SRTM ``.hgt``, raw binary with ``shape=(rows, cols)`` and
+    ``dtype=``), as ``massview prepare terrain`` does: ``color`` an orthophoto to drape,
+    ``nodata`` the void value (default: the file's own), ``spacing`` ``DX`` or ``(DX, DY)`` metres
+    and ``crs`` for an input without a georeference, ``block`` 129/257/513, ``vertical_scale``
+    heights to metres, ``overwrite`` to replace a complete store (an interrupted one is
+    resumed), ``workers`` threads (0: every core), ``progress`` bars on stderr. Returns the
+    :class:`massview.data.terrain.ingest.PrepareResult` (``path``, ``layout``, ``seconds``,
+    ``filled``, ``warnings``, …); its warnings also come as :class:`MassviewWarning`. Errors
+    name the file or the option, as the CLI's do."""
+    from contextlib import nullcontext
+
+    from .app.outputs import check_output_file
+    from .app.terrain_cmds import compile_note, progress_bar
+    from .data.terrain import open_source
+    from .data.terrain import prepare_terrain as _prepare
+    from .data.terrain.workers import return_freed_memory
+
+    return_freed_memory()
+    check_output_file(Path(out), "out=")
+    src = open_source(input, nodata=nodata, array=array, shape=None if shape is None else tuple(int(v) for v in shape), dtype=dtype,
+                      spacing=spacing, crs=crs)
+    ortho = open_source(color) if color else None
+    with (compile_note(False) if progress else nullcontext()), progress_bar(not progress) as prog:
+        res = _prepare(src, Path(out), block=block, vertical_scale=vertical_scale, color="computed", ortho=ortho,
+                       overwrite=overwrite, progress=prog, workers=workers)
+    _warn(res.warnings)
+    return res
+
+
+def terrain_info(store: str | Path) -> dict:
+    """What ``massview info STORE --json`` prints: samples, layout, spacing, CRS, nodata, colour,
+    disk use, compression and the world box keyframe files use (None for an incomplete store)."""
+    from .app.terrain_cmds import store_info
+
+    return store_info(Path(store))
+
+
+def verify_terrain(store: str | Path, progress: bool = False) -> list[str]:
+    """The problems ``massview verify STORE`` finds (every array's shape, every block decodes,
+    metadata and the Röttger table match the data); an empty list for a sound store."""
+    from .app.terrain_cmds import progress_bar
+    from .data.terrain.verify import verify_store
+
+    with progress_bar(not progress) as prog:
+        return verify_store(Path(store), prog)

@@ -279,9 +279,9 @@ def write_sidecar(path, spacing: tuple[float, float], crs: str | None = None) ->
 
 
 def parse_spacing(spec, what: str = "--spacing") -> tuple[float, float]:
-    """``DX`` or ``DX,DY`` (or a 2-sequence) -> (dx, dy), both finite and positive."""
+    """``DX`` or ``DX,DY`` (or a number, or a 2-sequence) -> (dx, dy), both finite and positive."""
     try:
-        vals = [float(v) for v in (spec.split(",") if isinstance(spec, str) else spec)]
+        vals = [float(v) for v in (spec.split(",") if isinstance(spec, str) else [spec] if isinstance(spec, (int, float)) else spec)]
     except (TypeError, ValueError):
         raise IngestError(f"{what} {spec!r}: expected DX or DX,DY (sample spacing, e.g. 30 or 30,30)") from None
     if len(vals) == 1:
