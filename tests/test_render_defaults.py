@@ -32,15 +32,20 @@ def test_default_render_has_no_frame_with_missing_terrain(tmp_path, terrain_stor
     assert summary(tmp_path)["frames"] == 4
 
 
+def _walk_store(d, name: str, seed: int, relief: float, spacing: float):
+    """A 257² random-walk terrain ``relief`` metres high, samples ``spacing`` metres apart,
+    prepared into ``d/<name>.zarr``."""
+    a = np.random.default_rng(seed).normal(0, 1, (257, 257)).cumsum(0).cumsum(1).astype(np.float32)
+    a = (a - a.min()) / (a.max() - a.min()) * relief
+    np.save(d / f"{name}.npy", a)
+    run_cli("prepare", "terrain", d / f"{name}.npy", "-o", d / f"{name}.zarr", "--spacing", spacing, "-q")
+    return d / f"{name}.zarr"
+
+
 @pytest.fixture(scope="module")
 def large_scene(tmp_path_factory):
     """A 100+ km terrain: 257² samples 500 m apart."""
-    d = tmp_path_factory.mktemp("large")
-    a = np.random.default_rng(2).normal(0, 1, (257, 257)).cumsum(0).cumsum(1).astype(np.float32)
-    a = (a - a.min()) / (a.max() - a.min()) * 3000
-    np.save(d / "big.npy", a)
-    run_cli("prepare", "terrain", d / "big.npy", "-o", d / "big.zarr", "--spacing", 500, "-q")
-    return d / "big.zarr"
+    return _walk_store(tmp_path_factory.mktemp("large"), "big", 2, 3000, 500)
 
 
 def _keyframes(path, extra=None):
@@ -99,12 +104,7 @@ def test_sort_last_linear_splits_the_terrain_into_slabs(terrain_store, tmp_path)
 def steep_scene(tmp_path_factory):
     """A terrain whose relief is ~6 % of its extent (a real mountain DEM's ratio): 1 km of relief
     over 257² samples 60 m apart."""
-    d = tmp_path_factory.mktemp("steep")
-    a = np.random.default_rng(5).normal(0, 1, (257, 257)).cumsum(0).cumsum(1).astype(np.float32)
-    a = (a - a.min()) / (a.max() - a.min()) * 1000
-    np.save(d / "steep.npy", a)
-    run_cli("prepare", "terrain", d / "steep.npy", "-o", d / "steep.zarr", "--spacing", 60, "-q")
-    return d / "steep.zarr"
+    return _walk_store(tmp_path_factory.mktemp("steep"), "steep", 5, 1000, 60)
 
 
 @pytest.mark.parametrize("name", ["flyover", "turn", "forward", "zoom"])

@@ -485,17 +485,11 @@ def test_single_block_reads_are_zarrs_values_and_fall_back_on_damage(tmp_path):
     loop): the same values, bit for bit, as zarr's own read of every block at every level; a
     truncated chunk still fails with the file named and a missing one still reads as missing,
     through zarr's read."""
-    import rasterio
-    from rasterio.transform import from_origin
-
     from massview.core.errors import BlockNotFoundError, CorruptBlockError
 
     a = synthetic_heights(0, 400, 0, 400, 400, 5)
     np.save(tmp_path / "d.npy", a)
-    rgb = np.random.default_rng(3).integers(0, 256, (3, 400, 400), dtype=np.uint8)
-    with rasterio.open(tmp_path / "o.tif", "w", driver="GTiff", width=400, height=400, count=3, dtype="uint8",
-                       transform=from_origin(0, 400, 1, 1)) as ds:
-        ds.write(rgb)
+    _geotiff(tmp_path / "o.tif", np.random.default_rng(3).integers(0, 256, (3, 400, 400), dtype=np.uint8), 0, 400, 1)
     run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", tmp_path / "s.zarr", "--color", tmp_path / "o.tif", "--block", "129", "-q")
     s = TerrainStore(tmp_path / "s.zarr")
     n = 0

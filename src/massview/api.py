@@ -520,11 +520,8 @@ def warn_options(spec: str, kind: str, cfg: RenderConfig, given) -> None:
     (:func:`massview.app.options.option_warnings`), through :func:`_warn` (rank 0 only inside an
     MPI job): the API's and the CLI's one way to say so."""
     from .app.options import option_warnings
-    from .parallel.runtime import in_mpi_job, world
 
-    lines = option_warnings(spec, kind, cfg, given)
-    if lines and (not in_mpi_job() or world().Get_rank() == 0):
-        _warn(lines)
+    _warn_rank0(option_warnings(spec, kind, cfg, given))
 
 
 def _not_inside_the_store(out: Path, spec: str) -> None:
@@ -721,22 +718,11 @@ def prepare_terrain(input: str | Path, out: str | Path, *, color: str | Path | N
     :class:`massview.data.terrain.ingest.PrepareResult` (``path``, ``layout``, ``seconds``,
     ``filled``, ``warnings``, …); its warnings also come as :class:`MassviewWarning`. Errors
     name the file or the option, as the CLI's do."""
-    from contextlib import nullcontext
+    from .app.terrain_cmds import prepare_file
 
-    from .app.outputs import check_output_file
-    from .app.terrain_cmds import compile_note, progress_bar
-    from .data.terrain import open_source
-    from .data.terrain import prepare_terrain as _prepare
-    from .data.terrain.workers import return_freed_memory
-
-    return_freed_memory()
-    check_output_file(Path(out), "out=")
-    src = open_source(input, nodata=nodata, array=array, shape=None if shape is None else tuple(int(v) for v in shape), dtype=dtype,
-                      spacing=spacing, crs=crs)
-    ortho = open_source(color) if color else None
-    with (compile_note(False) if progress else nullcontext()), progress_bar(not progress) as prog:
-        res = _prepare(src, Path(out), block=block, vertical_scale=vertical_scale, color="computed", ortho=ortho,
-                       overwrite=overwrite, progress=prog, workers=workers)
+    res = prepare_file(input, out, option="out=", quiet=not progress, color=color, nodata=nodata, array=array,
+                       shape=None if shape is None else tuple(int(v) for v in shape), dtype=dtype, spacing=spacing, crs=crs,
+                       block=block, vertical_scale=vertical_scale, overwrite=overwrite, workers=workers)
     _warn(res.warnings)
     return res
 

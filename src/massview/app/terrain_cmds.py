@@ -107,21 +107,32 @@ def compile_note(quiet: bool):
         yield
 
 
-def cmd_prepare(args) -> int:
+def prepare_file(input, output, *, option: str, quiet: bool, color=None, no_color: bool = False, nodata=None, array=None,
+                 shape=None, dtype=None, spacing=None, crs=None, block: int = 257, vertical_scale: float = 1.0,
+                 overwrite: bool = False, workers: int = 0):
+    """Open the DEM file ``input`` (and the orthophoto ``color``) and prepare the store
+    ``output`` from it: what ``massview prepare terrain`` and :func:`massview.prepare_terrain`
+    both run. ``option`` names ``output`` in messages (``-o`` or ``out=``); ``quiet``: no compile
+    note, no progress bars. Returns the ingest's PrepareResult (its warnings not yet said)."""
     from ..data.terrain import open_source, prepare_terrain
     from ..data.terrain.workers import return_freed_memory
     from .outputs import check_output_file
 
     return_freed_memory()  # threads' freed rows go back to the system (≤ 1 GiB RSS, issue 20)
-    check_output_file(Path(args.output), "-o")
-    src = open_source(args.input, nodata=args.nodata, array=args.array, shape=_shape(args.shape), dtype=args.dtype,
-                      spacing=args.spacing, crs=args.crs)
-    ortho = open_source(args.color) if args.color else None
+    check_output_file(Path(output), option)
+    src = open_source(input, nodata=nodata, array=array, shape=shape, dtype=dtype, spacing=spacing, crs=crs)
+    ortho = open_source(color) if color else None
+    with compile_note(quiet), progress_bar(quiet) as prog:
+        return prepare_terrain(src, Path(output), block=block, vertical_scale=vertical_scale,
+                               color=None if no_color else "computed", ortho=ortho, overwrite=overwrite, progress=prog, workers=workers)
+
+
+def cmd_prepare(args) -> int:
     try:
-        with compile_note(args.quiet), progress_bar(args.quiet) as prog:
-            res = prepare_terrain(src, Path(args.output), block=args.block, vertical_scale=args.vertical_scale,
-                                  color=None if args.no_color else "computed", ortho=ortho, overwrite=args.overwrite, progress=prog,
-                                  workers=getattr(args, "workers", 0))
+        res = prepare_file(args.input, args.output, option="-o", quiet=args.quiet, color=args.color, no_color=args.no_color,
+                           nodata=args.nodata, array=args.array, shape=_shape(args.shape), dtype=args.dtype, spacing=args.spacing,
+                           crs=args.crs, block=args.block, vertical_scale=args.vertical_scale, overwrite=args.overwrite,
+                           workers=getattr(args, "workers", 0))
     except KeyboardInterrupt:
         print(f"massview: interrupted; {_interrupted_note(Path(args.output))}", file=sys.stderr)
         return 130

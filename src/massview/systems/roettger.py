@@ -82,7 +82,7 @@ def validate(scene: str, cfg: RenderConfig, nranks: int) -> None:
                 raise ConfigError(f"--roettger-C {cfg.roettger_C:g} is below the C_min {info.C_min:g} the table of {spec} was "
                                   f"propagated for; use --roettger-C >= {info.C_min:g} or re-run "
                                   f"`massview prepare roettger {spec} --min-C {cfg.roettger_C:g}`")
-    depth0 = partition_depth(cfg.compute_ranks, data_extent(infos), min(i.n for i in infos) - 1)
+    depth0 = _partition_depth(cfg.compute_ranks, infos)
     for spec, info in zip((scene, *cfg.layers), infos):
         if depth0 > info.n - 1:
             raise ConfigError(f"{spec} is too small for {cfg.compute_ranks} computation ranks (partition depth {depth0}, its "
@@ -93,6 +93,13 @@ def data_extent(infos) -> tuple[float, float]:
     """The fractions (rows, cols) of the padded square that hold data, over all layers: the
     portions share the data, not the padding (:func:`massview.lod.roettger.portion_nodes`)."""
     return (max((i.rows - 1) / (i.S - 1) for i in infos), max((i.cols - 1) / (i.S - 1) for i in infos))
+
+
+def _partition_depth(C: int, infos) -> int:
+    """The portions' depth for C computation ranks over the layers ``infos``
+    (:func:`massview.lod.roettger.partition_depth` of their data extent, at most the
+    shallowest layer's last level)."""
+    return partition_depth(C, data_extent(infos), min(i.n for i in infos) - 1)
 
 
 def _vis_layout(cfg: RenderConfig) -> str:
@@ -172,7 +179,7 @@ class RoettgerSystem:
                                   f"use --roettger-C >= {i.C_min:g} or re-run `massview prepare roettger {i.path} --min-C {C:g}`")
         self.C = C
         self._extent = data_extent(self.infos)
-        self.depth0 = partition_depth(len(self.comp_ranks), self._extent, min(i.n for i in self.infos) - 1)
+        self.depth0 = _partition_depth(len(self.comp_ranks), self.infos)
         self.bytes_read = 0
         if rc.role == "computation":
             if cfg.paper_partition:

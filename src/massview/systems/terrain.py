@@ -98,6 +98,7 @@ class TerrainSystem:
         self._front_mask = np.zeros(self._blocks.size, bool)  # blocks this rank's last front drew from
         self._keep_mask = self._union = self._front_mask  # ... and, cutting tiles, every rank's (not evicted on upload)
         self._want_mask = np.zeros(self._blocks.size, bool)  # blocks this rank's cut requested
+        self._morton_codes = None  # the data blocks' sorted Morton codes (sort-last:quadtree, _morton_cut)
         self._tex_have, self._grids = -1, None
         self.cache = BlockCache(self._load, cache_bytes, workers=2)
         self.gpu_bytes, self.loading, self._egl_device = gpu_bytes, loading, egl_device
@@ -140,13 +141,13 @@ class TerrainSystem:
         return self.h.bounds()
 
     def bounds_at(self, cfg: RenderConfig):
-        """The world box as drawn at ``cfg.exaggeration``: what paths and clip planes are fitted
-        to (:func:`massview.core.paths.exaggerated_box` of the 1× box)."""
-        from ..core.paths import exaggerated_box
+        """The world box as drawn at ``cfg.exaggeration`` (what paths and clip planes are fitted
+        to), whatever exaggeration the current hierarchy has: :meth:`PatchHierarchy.bounds`'s
+        own formula."""
         from ..lod.kpatch import world_box
 
         h = self.h
-        return exaggerated_box(*world_box(self.lay, h.zmin[0].src[0], h.zmax[0].src[0], (h.dx, h.dy), h.vs), cfg.exaggeration)
+        return world_box(self.lay, h.zmin[0].src[0], h.zmax[0].src[0], (h.dx, h.dy), h.vs, cfg.exaggeration)
 
     def ground(self, cfg: RenderConfig | None = None):
         """The surface the ``walkthrough`` path walks on, at ``cfg``'s exaggeration
@@ -357,8 +358,8 @@ class TerrainSystem:
             return vis[int(round(a * n)): int(round(b * n))]
         span0 = self.lay.M - 1  # both: the finest M-block under the patch centroid
         cx, cy = (f.ax[vis] + f.lx[vis] + f.rx[vis]) // 3, (f.ay[vis] + f.ly[vis] + f.ry[vis]) // 3
-        ny, nx = self._data_blocks()
         if mode == "linear":  # that block's origin x (the paper's O_M(x) of the block the patch drew from put
+            nx = self._data_blocks()[1]
             x = np.minimum(cx // span0, nx - 1) / float(nx)  # every patch of a coarse block on rank 0: they all start at x = 0),
             return vis[(x >= a) & (x < b)]  # as a share of the blocks that hold data (not of the padded square)
         # quadtree: Morton order of that block, cut into runs of equal counts of the blocks that hold data
@@ -375,7 +376,7 @@ class TerrainSystem:
         """The Morton code where the share ``a`` (0..1) of the data blocks, in Morton order,
         begins (0 at 0, 4^L at 1): ``sort-last:quadtree`` gives each rank a run of equal counts
         of them. For a square DEM filling its blocks this is ceil(a·4^L), the plain split."""
-        codes = getattr(self, "_morton_codes", None)
+        codes = self._morton_codes
         if codes is None:
             ny, nx = self._data_blocks()
             i, j = np.meshgrid(np.arange(ny, dtype=np.int64), np.arange(nx, dtype=np.int64), indexing="ij")

@@ -39,7 +39,7 @@ import numpy as np
 from ...core.errors import BlockNotFoundError, CorruptBlockError, StoreError
 from .layout import TerrainLayout
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "rows_done", "create_shade_arrays", "dir_size", "ChunkWriter", "make_chunk_root", "write_chunk_file", "block_view", "wide_row",
+__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "rows_done", "create_shade_arrays", "dir_size", "ChunkWriter", "block_blosc", "make_chunk_root", "write_chunk_file", "block_view", "wide_row",
            "ArrayChunkWriter", "array_chunk_writer"]
 
 FORMAT = "massview-terrain"
@@ -221,6 +221,31 @@ def array_like(template: str, base: str, name: str, shape: tuple, chunks: tuple,
     return root
 
 
+def block_blosc(arr):
+    """The blosc codec object of a block array (``heights/<l>``, ``shade/<l>``, ``color/<l>``)
+    whose chunks are single blocks ``(1, 1, M, M[, 3])`` stored as little-endian bytes + blosc
+    (what prepare writes), for direct chunk reads and writes; None for any other layout (read
+    and written through zarr)."""
+    from zarr.codecs import BloscCodec, BytesCodec
+
+    meta = arr.metadata
+    codecs = meta.codecs
+    ok = (len(codecs) == 2 and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
+          and (codecs[0].endian is None or codecs[0].endian.value == "little")
+          and tuple(meta.chunk_grid.chunk_shape) == (1, 1) + tuple(meta.shape[2:]))
+    return codecs[1]._blosc_codec if ok else None
+
+
+def _decode_block(blosc, data: bytes, out: np.ndarray) -> bool:
+    """Decode one block's chunk bytes ``data`` into ``out`` (C-contiguous); False, with nothing
+    decoded, where ``data`` cannot be a chunk of it (shorter than blosc's 16-byte header, longer
+    than the block stored uncompressed, or a header giving another decoded size)."""
+    if not 16 <= len(data) <= out.nbytes + 16 or int.from_bytes(data[4:8], "little") != out.nbytes:  # blosc header: nbytes
+        return False
+    blosc.decode(data, out=out.reshape(-1).view(np.uint8))
+    return True
+
+
 class ChunkWriter:
     """Whole-chunk writes of one array of a store, encoded on the calling thread.
 
@@ -231,14 +256,11 @@ class ChunkWriter:
     single blocks (``(1, 1, M, M[, 3])``) with codecs ``bytes`` + ``blosc``."""
 
     def __init__(self, group, name: str):
-        from zarr.codecs import BloscCodec, BytesCodec
-
         arr = group[name]
-        codecs = arr.metadata.codecs
-        if not (len(codecs) == 2 and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)):
-            raise StoreError(f"{name}: unexpected codecs {codecs} for direct chunk writes")
+        self.blosc = block_blosc(arr)
+        if self.blosc is None:
+            raise StoreError(f"{name}: unexpected codecs {arr.metadata.codecs} or chunks {arr.metadata.chunk_grid} for direct chunk writes")
         self.dtype = np.dtype(arr.dtype).newbyteorder("<")
-        self.blosc = codecs[1]._blosc_codec
         self.root = Path(str(group.store.root)) / group.path / name / "c" if group.path else Path(str(group.store.root)) / name / "c"
         self.tail = ["0"] * (arr.ndim - 2)
         self._rows: set = set()
@@ -363,7 +385,7 @@ class TerrainStore:
         for lv, h in enumerate(self._heights):
             self.check_array(f"heights/{lv}", h, raise_=True)
         self._shade: dict = {}  # level → the open shade/<level> array (_shade_array)
-        self._codecs: dict = {}  # (what, level) → the array's blosc codec object for direct chunk reads, or False (_block_codec)
+        self._codecs: dict = {}  # (what, level) → block_blosc of that array, or False (_block_codec)
         self.has_color = "color" in self.group and self.attrs.get("color") == "orthophoto"
         self.has_shade = "shade" in self.group and not upgrading
         self._color = [self.group[f"color/{lv}"] for lv in range(self.layout.levels)] if self.has_color else None
@@ -473,20 +495,13 @@ class TerrainStore:
         return self.path / what / str(level) / "c" / f"{i}/{j}{tail}"
 
     def _block_codec(self, what: str, level: int):
-        """The blosc codec object of ``<what>/<level>`` when its chunks are single blocks stored
-        as little-endian bytes + blosc (what prepare writes), else False (read through zarr)."""
+        """:func:`block_blosc` of ``<what>/<level>``, looked up once; False where there is none
+        (read through zarr)."""
         key = (what, level)
-        codec = self._codecs.get(key)
-        if codec is None:
-            from zarr.codecs import BloscCodec, BytesCodec
-
+        if key not in self._codecs:
             arr = self._heights[level] if what == "heights" else self._color[level] if what == "color" else self._shade_array(level)
-            codecs, meta = arr.metadata.codecs, arr.metadata
-            ok = (len(codecs) == 2 and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
-                  and (codecs[0].endian is None or codecs[0].endian.value == "little")
-                  and tuple(meta.chunk_grid.chunk_shape) == (1, 1) + tuple(meta.shape[2:]))
-            codec = self._codecs[key] = codecs[1]._blosc_codec if ok else False
-        return codec
+            self._codecs[key] = block_blosc(arr) or False
+        return self._codecs[key]
 
     def _shade_array(self, level: int):
         """``shade/<level>``, opened once."""
@@ -513,12 +528,9 @@ class TerrainStore:
                 data = os.read(fd, out.nbytes + 17)
             finally:
                 os.close(fd)
-            if not 16 <= len(data) <= out.nbytes + 16 or int.from_bytes(data[4:8], "little") != out.nbytes:  # blosc header: nbytes
-                return None
-            blosc.decode(data, out=out.reshape(-1).view(np.uint8))
+            return out if _decode_block(blosc, data, out) else None
         except (OSError, RuntimeError, ValueError, TypeError):
             return None
-        return out
 
     def get_block(self, level: int, i: int, j: int, out: np.ndarray | None = None) -> np.ndarray:
         """Heights of block (level, i, j): float32 (M, M), rows = +y; in ``out`` when given (a
@@ -579,9 +591,8 @@ class TerrainStore:
                     data = os.read(fd, cap + 1)
                 finally:
                     os.close(fd)
-                if not 16 <= len(data) <= cap or int.from_bytes(data[4:8], "little") != out[j].nbytes:  # blosc header: nbytes
+                if not _decode_block(blosc, data, out[j]):
                     return None
-                blosc.decode(data, out=out[j].reshape(-1).view(np.uint8))
         except (OSError, RuntimeError, ValueError, TypeError):  # missing, damaged or wrong-sized chunk
             return None
         finally:
