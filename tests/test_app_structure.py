@@ -13,7 +13,7 @@ APP = SRC / "app"
 
 
 def _tree(path: Path) -> ast.AST:
-    return ast.parse(path.read_text())
+    return ast.parse(path.read_text(encoding="utf-8"))
 
 
 def test_benchmarks_come_from_the_registry():
@@ -49,4 +49,4 @@ def test_only_the_entry_point_imports_the_cli():
                 importers.append(str(f.relative_to(SRC)))
     assert importers == [], importers
     for name in ("demo.py", "view_cmd.py", "bench/terrain.py"):
-        assert "api" in (APP / name).read_text()
+        assert "api" in (APP / name).read_text(encoding="utf-8")
