@@ -1,7 +1,8 @@
 """T2 (Röttger) under real mpiexec with real renders: the parallel image equals the serial
 whole-DEM reference for C = 1..4 computation ranks and 1-2 visualization ranks, with and
 without a wall, on a DEM that is not 2^n+1; visualization ranks read 0 bytes of the store; a
-tile that does not see a portion gets 0 bytes from its rank; the triangle budget holds."""
+tile that does not see a portion gets 0 bytes from its rank; the triangle budget holds; a
+store's orthophoto is draped (the colour map ``auto``), parallel still equal to serial."""
 
 import json
 from collections import defaultdict
@@ -28,6 +29,33 @@ def real_store(tmp_path_factory):
 
     p = tmp_path_factory.mktemp("t2") / "real.zarr"
     prepare_terrain(ArraySource(real_dem(), "jacksboro", transform=(0.0, SPACING, 0.0, 0.0, 0.0, -SPACING)), p, block=129, color=None)
+    return p
+
+
+class _Ortho(ArraySource):
+    """An RGB orthophoto held in memory (``read_rgb``), as a GeoTIFF source gives it."""
+
+    def __init__(self, rgb: np.ndarray):
+        super().__init__(rgb[..., 0], "halves")
+        self.rgb = rgb
+
+    def read_rgb(self, r0, r1, c0, c1):
+        return self.rgb[r0:r1, c0:c1]
+
+
+@pytest.fixture(scope="module")
+def ortho_store(tmp_path_factory):
+    """The real DEM with an orthophoto: its west half red, its east half blue (stretched over the DEM)."""
+    from test_roettger import real_dem
+
+    dem = real_dem()
+    rgb = np.zeros(dem.shape + (3,), np.uint8)
+    half = dem.shape[1] // 2
+    rgb[:, :half] = (220, 40, 40)
+    rgb[:, half:] = (40, 40, 220)
+    p = tmp_path_factory.mktemp("t2o") / "ortho.zarr"
+    prepare_terrain(ArraySource(dem, "jacksboro", transform=(0.0, SPACING, 0.0, 0.0, 0.0, -SPACING)), p, block=129,
+                    ortho=_Ortho(rgb))
     return p
 
 
@@ -60,7 +88,7 @@ def _top_down_path(store, folder, col: float):
 
 
 @pytest.fixture(scope="module")
-def cases(tmp_path_factory, real_store):
+def cases(tmp_path_factory, real_store, ortho_store):
     """The module's independent T2 renders: one job per rank count (conftest.RenderBatches).
     Looking straight down at col 226 (test_a_tile_that_does_not_see_a_portion_gets_zero_bytes)."""
     down = _top_down_path(real_store, tmp_path_factory.mktemp("t2path"), 226.0)
@@ -69,6 +97,8 @@ def cases(tmp_path_factory, real_store):
            for n, C, w, k in PARALLEL},
         "zero-bytes": (6, _args(real_store, 4, "--decomposition", "sort-first:horizontal", frames=2, path=str(down))),
         "paper": (5, _args(real_store, 4, "--paper-partition", "--reference", frames=1)),
+        "drape": (4, _args(ortho_store, 2, "--reference", "--haze", 0, frames=1, path="orbit")),
+        "ramp": (3, _args(ortho_store, 2, "--colormap", "hypsometric", "--haze", 0, frames=1, path="orbit")),
     }, label="t2")
 
 
@@ -140,3 +170,31 @@ def test_paper_partition_renders_with_overlapping_portions(cases):
     frame = load_png(out / "frames" / "00000.png")
     assert not_sky(frame) > 0.05 * frame.shape[0] * frame.shape[1]
     assert all(r["counters"]["store_bytes_read"] > 0 for r in recs if r["rank"] >= 1)
+
+
+def _red_blue(frame: np.ndarray) -> tuple[float, float]:
+    """Fractions of the frame's pixels that are the orthophoto's red and blue, lit (the sky is
+    light: red and green above 100)."""
+    r, g, b = (frame[..., k].astype(np.int16) for k in range(3))
+    red = (r > g + 40) & (r > b + 40) & (g < 100)
+    blue = (b > r + 40) & (b > g + 40) & (r < 100)
+    return float(red.mean()), float(blue.mean())
+
+
+def test_the_orthophoto_is_draped_and_parallel_equals_serial(cases):
+    # walk5 M2: T2 drew the height ramp on a store with an orthophoto (T1 drapes it), and
+    # --colormap ortho drew grey. Now `auto` drapes it on both visualization ranks' tiles, the
+    # image still equals the serial reference, and visualization ranks still read no store
+    # (the computation leader reads the image and sends it).
+    out = cases.out("drape")
+    s, recs = _read(out)
+    assert s["max_abs_diff"] == 0 and s["diff_fraction"] == 0.0, s
+    red, blue = _red_blue(load_png(out / "frames" / "00000.png"))
+    assert red > 0.05 and blue > 0.05, (red, blue)
+    by_rank = defaultdict(int)
+    for r in recs:
+        by_rank[r["rank"]] += r["counters"].get("store_bytes_read", 0)
+    assert by_rank[0] == by_rank[1] == 0 and by_rank[2] > by_rank[3] > 0  # rank 2 leads the computation ranks
+    # An explicit colour map is the ramp, as before: no orthophoto colour in the frame.
+    red, blue = _red_blue(load_png(cases.out("ramp") / "frames" / "00000.png"))
+    assert blue < 0.001, blue

@@ -74,12 +74,8 @@ def option_warnings(spec: str, kind: str, cfg: RenderConfig, given) -> list[str]
         check(M1_OPTIONS, "without --system dmmr (M1 options)")
     if kind == "objects" and system == "auto":
         check(STORE_BUDGETS, f"on {spec} (its objects are drawn whole from memory: no LOD, no block caches)")
-    if kind == "terrain" and "colormap" in given and cfg.colormap == "ortho":
-        if system == "roettger":
-            out.append("--colormap ortho draws grey terrain here: T2 (--system roettger) has no orthophoto colouring; use a "
-                       "colour map (hypsometric, gist_earth, …) or T1 (leave --system out)")
-        elif not _has_orthophoto(spec):
-            out.append(f"--colormap ortho draws grey terrain here: {spec} has no orthophoto (prepare it with --color IMAGE)")
+    if kind == "terrain" and "colormap" in given and cfg.colormap == "ortho" and not _has_orthophoto(spec):
+        out.append(f"--colormap ortho draws grey terrain here: {spec} has no orthophoto (prepare it with --color IMAGE)")
     if kind == "terrain" and "haze" in given and cfg.haze > HAZE_WARN:
         out.append(f"--haze {cfg.haze:g} hides most of the terrain in the sky colour (above {HAZE_WARN:g}; 0.5–2 reads as distance)")
     sort_first = cfg.decomposition.startswith("sort-first") or system in ("dmmr", "roettger", "reliefboards")

@@ -51,7 +51,8 @@ def fan_triangles(lengths: np.ndarray) -> np.ndarray:
 
 class FanRenderer:
     """Draws T2 layers with T1's shading options (:class:`.colormaps.Shading`: ramp, sun, haze;
-    exaggeration is the layers' vertical scale, see ``RoettgerSystem.layer_infos``)."""
+    exaggeration is the layers' vertical scale, see ``RoettgerSystem.layer_infos``), and a
+    layer's orthophoto where :meth:`set_drape` gave it one."""
 
     def __init__(self, ctx: moderngl.Context, shading: Shading | None = None, world_size: float = 1.0):
         from .colormaps import SKY_HORIZON, SKY_ZENITH
@@ -67,13 +68,29 @@ class FanRenderer:
         self._ramp.filter = (moderngl.LINEAR, moderngl.LINEAR)
         self._ramp.repeat_x = self._ramp.repeat_y = False
         self.prog["u_ramp"].value = 0
+        self.prog["u_drape"].value = 1
+        self._drapes: dict = {}  # layer → (mipmapped texture, level, side)
+        self._no_drape = ctx.texture((1, 1), 3, b"\x80\x80\x80")  # (bound to unit 1 when a layer has none)
         self.world_size = float(world_size)
         self.set_shading(shading or Shading())
         self._bufs: list = []
 
+    def set_drape(self, layer: int, image: np.ndarray, level: int) -> None:
+        """Drape ``image`` ((side, side, 3) uint8, :func:`massview.data.terrain.drape.color_image`
+        of ``level``) over layer ``layer``: its colour replaces the ramp's there."""
+        side = int(image.shape[0])
+        tex = self.ctx.texture((side, side), 3, np.ascontiguousarray(image, np.uint8).tobytes(), alignment=1)
+        tex.build_mipmaps()
+        tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        tex.repeat_x = tex.repeat_y = False
+        old = self._drapes.pop(layer, None)
+        if old is not None:
+            old[0].release()
+        self._drapes[layer] = (tex, int(level), side)
+
     def set_shading(self, sh: Shading) -> None:
-        """Sun, colour ramp and haze of the next draws (``ortho`` and ``none``: uniform grey, as
-        T1 without an orthophoto; ``auto``: hypsometric)."""
+        """Sun, colour ramp and haze of the next draws (``ortho`` and ``none``: uniform grey where
+        a layer has no drape, as T1 without an orthophoto; ``auto``: hypsometric there)."""
         from .colormaps import ramp
 
         name = "hypsometric" if sh.colormap == "auto" else sh.colormap
@@ -87,8 +104,9 @@ class FanRenderer:
         self.prog["u_haze_from"].value = float(haze_from)
 
     def draw(self, geom: LayerGeometry, lengths: np.ndarray, index: np.ndarray, height: np.ndarray, rank: np.ndarray,
-             mvp: np.ndarray, tint: bool = False) -> int:
-        """Draw one layer's fans (``rank`` per fan); returns the triangles drawn."""
+             mvp: np.ndarray, tint: bool = False, layer: int = 0) -> int:
+        """Draw one layer's fans (``rank`` per fan; ``layer``: which drape, if any); returns the
+        triangles drawn."""
         tris = fan_triangles(lengths)
         if len(tris) == 0:
             return 0
@@ -106,6 +124,13 @@ class FanRenderer:
         p["u_zrange"].value = (float(geom.zrange[0]), float(geom.zrange[1]))
         p["u_tint_on"].value = 1 if tint else 0
         self._ramp.use(0)
+        drape = self._drapes.get(layer)
+        p["u_drape_on"].value = 0 if drape is None else 1
+        if drape is None:
+            self._no_drape.use(1)
+        else:
+            drape[0].use(1)
+            p["u_drape_map"].value = (1.0 / (1 << drape[1]), float(drape[2]))
         vao.render(moderngl.TRIANGLES)
         self._bufs.append((vao, vbo, ibo))
         return len(tris)
@@ -120,5 +145,9 @@ class FanRenderer:
 
     def release(self) -> None:
         self.end_frame()
+        for tex, _, _ in self._drapes.values():
+            tex.release()
+        self._drapes.clear()
+        self._no_drape.release()
         self._ramp.release()
         self.prog.release()

@@ -14,6 +14,8 @@ per display tile) and C computation ranks (the last C ranks). The paper's pseudo
 * **Data** (setup): the computation leader reads each layer's metadata and sends it to every
   rank; each computation rank then reads only its portion (:class:`LayerPortion`): the exact
   Morton partition by default, so the union of the ranks' triangulations is the serial one.
+  Where the colour map is ``auto`` or ``ortho`` and a store holds an orthophoto, the leader
+  also sends each visualization rank one level of it to drape (:meth:`_share_drapes`).
 * **Frame**: the visualization leader broadcasts the camera; every rank derives the
   visualization tiles and their sub-frusta. Computation ranks optionally agree on the desired
   resolution c under ``--triangle-budget`` (bisection, one Allreduce of one integer per step
@@ -51,6 +53,7 @@ from .roettger_portion import LayerInfo, LayerPortion
 __all__ = ["RoettgerSystem", "validate", "roles"]
 
 _TAG = 300
+_TAG_DRAPE = 310  # (and 311) the orthophoto images of setup
 _LAYER_GAP = 1.25  # further layers are drawn this many first-layer height spans below the previous
 
 
@@ -193,7 +196,37 @@ class RoettgerSystem:
             self._drawer = FanDrawer(self.infos, cfg.egl_device, Shading(cfg.exaggeration, tuple(cfg.sun),
                                                                          cfg.colormap, cfg.haze))
             self.receivers = {c: FanReceiver(len(self.infos)) for c in self.comp_ranks}
+        self._share_drapes(comm, lead)
         self._first = True
+
+    def _share_drapes(self, comm, lead: int) -> None:
+        """Each layer's orthophoto, where the store has one and the colour map drapes it
+        (``auto``, ``ortho``): the computation leader reads one level of it
+        (:func:`~massview.data.terrain.drape.drape_level`: at most 4097² texels) and sends it to
+        every visualization rank, which drapes it over that layer's fans (visualization ranks
+        still never open a store). Collective over ``comm``, in layer order."""
+        if self.cfg.colormap not in ("auto", "ortho") or not any(i.color for i in self.infos):
+            return
+        from ..data.terrain import TerrainStore
+        from ..data.terrain.drape import color_image, drape_level
+
+        me = comm.Get_rank()
+        for li, info in enumerate(self.infos):
+            if not info.color:
+                continue
+            if me == lead:
+                st = TerrainStore(info.path)
+                level = drape_level(st.layout)
+                img = color_image(st, level)
+                self.bytes_read += img.nbytes
+                for v in self.vis_ranks:
+                    comm.send((level, img.shape), dest=v, tag=_TAG_DRAPE)
+                    comm.Send(img, dest=v, tag=_TAG_DRAPE + 1)
+            elif me in self.vis_ranks:
+                level, shape = comm.recv(source=lead, tag=_TAG_DRAPE)
+                img = np.empty(shape, np.uint8)
+                comm.Recv(img, source=lead, tag=_TAG_DRAPE + 1)
+                self._drawer.fans.set_drape(li, img, level)
 
     @property
     def bounds(self):

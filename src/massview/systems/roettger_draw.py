@@ -74,7 +74,7 @@ class FanDrawer:
 
     def draw(self, camera: Camera, vp: Viewport, layers: list[Layer], tint: bool, stats: FrameStats) -> Image:
         def draw(mvp):
-            return sum(self.fans.draw(g, *layer, mvp, tint) for g, layer in zip(self.geoms, layers))
+            return sum(self.fans.draw(g, *layer, mvp, tint, li) for li, (g, layer) in enumerate(zip(self.geoms, layers)))
 
         self.fans.set_eye(camera.position, haze_start(camera.position, self._lo, self._hi, self._size))
 

@@ -32,7 +32,8 @@ __all__ = ["LayerPortion", "LayerInfo", "NodeWindow", "range_pyramid"]
 class LayerInfo:
     """What every rank knows of a layer (sent by the computation leader; visualization ranks
     never open a store): grid ``n`` (S = 2^n + 1), valid rows/cols, spacing, vertical scale,
-    height range, table C_min, the z offset it is drawn at (world units)."""
+    height range, table C_min, the z offset it is drawn at (world units), whether the store
+    holds an orthophoto."""
 
     path: str
     n: int
@@ -44,6 +45,7 @@ class LayerInfo:
     C_min: float
     zoffset: float = 0.0
     dim: int = 0  # samples per row of the vertex index (0: S; the paper partition's is larger)
+    color: bool = False  # the store holds an orthophoto (T2 drapes it: systems.roettger._share_drapes)
 
     @property
     def S(self) -> int:
@@ -65,7 +67,7 @@ class LayerInfo:
         zr = st.attrs.get("height_range") or [0.0, 1.0]
         table = RoettgerTable(st)  # raises the clear "no table" message
         return cls(str(path), lay.n, lay.rows, lay.cols, st.spacing, st.vertical_scale, (float(zr[0]), float(zr[1])),
-                   table.C_min, zoffset)
+                   table.C_min, zoffset, color=st.has_color)
 
 
 def range_pyramid(h: np.ndarray, n: int, t0: int, tb: int) -> tuple[dict, dict]:
