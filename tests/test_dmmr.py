@@ -68,6 +68,8 @@ def test_parallel_equals_serial_without_occlusion_culling(cases, ranks, decompos
     clients = [r for r in recs if r["rank"] > 0]
     assert {r["rank"] for r in clients} == set(range(1, ranks))
     assert all(r["counters"].get("queries_issued", 0) == 0 for r in clients)
+    gl = s["renderer"].partition("clients' GL: ")[2]  # walk5 L8: the clients' GL renderer, not only the system's name
+    assert " / " in gl and ("llvmpipe" in gl.lower() or "nvidia" in gl.lower()), s["renderer"]
 
 
 @pytest.mark.mpi
@@ -194,6 +196,7 @@ def test_one_rank_in_process_matches_the_reference_and_reports_per_stage():
 
         records, diffs = sys_.run_path(_Self(), cams, cfg, lambda f, img: frames.__setitem__(f, img))
         assert sorted(frames) == [0, 1, 2]
+        assert "clients' GL: " in sys_.renderer  # the in-process client's GL renderer string (walk5 L8)
         assert all(d[0] == 0 for _, d in diffs) and len(diffs) == 3
         client = [r for r in records if r["rank"] == 1]
         assert len(client) == 3

@@ -159,7 +159,10 @@ class DmmrSystem:
 
     @property
     def renderer(self) -> str:
-        return "dmmr: server + clients (each: occlusion-query and render GL contexts)"
+        """What draws: the server and its clients, with the clients' GL renderer (known on rank 0
+        after :meth:`run_path`; the server itself has no GL context)."""
+        gl = getattr(self, "_client_gl", None)
+        return "dmmr: server + clients (each: occlusion-query and render GL contexts)" + (f"; clients' GL: {gl}" if gl else "")
 
     def ram_budget(self, clients: int) -> int:
         """Client RAM cache bytes: ``--client-cache-mb`` or the scene's object bytes ÷ clients (§4)."""
@@ -180,7 +183,7 @@ class DmmrSystem:
 
             def client_main():
                 try:
-                    out["records"] = self._client(link, 0, nframes, cfg, clients)
+                    out["records"], out["gl"] = self._client(link, 0, nframes, cfg, clients)
                 except BaseException as e:  # noqa: BLE001 - handed to the server loop
                     link.images.put(e)
 
@@ -188,6 +191,7 @@ class DmmrSystem:
             th.start()
             records, diffs = self._serve(link, cameras, cfg, clients, sink)
             th.join()
+            self._client_gl = out.get("gl")
             return records + out.get("records", []), diffs
         rc = split_roles(comm, ROLES)  # rank 0: the server; the others: clients 0 .. N-2
         link = MpiLink(rc)
@@ -197,11 +201,16 @@ class DmmrSystem:
         if rc.role != "server":
             return None
         records, diffs = out
+        gl = set()
         for part in gathered:
-            records.extend(part or [])
+            if part:
+                records.extend(part[0])
+                gl.add(part[1])
+        self._client_gl = ", ".join(sorted(g for g in gl if g)) or None
         return records, diffs
 
-    def _client(self, link, index: int, nframes: int, cfg: RenderConfig, clients: int) -> list[dict]:
+    def _client(self, link, index: int, nframes: int, cfg: RenderConfig, clients: int) -> tuple[list[dict], str | None]:
+        """One client's frames; returns its records and its GL renderer string."""
         client = DmmrClient(self.store, cfg, index, self.ram_budget(clients))
         delay = _delays(cfg)
         tint = rank_tint(index) if cfg.color_by_rank else (0.0, 0.0, 0.0, 0.0)
@@ -232,9 +241,10 @@ class DmmrSystem:
         try:
             StagePipeline([("visibility", visibility), ("render", render)], pipelined=cfg.stage_pipeline == "on").run(range(nframes))
             link.flush()
+            gl = client.gl_renderer()
         finally:
             client.close()
-        return records
+        return records, gl
 
     def _divide_send(self, f: int, cam: Camera, clients: int, link, delay: float = 0.0) -> tuple:
         """Server module 1 for frame ``f``: divide, then send each client its task."""

@@ -38,7 +38,7 @@ from ..lod.scene import lod_scale
 from ..lod.visibility import VisibilityState, boxes_reach_near
 from ..parallel.codec import encode_image, resolve_codec
 from ..parallel.runtime import world
-from ..render.context import create_context
+from ..render.context import create_context, renderer_string
 from ..render.geometry_cache import GeometryCache, packed_loader
 from ..render.queries import OcclusionQuerier, SceneIdBuffer
 from ..render.scene import MeshPool, SceneRenderer
@@ -135,6 +135,7 @@ class DmmrClient:
                        if cfg.query_hierarchy == "on" and len(groups.parent) and (leaf >= 0).all() else None)
         self._vis: tuple[SceneDrawer, OcclusionQuerier] | None = None
         self._ren: SceneDrawer | None = None
+        self._gl: str | None = None  # the render context's GL renderer string, once it exists
         self._ids: SceneIdBuffer | None = None
 
     def _vis_gl(self):
@@ -196,6 +197,8 @@ class DmmrClient:
         """Module 3: load, draw, read back and compress the sub-frame."""
         if self._ren is None:
             self._ren = SceneDrawer(self.sk, self.ram, self.cfg.gpu_mb << 20, self.cfg.egl_device)
+            with self._ren.ctx:
+                self._gl = renderer_string(self._ren.ctx)
         d, task = self._ren, vis.task
         obj, lv = task.items[vis.keep], task.levels[vis.keep]
         with d.ctx:
@@ -271,6 +274,11 @@ class DmmrClient:
                 self._ids = None
             self._ren.release()
             self._ren = None
+
+    def gl_renderer(self) -> str | None:
+        """The GL renderer string of this client's render context (None before it drew anything;
+        kept after the context is released)."""
+        return self._gl
 
     def close(self) -> None:
         self.ram.close()
