@@ -156,3 +156,30 @@ def test_footing_from_boxes():
     flat = np.array([[0.0, 0, 0]]), np.array([[40.0, 40, 0]])  # a ground mesh alone: stood on, eye 1.7 above it
     assert scene_footing(flat[0][0], flat[1][0], *flat) == Footing(0.0, 1.7, True)
     assert Footing.of_box([0, 0, 0], [40, 40, 0]).eye == 0.0  # (a flat box still makes every path)
+
+
+def test_scenes_too_small_or_too_full_to_walk_in_are_gone_round():
+    """walk6 #1–#3: a table with a vase (2 m × 1 m), a scan that ``prepare scene`` cut into 32
+    pieces (2 × 1.44 × 3.3) and a ring with a box (5 m across) counted as walkable: the walker
+    crawled under the table top, walked inside the scan and inside the ring's tube. A footprint
+    under 10 eye heights is not walked in, and a scene whose objects leave no way between them
+    is gone round (it walked the straight line through them); a street grid still walks."""
+    from massview.lod.walk import fit_path, scene_footing
+
+    legs = [((x, y, 0.0), (x + 0.06, y + 0.06, 0.72)) for x in (0.0, 1.94) for y in (0.0, 0.94)]
+    table = legs + [((0.0, 0.0, 0.72), (2.0, 1.0, 0.75)), ((0.9, 0.4, 0.75), (1.1, 0.6, 0.95))]
+    blo, bhi = (np.array([b[k] for b in table]) for k in (0, 1))
+    assert not scene_footing(blo.min(0), bhi.max(0), blo, bhi).walkable
+    xs, ys, zs = np.meshgrid(np.linspace(-1, 0.5, 4), np.linspace(-0.72, 0.36, 2), np.linspace(-1.66, 0.83, 4), indexing="ij")
+    plo = np.column_stack([xs.ravel(), ys.ravel(), zs.ravel()])
+    phi = plo + [0.5, 0.72, 0.83]
+    assert not scene_footing(plo.min(0), phi.max(0), plo, phi).walkable
+    for spec in ("walkthrough", "flyover"):  # framed round it: every eye outside the scene's box, looking at it
+        cams = fit_path(spec, blo.min(0), bhi.max(0), (blo, bhi)).cameras(4, 64, 48)
+        assert all(np.any((c.position < blo.min(0)) | (c.position > bhi.max(0))) for c in cams)
+    # a 100 m square packed with 10 m blocks, no street between them: no way, so round it
+    c = np.array([(10.0 * i, 10.0 * j) for i in range(10) for j in range(10)])
+    klo, khi = np.column_stack([c, np.zeros(len(c))]), np.column_stack([c + 10, np.full(len(c), 20.0)])
+    assert scene_footing(klo.min(0), khi.max(0), klo, khi).walkable  # (roomy, and things stand on the ground)
+    cams = fit_path("walkthrough", klo.min(0), khi.max(0), (klo, khi)).cameras(4, 64, 48)
+    assert all(np.any((cm.position < klo.min(0)) | (cm.position > khi.max(0))) for cm in cams)

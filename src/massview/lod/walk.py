@@ -36,7 +36,13 @@ tall it is (a :class:`massview.core.paths.Footing`):
   millimetres, not a street); then a quarter of that median height. At most 30 % of the
   scene's height above the ground, as before;
 * **walkable**: False where there is no floor and nothing small enough to walk among stands
-  on the ground (a single object, a sphere: the walker stood under it, its frames blank).
+  on the ground (a single object, a sphere: the walker stood under it, its frames blank), and
+  where the scene is too small for a walker: its footprint's shorter side under 10 eye heights
+  (a table 2 m long, a scanned statue cut into pieces by ``prepare scene``, a ring 5 m across:
+  the walker crawled under the table top, walked inside the scan and inside the ring's tube);
+  ``walkthrough`` and ``flyover`` then go round the scene, framed. So they do where
+  :func:`walk_route` finds no way between the objects (it walked the straight line through
+  them).
 """
 
 from __future__ import annotations
@@ -53,6 +59,7 @@ _MAX_FOOTPRINT = 0.25  # of the scene's footprint: larger boxes are floors or en
 _FLOOR_THIN = 0.25  # a floor's height, at most, as a fraction of its shorter side
 _TALL = 50.0  # objects standing on the ground typically taller than this many eye heights: not metres
 _EYE_OF_TALL = 0.25  # the eye height then, as a fraction of their median height
+_WALK_ROOM = 10.0  # a scene's footprint, shorter side, at least this many eye heights to walk in
 
 
 def fit_path(spec: str, lo, hi, obstacles=None, ground=None):
@@ -65,6 +72,8 @@ def fit_path(spec: str, lo, hi, obstacles=None, ground=None):
     if spec in ("walkthrough", "flyover") and obstacles is not None and ground is None:
         footing = scene_footing(lo, hi, *obstacles)
     route = plan_walk(spec, lo, hi, obstacles)
+    if spec == "walkthrough" and footing is not None and footing.walkable and route is None:  # no way between the
+        footing = Footing(footing.ground, footing.eye, walkable=False)  # objects: round them, not through them
     return load_path(spec, lo, hi, route=route, ground=ground, footing=footing)
 
 
@@ -84,8 +93,9 @@ def scene_footing(lo, hi, box_lo, box_hi) -> Footing:
     stands = ~floor & (blo[:, 2] <= ground + 0.02 * room) & (bhi[:, 2] > ground)
     tall = float(np.median(bhi[stands, 2] - ground)) if stands.any() else 0.0
     eye = _EYE_OF_TALL * tall if tall > _TALL * EYE_HEIGHT else EYE_HEIGHT
+    roomy = float(np.min(hi[:2] - lo[:2])) >= _WALK_ROOM * eye  # (before the height cap: a walker's size, not the scene's)
     eye = min(eye, 0.3 * room) if room > 0 else EYE_HEIGHT
-    return Footing(ground, eye, walkable=bool(floor.any() or (stands & ~big).any()))
+    return Footing(ground, eye, walkable=bool(roomy and (floor.any() or (stands & ~big).any())))
 
 
 def plan_walk(path: str, lo, hi, obstacles) -> np.ndarray | None:
