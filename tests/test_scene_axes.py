@@ -170,3 +170,23 @@ def test_obj_with_a_missing_material_library_warns_it_is_drawn_grey(tmp_path):
     st = SceneStore(tmp_path / "s2")
     col = st.get_mesh(int(st.skeleton.geometry[0]), 0).colors
     assert col[:, 0].min() > 150 and col[:, 1].max() < 80
+
+
+def test_the_side_of_a_surface_away_from_the_light_is_darker(tmp_path):
+    """walk6 #4: the key light was |n·L|, so a plate seen from below was lit exactly as from
+    above (and a sphere's underside as brightly as its top). Now the normal is turned towards
+    the eye and the side away from the light gets the ambient and a fill light only."""
+    import massview as mv
+
+    plate = trimesh.creation.box([4.0, 4.0, 0.02])
+    v = np.asarray(plate.vertices)[plate.faces].reshape(-1, 3)
+    n = np.repeat(np.asarray(plate.face_normals), 3, axis=0)
+    _write_ply(tmp_path / "plate.ply", v, n, np.tile((200, 200, 200), (len(v), 1)), np.arange(len(v)).reshape(-1, 3))
+    run_cli("prepare", "scene", tmp_path / "plate.ply", "-o", tmp_path / "plate.scene", "-q")
+    store = str(tmp_path / "plate.scene")
+    mean = {}
+    for side, z in (("above", 6.0), ("below", -6.0)):
+        cam = mv.camera(store, position=[0.3, 0.2, z], look_at=[0.0, 0.0, 0.0], size=(96, 72))
+        img = mv.render_frame(store, cam).astype(float)
+        mean[side] = img[30:42, 42:54].mean()  # the middle of the plate
+    assert mean["below"] < 0.6 * mean["above"], mean

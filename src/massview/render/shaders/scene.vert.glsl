@@ -13,10 +13,13 @@ in vec3 in_n0;
 in vec3 in_n1;
 in vec3 in_n2;
 out vec3 v_normal;
+out vec3 v_rel;  // the point relative to the eye (at the origin)
 out vec4 v_color;
 void main() {
     mat4 model = mat4(in_m0, in_m1, in_m2, in_m3);
-    gl_Position = u_vp * (model * vec4(in_pos, 1.0));
+    vec4 rel = model * vec4(in_pos, 1.0);
+    gl_Position = u_vp * rel;
+    v_rel = rel.xyz;
     v_normal = mat3(in_n0, in_n1, in_n2) * in_normal;
     v_color = in_color;
 }
