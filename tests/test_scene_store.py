@@ -439,3 +439,20 @@ def test_objects_cut_from_one_surface_stay_closed_at_every_level(tmp_path):
                 ts.append(m.indices.astype(np.int64).reshape(-1, 3) + base)
                 base += len(m.positions)
             assert _open_edges(np.concatenate(ps), np.concatenate(ts), 1e-4) == 0, f"level {L} ({mix}): the objects' borders do not meet"
+
+
+def test_an_interrupted_overwrite_keeps_the_complete_scene_store(tmp_path):
+    """walk6 #6: stopping `prepare scene --overwrite` of a complete store left it incomplete
+    (written_objects 0) and unopenable. The rebuild goes beside it and is swapped in when
+    complete: stopped, the store is as it was and nothing is left beside it."""
+    _spheres_soup(tmp_path / "soup.ply")
+    prm = IngestParams(object_triangles=320, stream_bytes=0, face_chunk=700, cell_triangles=2000)
+    prepare_scene([tmp_path / "soup.ply"], tmp_path / "s", prm)
+    before = SceneStore(tmp_path / "s").skeleton.center.copy()
+    with pytest.raises(KeyboardInterrupt):
+        prepare_scene([tmp_path / "soup.ply"], tmp_path / "s", prm, overwrite=True, checkpoint_bytes=1, fault_after=5)
+    np.testing.assert_array_equal(SceneStore(tmp_path / "s").skeleton.center, before)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s", "soup.ply"]
+    again = prepare_scene([tmp_path / "soup.ply"], tmp_path / "s", prm, overwrite=True)
+    assert not again["resumed"] and verify_scene(tmp_path / "s") == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s", "soup.ply"]

@@ -357,6 +357,7 @@ def test_a_resumed_prepare_starts_again_when_the_input_or_options_changed(tmp_pa
     modification time) and the same options; otherwise it starts again and says why (it used to
     resume and keep the old file's heights, or its old spacing and vertical scale, silently)."""
     import os
+    import shutil
 
     dem, out = tmp_path / "w.npy", tmp_path / "w.zarr"
     old, new = synthetic_heights(0, 600, 0, 500, 600, 9), synthetic_heights(0, 600, 0, 500, 600, 10)
@@ -365,14 +366,16 @@ def test_a_resumed_prepare_starts_again_when_the_input_or_options_changed(tmp_pa
     same = prepare_terrain(open_source(dem), out, block=129)
     assert same.resumed and not same.warnings[:-1]  # (the last warning: no georeference)
 
-    _interrupted_prepare(monkeypatch, dem, out, overwrite=True)
+    shutil.rmtree(out)  # (an interrupted --overwrite keeps the complete store: test_an_interrupted_overwrite_...)
+    _interrupted_prepare(monkeypatch, dem, out)
     np.save(dem, new)  # other heights, same name and shape
     os.utime(dem, ns=(dem.stat().st_atime_ns, dem.stat().st_mtime_ns + 10**9))  # (a later mtime even on a coarse clock)
     res = prepare_terrain(open_source(dem), out, block=129)
     assert not res.resumed and any("size or modification time" in w and "started again" in w for w in res.warnings)
     assert np.array_equal(finest(TerrainStore(out))[:600, :500], new) and not np.array_equal(old, new)
 
-    _interrupted_prepare(monkeypatch, dem, out, overwrite=True)
+    shutil.rmtree(out)  # (an interrupted --overwrite keeps the complete store: test_an_interrupted_overwrite_...)
+    _interrupted_prepare(monkeypatch, dem, out)
     res = prepare_terrain(open_source(dem, spacing="10"), out, block=129, vertical_scale=3.0)
     assert not res.resumed and any("spacing, vertical scale" in w for w in res.warnings)
     s = TerrainStore(out)
@@ -526,3 +529,27 @@ def test_int16_voids_without_nodata_get_a_hint(tmp_path):
     proc = run_cli("prepare", "terrain", tmp_path / "v.raw", "--shape", "300x400", "--dtype", "<i2", "--nodata", "-32768",
                    "-o", tmp_path / "b.zarr")
     assert "lowest height" not in proc.stderr and "100 nodata samples filled" in proc.stdout
+
+
+def test_an_interrupted_overwrite_keeps_the_complete_store(tmp_path, monkeypatch):
+    """walk6 #6: --overwrite removed a complete store first, so a rebuild stopped half-way left
+    an incomplete one where a good one had been. The new store is built beside it and swapped
+    in only when complete; stopped, the old store is as it was and nothing is left beside it;
+    finished, the new store is in its place (and nothing beside it either)."""
+    a = synthetic_heights(0, 600, 0, 500, 600, 9)
+    np.save(tmp_path / "new.npy", (a * 2).astype(np.float32))
+    out = tmp_path / "s.zarr"
+    prepare_terrain(ArraySource(a, "dem"), out, block=129)
+    before = finest(TerrainStore(out))
+    _interrupted_prepare(monkeypatch, tmp_path / "new.npy", out, overwrite=True)
+    assert np.array_equal(finest(TerrainStore(out)), before)  # opens: complete, the old heights
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new.npy", "s.zarr"]
+    proc = run_cli("prepare", "terrain", tmp_path / "new.npy", "-o", out, "--overwrite", "--spacing", "10", "-q", check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert np.allclose(finest(TerrainStore(out)), 2 * before)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new.npy", "s.zarr"]
+    (tmp_path / "s.zarr.rebuild").mkdir()  # a user's folder where the rebuild goes: named, not removed
+    (tmp_path / "s.zarr.rebuild" / "mine.txt").write_text("x")
+    with pytest.raises(StoreError, match="s.zarr.rebuild is in the way"):
+        prepare_terrain(ArraySource(a, "dem"), out, block=129, overwrite=True)
+    assert (tmp_path / "s.zarr.rebuild" / "mine.txt").exists()

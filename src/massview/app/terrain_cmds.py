@@ -156,8 +156,11 @@ def cmd_prepare(args) -> int:
 
 def _interrupted_note(out: Path) -> str:
     """What an interrupted ``prepare terrain`` leaves at ``out`` and how to go on."""
-    from ..data.terrain.store import rows_done
+    from ..data.rebuild import is_complete_store
+    from ..data.terrain.store import FORMAT, rows_done
 
+    if is_complete_store(out, FORMAT):  # (--overwrite: the rebuild beside it was removed)
+        return f"{out} is unchanged; re-run the same command to rebuild it"
     done = rows_done(out)
     if done is None:
         return "no unfinished store to continue; re-run the same command to start"

@@ -35,7 +35,9 @@ from typing import Callable
 import numpy as np
 
 from ...core.errors import ConfigError
+from ..rebuild import is_complete_store, rebuild_beside
 from ..scene.mesh import Mesh
+from ..scene.store import FORMAT
 from ..scene.simplify import build_levels, is_closed
 from ..scene.writer import SceneWriter
 from . import shapes
@@ -395,6 +397,8 @@ def generate_scene(kind: str, out, copies: int = 1, size: float = 1.0, seed: int
         raise ConfigError(f"--copies must be at least 1, got {copies}")
     if not (math.isfinite(detail) and detail > 0):
         raise ConfigError(f"--detail must be a positive number, got {detail}")
+    if overwrite and is_complete_store(out, FORMAT):  # built beside it and swapped in: a stopped rebuild loses nothing
+        return rebuild_beside(out, FORMAT, lambda p: generate_scene(kind, p, copies, size, seed, False, progress, backend, detail))
     nodes, extent = scene_nodes(kind, size, seed)
     params = {"generator": kind, "copies": int(copies), "size": float(size), "seed": int(seed), "simplifier": backend}
     if detail != 1.0:

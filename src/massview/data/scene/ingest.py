@@ -37,12 +37,14 @@ from pathlib import Path
 import numpy as np
 
 from ...core.errors import ConfigError, IngestError
+from ..rebuild import is_complete_store, rebuild_beside
 from .mesh import Mesh
 from .normals import CREASE_ANGLE
 from .plystream import PlyLayout
 from .simplify import build_levels
 from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_mesh, clean_soup, split_dense
 from .sources import UP_CHOICES, MemorySoup, StructuredObject, check_input, open_input, stream_bounds, stream_corners, transform_normals
+from .store import FORMAT
 from .writer import CHECKPOINT_BYTES, SceneWriter
 
 __all__ = ["IngestParams", "prepare_scene"]
@@ -319,6 +321,8 @@ def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bo
     record ``textures_baked`` (input name -> textured materials or meshes baked to vertex
     colours) and ``triangles_removed`` (input name -> degenerate or repeated triangles dropped).
     ``fault_after`` (tests) interrupts the run after that many units as a KeyboardInterrupt would."""
+    if overwrite and is_complete_store(out, FORMAT):  # built beside it and swapped in: a stopped rebuild loses nothing
+        return rebuild_beside(out, FORMAT, lambda p: prepare_scene(inputs, p, prm, False, progress, checkpoint_bytes, fault_after))
     t0 = time.perf_counter()
     prog = progress or (lambda *a: None)
     paths = [Path(p) for p in inputs]

@@ -30,6 +30,10 @@ written by :class:`store.ChunkWriter`) and written by the workers; results are c
 by exact operations, so the store is the same for any number of workers, and the same as the
 single-threaded ingest wrote before issue 20 (tests/test_ingest_parallel.py).
 
+``overwrite`` of a complete store builds the new one beside it and swaps it in when complete
+(:func:`massview.data.rebuild.rebuild_beside`): an interrupted rebuild leaves the old store as
+it was.
+
 Bad data does not pass silently: an input with no valid sample at all (all nodata, NaN or
 ±inf) raises :class:`IngestError` naming the file (while reading the first strip, which looks
 ahead for a valid row), and the store this run created is removed (a resumed one stays incomplete, so it never opens). More than half the
@@ -60,7 +64,8 @@ from .deviation import coarse_lattice
 from .layout import TerrainLayout
 from .metadata import Metadata, MetadataBuilder, compute_metadata, write_colors, write_metadata
 from .sources import RasterSource, place_ortho
-from .store import ChunkWriter, TerrainStore, block_view, create_store, rows_done, wide_row
+from ..rebuild import is_complete_store, rebuild_beside
+from .store import FORMAT, ChunkWriter, TerrainStore, block_view, create_store, rows_done, wide_row
 from .workers import BufferPool, resolve_workers, run_ordered
 
 __all__ = ["prepare_terrain", "PrepareResult", "fill_nodata", "compute_metadata", "write_metadata", "Metadata"]
@@ -207,6 +212,11 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
              "source": src.name, "source_stamp": src.stamp, "source_dtype": str(src.dtype), "color": None}
     workers = resolve_workers(workers)  # (a bad count is an error before the store exists)
     place = place_ortho(src, ortho) if ortho is not None else None  # (so is an orthophoto of another place)
+    if overwrite and is_complete_store(out, FORMAT):  # built beside it and swapped in: a stopped rebuild loses nothing
+        res = rebuild_beside(out, FORMAT, lambda p: prepare_terrain(src, p, block, K, vertical_scale, color, ortho, False,
+                                                                    progress, workers))
+        res.path = Path(out)
+        return res
     restarted: list[str] = []
     g, resumed = create_store(out, lay, attrs, ortho is not None, overwrite, restarted)
     kept = (rows_done(out) or (0, 0))[0] if resumed else 0
