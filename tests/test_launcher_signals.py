@@ -126,6 +126,29 @@ def test_a_signal_to_the_render_launcher_stops_the_whole_job(tmp_path, signum, s
             _kill_all(proc, tree)
 
 
+def test_an_interrupted_dmmr_render_keeps_its_frames_statistics(tmp_path):
+    """walk6 #7: M1's statistics came only at the end, so Ctrl-C said "interrupted after 0
+    frames" with 76 frames written and an empty stats.jsonl. The server's record of each
+    frame is written as it is finished."""
+    out, log = tmp_path / "out", tmp_path / "log.txt"
+    proc = _start(["render", "builtin:objects", "--system", "dmmr", "--ranks", "3", "--frames", "500", "--size", "320x240",
+                   "--out", str(out)], log)
+    tree: dict[int, int] = {}
+    try:
+        _wait_for(lambda: (out / "stats.jsonl").exists() and (out / "stats.jsonl").stat().st_size > 0, proc, log, "frame recorded")
+        tree = _job_tree(proc.pid)
+        rc = _stop_and_check(proc, tree, signal.SIGINT, log)
+        text = log.read_text()
+        assert rc == 130 and "Traceback" not in text, text[-3000:]
+        said = re.findall(r"massview: interrupted after (\d+) frames?; frames so far in (\S+)", text)
+        frames = {json.loads(line)["frame"] for line in (out / "stats.jsonl").read_text().splitlines()}
+        assert len(said) == 1 and int(said[0][0]) == len(frames) > 0, text[-3000:]
+        assert len(list((out / "frames").glob("*.png"))) >= len(frames)
+    finally:
+        if proc.poll() is None or _alive(tree):
+            _kill_all(proc, tree)
+
+
 def test_sigterm_to_the_view_launcher_frees_the_port_and_leaves_no_ranks(tmp_path):
     """Also: ``--port 0`` (which the port-in-use message suggests) picks a free port and serves."""
     log = tmp_path / "log.txt"

@@ -109,10 +109,20 @@ def run_render(comm, scene, cfg: RenderConfig, out: Path | None = None, quiet: b
     t_start = time.perf_counter()
     try:
         if hasattr(system, "run_path"):  # a system with its own pipelined frame loop (M1)
-            got = system.run_path(comm, cameras, cfg, sink)
+            early: set = set()
+
+            def on_record(rec: dict) -> None:  # the server's record of each frame as it is finished: an
+                early.add(id(rec))             # interrupted run keeps its frames' statistics (walk6 #7)
+                if stats_file:
+                    stats_file.write(json.dumps(rec) + "\n")
+                    stats_file.flush()
+                if progress:
+                    progress[0].advance(progress[1])
+
+            got = system.run_path(comm, cameras, cfg, sink, on_record=on_record)
             for rec in (got[0] if got else []):
                 records.append(rec)
-                if stats_file:
+                if stats_file and id(rec) not in early:
                     stats_file.write(json.dumps(rec) + "\n")
             diffs = got[1] if got else []
         for res in render_frames(comm, system, cfg, cameras, sink, 0 if hasattr(system, "run_path") else nframes):

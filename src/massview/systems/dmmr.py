@@ -172,8 +172,12 @@ class DmmrSystem:
         return max(int(lb.sum()) // max(clients, 1), 4 * int(lb.max(initial=0)) + (1 << 20))  # at least a few meshes
 
     # -- the frame loop -----------------------------------------------------------------
-    def run_path(self, comm, cameras: list[Camera] | None, cfg: RenderConfig, sink=None):
-        """Render ``cameras`` (rank 0's list); returns (records, diffs) on rank 0, else None."""
+    def run_path(self, comm, cameras: list[Camera] | None, cfg: RenderConfig, sink=None, on_record=None):
+        """Render ``cameras`` (rank 0's list); returns (records, diffs) on rank 0, else None.
+        ``on_record(record)``: called on rank 0 with the server's record of each frame as it is
+        finished (the clients' records come with the result, at the end), so a run stopped
+        part-way keeps its finished frames' statistics."""
+        self._on_record = on_record
         rank, size = comm.Get_rank(), comm.Get_size()
         clients = max(size - 1, 1)
         nframes = comm.bcast(len(cameras) if rank == 0 else None, root=0)
@@ -327,6 +331,8 @@ class DmmrSystem:
             for k, x in meter.step().items():
                 st.count(k, x)
             records.append(st.to_json())
+            if getattr(self, "_on_record", None) is not None:
+                self._on_record(records[-1])
 
     # -- one frame at a time (the viewer, and any caller of render_frame) ----------------
     def setup(self, comm) -> None:
