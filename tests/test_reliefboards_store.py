@@ -63,6 +63,9 @@ def test_prepare_warns_when_no_cluster_is_feasible(plant, tmp_path):
     shutil.copytree(plant, store)
     proc = run_cli("prepare", "reliefboards", store, "--min-triangles", 10**9)
     assert "0 feasible" in proc.stdout
-    assert "warning: no cluster is feasible" in proc.stderr and "--min-triangles" in proc.stderr
+    assert "warning: no cluster is feasible" in proc.stderr and "try a lower --min-triangles" in proc.stderr
+    # clusters too long too (a near zone of 10 triangles): --tnz is advised for them (walk6 #9: only --min-triangles was)
+    long = run_cli("prepare", "reliefboards", store, "--tnz", 10, "--min-triangles", 10**9)
+    assert "warning: no cluster is feasible" in long.stderr and "too long, try a larger --tnz" in long.stderr, long.stderr
     ok = run_cli("prepare", "reliefboards", store, "--tnz", 20000, "--board-px", 32, "--size", "320x240", "--min-triangles", 100)
     assert "warning" not in ok.stderr

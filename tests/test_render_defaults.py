@@ -165,6 +165,9 @@ def test_keyframe_files_that_show_nothing_useful_are_warned_or_named(tmp_path, s
                        {"time": 0, "position": [8000, -7000, 3000], "look_at": [8000, -6000, 0]}])
     proc = run_cli("render", steep_scene, "--path", same, "--frames", 2, "--size", "64x48", "--out", tmp_path / "a", "-q")
     assert "all 2 keyframes have time 0: every frame shows keyframe 0" in proc.stderr
+    one = kf("one", [{"time": 0, "position": [7000, -7000, 3000], "look_at": [7000, -6000, 0]}])  # (walk6 #10)
+    proc = run_cli("render", steep_scene, "--path", one, "--frames", 2, "--size", "64x48", "--out", tmp_path / "o", "-q")
+    assert "one keyframe, so all 2 frames show it (a still)" in proc.stderr
     under = kf("under", [{"time": 0, "position": [7000, -7000, -500], "look_at": [9000, -7000, -300]}])
     proc = run_cli("render", steep_scene, "--path", under, "--frames", 1, "--size", "64x48", "--out", tmp_path / "b", "-q")
     assert "camera 0 is 500 m below the terrain's lowest point" in proc.stderr

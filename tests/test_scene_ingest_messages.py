@@ -251,3 +251,21 @@ def test_the_bake_keeps_a_fine_mesh_sharp_and_a_coarse_one_true_on_average():
     lv = mip_levels(np.arange(64, dtype=np.uint8).reshape(8, 8, 1) * 3)
     assert [m.shape[:2] for m in lv] == [(8, 8), (4, 4), (2, 2), (1, 1)]
     assert lv[1][0, 0, 0] == np.rint((0 + 3 + 24 + 27) / 4) and lv[3][0, 0, 0] == np.rint(63 * 3 / 2)
+
+
+def test_small_input_mistakes_get_exact_messages(tmp_path):
+    """walk6 #15: an OBJ face past the vertices said "3 vertexs"; --object-triangles 0 and
+    --levels 17 gave one combined message naming neither value; a 0-byte PLY was "not a PLY file"."""
+    from conftest import run_cli
+
+    (tmp_path / "bad.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n")
+    proc = run_cli("prepare", "scene", tmp_path / "bad.obj", "-o", tmp_path / "a", check=False)
+    assert proc.returncode != 0 and "only 3 vertices are defined before it" in proc.stderr, proc.stderr
+    (tmp_path / "ok.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    proc = run_cli("prepare", "scene", tmp_path / "ok.obj", "-o", tmp_path / "b", "--object-triangles", 0, check=False)
+    assert proc.returncode != 0 and "--object-triangles must be a positive triangle count, got 0" in proc.stderr, proc.stderr
+    proc = run_cli("prepare", "scene", tmp_path / "ok.obj", "-o", tmp_path / "c", "--levels", 17, check=False)
+    assert proc.returncode != 0 and "--levels must be between 1 and 16, got 17" in proc.stderr, proc.stderr
+    (tmp_path / "empty.ply").write_bytes(b"")
+    proc = run_cli("prepare", "scene", tmp_path / "empty.ply", "-o", tmp_path / "d", check=False)
+    assert proc.returncode != 0 and "empty.ply: the file is empty (0 bytes)" in proc.stderr, proc.stderr

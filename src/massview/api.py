@@ -386,6 +386,9 @@ def _cameras(scene: Scene, what, cfg: RenderConfig) -> tuple[list[Camera], str]:
         if times is not None and len(times) > 1 and float(np.ptp(times)) == 0.0 and cfg.frames > 1:
             _warn_rank0([f"{what}: all {len(times)} keyframes have time {float(times[0]):g}: every frame shows keyframe 0 "
                          "(a still); give them increasing times"])
+        elif times is not None and len(times) == 1 and cfg.frames > 1:
+            _warn_rank0([f"{what}: one keyframe, so all {cfg.frames} frames show it (a still); add keyframes with later "
+                         "times to move the camera"])
         return p.cameras(cfg.frames, cfg.width, cfg.height), str(what)
     try:
         cams = list(what)

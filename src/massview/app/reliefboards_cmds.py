@@ -166,12 +166,25 @@ def cmd_prepare(args) -> int:
               f"(no boards): {counts[1]} clusters are longer than sl_c = {cl.sl_c:.4g} (the near zone of t_nz = {params.t_nz:,} "
               f"triangles is only d_nz = {cl.d_nz:.4g} deep) and {counts[2]} have fewer triangles than a board "
               f"({params.board_triangles:,}, --min-triangles). M2 pays off on large scenes (the paper's plant: 12.4 M triangles, "
-              f"`generate scene plant --size 1.5`); on this one try a lower --min-triangles", file=sys.stderr)
+              f"`generate scene plant --size 1.5`); on this one {_advice(counts, params)}", file=sys.stderr)
     if args.picture is not None:
         write_cluster_picture(args.scene, args.picture, params, parse_size(args.size))
         if not args.quiet:
             print(f"wrote {args.picture}")
     return 0
+
+
+def _advice(counts, params) -> str:
+    """What to change when no cluster is feasible, for each cause there was: clusters too long
+    (a larger near zone, ``--tnz``, or smaller objects) and clusters with too few triangles
+    (``--min-triangles``)."""
+    out = []
+    if counts[1]:
+        out.append(f"for the {counts[1]} too long, try a larger --tnz (now {params.t_nz:,}: a deeper near zone admits "
+                   "longer clusters) or prepare the scene with a smaller --object-triangles")
+    if counts[2]:
+        out.append(f"for the {counts[2]} with too few triangles, try a lower --min-triangles (now {params.board_triangles:,})")
+    return "; ".join(out) or "try a larger --tnz"
 
 
 def write_cluster_picture(scene: str, path: Path, params, size=(1024, 768)) -> Path:

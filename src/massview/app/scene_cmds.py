@@ -84,8 +84,10 @@ def cmd_prepare(args) -> int:
         raise ConfigError(f"--object-size must be a positive length in file units (leave it out for no limit), got {args.object_size:g}")
     if not (math.isfinite(args.stream_mb) and args.stream_mb >= 0):
         raise ConfigError(f"--stream-mb must be a size in MB, 0 or more, got {args.stream_mb:g}")
-    if args.object_triangles < 1 or args.levels < 1 or args.levels > 16:
-        raise ConfigError("--object-triangles must be positive and --levels between 1 and 16")
+    if args.object_triangles < 1:
+        raise ConfigError(f"--object-triangles must be a positive triangle count, got {args.object_triangles}")
+    if not 1 <= args.levels <= 16:
+        raise ConfigError(f"--levels must be between 1 and 16, got {args.levels}")
     check_output_file(out, "-o")
     prm = IngestParams(object_triangles=args.object_triangles, object_size=args.object_size or float("inf"), instance=args.instance,
                        simplifier=args.simplifier, max_levels=args.levels, stream_bytes=int(args.stream_mb * 2**20),

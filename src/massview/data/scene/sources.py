@@ -94,6 +94,8 @@ def check_input(path) -> Path:
         raise IngestError(f"{p}: no such file")
     if p.suffix.lower() not in SUFFIXES:
         raise IngestError(f"{p}: unknown mesh format {p.suffix!r}; massview reads {', '.join(SUFFIXES)}")
+    if p.is_file() and p.stat().st_size == 0:
+        raise IngestError(f"{p}: the file is empty (0 bytes); nothing to ingest")
     return p
 
 
@@ -164,7 +166,9 @@ def _obj_index(tok: str, n: int, what: str, path: Path, lineno: int) -> int:
         raise IngestError(f"{path}:{lineno}: face corner has {what} index {tok!r}, not an integer; the file is damaged") from None
     k = i - 1 if i > 0 else n + i
     if i == 0 or not 0 <= k < n:
-        raise IngestError(f"{path}:{lineno}: face refers to {what} {i} but only {n} {what}s are defined before it; "
+        plural = {"vertex": "vertices"}.get(what, f"{what}s")
+        raise IngestError(f"{path}:{lineno}: face refers to {what} {i} but only {n} {plural if n != 1 else what} "
+                          f"{'are' if n != 1 else 'is'} defined before it; "
                           "the file is damaged")
     return k
 
