@@ -66,3 +66,19 @@ def test_settings_that_leave_no_board_to_draw_are_warned_before_the_run(tmp_path
                    "--board-px", 32, "--min-triangles", 100, "--out", tmp_path)
     assert "massview: warning: the path moves" in proc.stderr
     assert len(__import__("json").loads((tmp_path / "summary.json").read_text())["warnings"]) == 1
+
+
+@pytest.mark.mpi
+def test_a_run_with_no_far_object_claims_no_complete_view():
+    """walk6 #8: with every object inside the near zone, each frame counted as a "complete
+    view" (no far object drawn as geometry) and the run said "complete view after 60 ms"
+    although no board was ever drawn. A view with no far object proves nothing now."""
+    from massview.app.reliefboards_cmds import summary_lines
+
+    res = mv.render(SCENE, "forward", ranks=2, frames=2, size=(160, 120), system="reliefboards",
+                    reliefboards={**OPTS, "t_nz": 10**8, "wait_boards": False})
+    c = [r["counters"] for r in res.stats]
+    assert all(k["far_objects"] == 0 and k["view_complete"] == 0 for k in c)
+    s = res.summary
+    assert s["frames_with_far_objects"] == 0 and s["first_complete_frame"] is None and s["ms_to_complete_view"] is None
+    assert "no far object was in view in this run" in summary_lines(s)

@@ -101,7 +101,11 @@ def summary_lines(s: dict) -> str:
             ("board requests", f"{s.get('requests', 0)}, answered {s.get('answered', 0)}; loads per backend {s.get('loads_per_backend')}"),
             ("response time", _dist(s.get("response_ms"), "ms")),
             ("angle error of boards drawn", _dist(s.get("angle_error_deg"), "°")),
-            ("complete view (every far object a board)", "not reached in this run" if done is None else f"after {done:.0f} ms")]
+            ("complete view (every far object a board)",
+             "no far object was in view in this run (every object within the near zone: nothing for boards)"
+             if s.get("frames_with_far_objects") == 0 else "not reached in this run" if done is None else f"after {done:.0f} ms")]
+    if s.get("frames_with_far_objects") and not s.get("boards_drawn"):
+        rows.append(("boards drawn", f"none: the far objects of {s['frames_with_far_objects']} frames were all drawn as geometry"))
     if "max_abs_diff" in s:
         rows.append(("against the all-original reference", f"max abs diff {s['max_abs_diff']}, {100 * s.get('diff_fraction', 0):.2f} % of pixels"))
     return "\n".join(f"{k}: {v}" for k, v in rows)

@@ -213,7 +213,10 @@ class VisualizationRank:
         stats.counters["pending_by_backend"] = self._pending_by_backend().tolist()
         stats.counters["angle_error"] = np.round(plan.angle_error, 3).tolist()
         far = np.concatenate([plan.far_original, plan.far_board])
-        stats.counters["view_complete"] = int(len(plan.far_original) == 0 and not self.pending[far].any())
+        stats.counters["far_objects"] = len(far)
+        # complete: every far object drawn as a board, none waiting for one; a frame with no far object proves
+        # nothing (walk6 #8: "complete view after 60 ms" on a hall whose flyover never had one)
+        stats.counters["view_complete"] = int(len(far) > 0 and len(plan.far_original) == 0 and not self.pending[far].any())
         stats.counters["board_passes_here"] = BoardBuilder.process_passes
         stats.bytes_sent = self.link.bytes_sent
         self.link.bytes_sent = 0

@@ -67,6 +67,8 @@ def m2_summary(records: list[dict]) -> dict:
         "pending_at_end": int(c[-1]["pending"]) if c else 0,
         "response_ms": _quantiles(resp),
         "angle_error_deg": _quantiles(angles),
+        "frames_with_far_objects": int(sum(1 for k in c if k.get("far_objects", 1))),
+        "boards_drawn": int(sum(k.get("boards_drawn", 0) for k in c)),
         "first_complete_frame": complete[0] if complete else None,
         "ms_to_complete_view": round(t_complete, 3) if t_complete is not None else None,
         "loads_per_backend": np.sum([k.get("loads", []) for k in c if k.get("loads")], axis=0).tolist() if c else [],
