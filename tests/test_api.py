@@ -277,3 +277,34 @@ def test_terrain_store_api_prepares_describes_and_verifies(tmp_path):
     with pytest.raises(mv.MassviewError, match="nonexist.tif: no such file"):
         mv.prepare_terrain(tmp_path / "nonexist.tif", tmp_path / "x.zarr")
     assert not (tmp_path / "x.zarr").exists()
+
+
+def test_scene_store_api_prepares_describes_and_verifies(tmp_path):
+    """mv.prepare_scene / scene_info / verify_scene do what `massview prepare scene`,
+    `info --json` and `verify` do (walk6 #16: scenes could only be prepared with the CLI): the
+    same store as the CLI's, warnings as MassviewWarning, errors naming the file or keyword."""
+    import json
+
+    import trimesh
+
+    from conftest import run_cli
+
+    box = trimesh.creation.box([2.0, 1.0, 0.5])
+    box.export(tmp_path / "box.ply")
+    ball = trimesh.creation.icosphere(2, 0.5)
+    ball.apply_translation([3.0, 0, 0])
+    ball.export(tmp_path / "ball.obj")
+    res = mv.prepare_scene([tmp_path / "box.ply", tmp_path / "ball.obj"], tmp_path / "api.scene")
+    run_cli("prepare", "scene", tmp_path / "box.ply", tmp_path / "ball.obj", "-o", tmp_path / "cli.scene", "-q")
+    api, cli = mv.scene_info(tmp_path / "api.scene"), json.loads(run_cli("info", tmp_path / "cli.scene", "--json").stdout)
+    assert res["objects"] == api["objects"] == cli["objects"] >= 2
+    for k in ("objects", "geometries", "triangles", "bounds"):
+        if k in cli:
+            assert api[k] == cli[k], k
+    assert mv.verify_scene(tmp_path / "api.scene") == []
+    assert mv.prepare_scene(tmp_path / "box.ply", tmp_path / "one.scene")["objects"] == 1  # (one path, not a list)
+    with pytest.raises(mv.MassviewError, match="nope.ply: no such file"):
+        mv.prepare_scene(tmp_path / "nope.ply", tmp_path / "x.scene")
+    with pytest.raises(mv.MassviewError, match="must be between 1 and 16, got 20"):
+        mv.prepare_scene(tmp_path / "box.ply", tmp_path / "y.scene", levels=20)
+    assert not (tmp_path / "x.scene").exists() and not (tmp_path / "y.scene").exists()

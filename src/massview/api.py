@@ -52,7 +52,8 @@ from .core.errors import ConfigError, MassviewWarning, RankJobError
 from .core.paths import BUILTIN_PATHS, load_path, scene_clip
 
 __all__ = ["Scene", "RenderResult", "Frame", "RankJobError", "MassviewWarning", "open_scene", "camera", "path", "render",
-           "render_frame", "show", "render_config", "prepare_terrain", "terrain_info", "verify_terrain"]
+           "render_frame", "show", "render_config", "prepare_terrain", "terrain_info", "verify_terrain", "prepare_scene",
+           "scene_info", "verify_scene"]
 
 # -- how messages name options: API keywords (tau=) for Python callers, flags (--tau) for the CLI --
 _FLAG_NAMES = contextvars.ContextVar("massview_flag_names", default=False)
@@ -746,3 +747,41 @@ def verify_terrain(store: str | Path, progress: bool = False) -> list[str]:
 
     with progress_bar(not progress) as prog:
         return verify_store(Path(store), prog)
+
+
+def prepare_scene(inputs, out: str | Path, *, object_triangles: int = 16384, object_size: float | None = None,
+                  instance: bool = False, simplifier: str = "fast-simplification", levels: int = 8, stream_mb: float = 256,
+                  crease_angle: float | None = None, up: str = "auto", overwrite: bool = False, progress: bool = False) -> dict:
+    """Prepare the scene store ``out`` from mesh files (PLY, OBJ, STL, OFF, glTF/GLB; one path or
+    a list), as ``massview prepare scene`` does, with its options as keywords (``object_triangles``,
+    ``object_size``, ``instance``, ``simplifier``, ``levels``, ``stream_mb``, ``crease_angle``
+    (degrees; default the CLI's), ``up`` "auto"/"y"/"z", ``overwrite``; ``progress`` bars on
+    stderr). Returns the store's figures (``objects``, ``geometries``, ``triangles``, ``seconds``,
+    ``warnings``, …); the warnings also come as :class:`MassviewWarning`. Errors name the file or
+    the option, as the CLI's do."""
+    from .app.scene_cmds import CREASE_ANGLE, prepare_files
+
+    paths = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
+    res = prepare_files(paths, out, option="out=", quiet=not progress, object_triangles=object_triangles,
+                        object_size=object_size, instance=instance, simplifier=simplifier, levels=levels, stream_mb=stream_mb,
+                        crease_angle=CREASE_ANGLE if crease_angle is None else crease_angle, up=up, overwrite=overwrite)
+    _warn(res.get("warnings", []))
+    return res
+
+
+def scene_info(store: str | Path) -> dict:
+    """What ``massview info SCENE --json`` prints: objects, geometries, triangles, levels, the
+    world box, disk use."""
+    from .data.scene.verify import scene_info as info
+
+    return info(Path(store))
+
+
+def verify_scene(store: str | Path, progress: bool = False) -> list[str]:
+    """The problems ``massview verify SCENE`` finds (every record decodes and matches its
+    checksum, counts and the group tree agree); an empty list for a sound store."""
+    from .app.terrain_cmds import progress_bar
+    from .data.scene.verify import verify_scene as verify
+
+    with progress_bar(not progress) as prog:
+        return verify(Path(store), prog)

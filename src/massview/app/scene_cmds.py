@@ -74,27 +74,40 @@ def cmd_generate(args) -> int:
     return 0
 
 
-def cmd_prepare(args) -> int:
+def prepare_files(inputs, output, *, option: str, quiet: bool, object_triangles: int = 16384, object_size: float | None = None,
+                  instance: bool = False, simplifier: str = "fast-simplification", levels: int = 8, stream_mb: float = 256,
+                  crease_angle: float = CREASE_ANGLE, up: str = "auto", overwrite: bool = False) -> dict:
+    """Prepare the scene store ``output`` from the mesh files ``inputs``: what ``massview prepare
+    scene`` and :func:`massview.prepare_scene` both run. ``option`` names ``output`` in messages
+    (``-o`` or ``out=``); ``quiet``: no progress bars. Returns prepare_scene's dict (its
+    warnings not yet said)."""
     from ..core.errors import ConfigError
     from ..data.scene.ingest import IngestParams, prepare_scene
     from .outputs import check_output_file
 
+    out = Path(output)
+    if object_size is not None and not (math.isfinite(object_size) and object_size > 0):
+        raise ConfigError(f"--object-size must be a positive length in file units (leave it out for no limit), got {object_size:g}")
+    if not (math.isfinite(stream_mb) and stream_mb >= 0):
+        raise ConfigError(f"--stream-mb must be a size in MB, 0 or more, got {stream_mb:g}")
+    if object_triangles < 1:
+        raise ConfigError(f"--object-triangles must be a positive triangle count, got {object_triangles}")
+    if not 1 <= levels <= 16:
+        raise ConfigError(f"--levels must be between 1 and 16, got {levels}")
+    check_output_file(out, option)
+    prm = IngestParams(object_triangles=object_triangles, object_size=object_size or float("inf"), instance=instance,
+                       simplifier=simplifier, max_levels=levels, stream_bytes=int(stream_mb * 2**20),
+                       crease_angle=crease_angle, up=up)
+    with progress_bar(quiet) as prog:
+        return prepare_scene(list(inputs), out, prm, overwrite=overwrite, progress=prog)
+
+
+def cmd_prepare(args) -> int:
     out = Path(args.output)
-    if args.object_size is not None and not (math.isfinite(args.object_size) and args.object_size > 0):
-        raise ConfigError(f"--object-size must be a positive length in file units (leave it out for no limit), got {args.object_size:g}")
-    if not (math.isfinite(args.stream_mb) and args.stream_mb >= 0):
-        raise ConfigError(f"--stream-mb must be a size in MB, 0 or more, got {args.stream_mb:g}")
-    if args.object_triangles < 1:
-        raise ConfigError(f"--object-triangles must be a positive triangle count, got {args.object_triangles}")
-    if not 1 <= args.levels <= 16:
-        raise ConfigError(f"--levels must be between 1 and 16, got {args.levels}")
-    check_output_file(out, "-o")
-    prm = IngestParams(object_triangles=args.object_triangles, object_size=args.object_size or float("inf"), instance=args.instance,
-                       simplifier=args.simplifier, max_levels=args.levels, stream_bytes=int(args.stream_mb * 2**20),
-                       crease_angle=args.crease_angle, up=args.up)
     try:
-        with progress_bar(args.quiet) as prog:
-            a = prepare_scene(args.inputs, out, prm, overwrite=args.overwrite, progress=prog)
+        a = prepare_files(args.inputs, out, option="-o", quiet=args.quiet, object_triangles=args.object_triangles,
+                          object_size=args.object_size, instance=args.instance, simplifier=args.simplifier, levels=args.levels,
+                          stream_mb=args.stream_mb, crease_angle=args.crease_angle, up=args.up, overwrite=args.overwrite)
     except KeyboardInterrupt:
         print(f"massview: interrupted; {interrupted_note(out)}", file=sys.stderr)
         return 130
