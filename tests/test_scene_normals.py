@@ -213,7 +213,7 @@ def test_partial_vn_fall_back_to_computed_normals_with_a_warning(tmp_path):
     np.testing.assert_allclose(got[6], np.tile([0, 0, 1.0], (3, 1)), atol=1e-4)  # computed
 
 
-@pytest.mark.parametrize("line,what", [("f 1//1 2//1 3//9", "refers to normal 9 but only 1 normals"),
+@pytest.mark.parametrize("line,what", [("f 1//1 2//1 3//9", "refers to normal 9 but only 1 normal is defined"),
                                        ("f 1 2 0", "refers to vertex 0"), ("f 1//1 2//x 3//1", "normal index 'x'"),
                                        ("f -1 -2 -4", "refers to vertex -4"), ("vn 0 1", "needs three numbers"),
                                        ("f 1 2", "face has 2 corners")])
