@@ -269,3 +269,22 @@ def test_small_input_mistakes_get_exact_messages(tmp_path):
     (tmp_path / "empty.ply").write_bytes(b"")
     proc = run_cli("prepare", "scene", tmp_path / "empty.ply", "-o", tmp_path / "d", check=False)
     assert proc.returncode != 0 and "empty.ply: the file is empty (0 bytes)" in proc.stderr, proc.stderr
+
+
+def test_inputs_in_different_units_are_warned(tmp_path):
+    """walk6 #12: metre models prepared with a 2000 mm part 125 km away gave one store whose
+    orbit showed specks in an empty frame, without a word. Inputs whose sizes differ 100-fold,
+    or that lie far apart for their size, are warned; inputs of one scale are not."""
+    import trimesh
+
+    from conftest import run_cli
+
+    trimesh.creation.box([2.0, 1.0, 0.8]).export(tmp_path / "table.ply")
+    trimesh.creation.icosphere(2, 0.3).export(tmp_path / "vase.ply")
+    part = trimesh.creation.box([2000.0, 500.0, 300.0])
+    part.apply_translation([125000.0, 48000.0, 3000.0])
+    part.export(tmp_path / "part_mm.stl")
+    proc = run_cli("prepare", "scene", tmp_path / "table.ply", tmp_path / "vase.ply", tmp_path / "part_mm.stl", "-o", tmp_path / "a", "-q")
+    assert "warning: the inputs differ in scale: " in proc.stderr and "part_mm.stl is 2000 units across" in proc.stderr, proc.stderr
+    proc = run_cli("prepare", "scene", tmp_path / "table.ply", tmp_path / "vase.ply", "-o", tmp_path / "b", "-q")
+    assert "differ in scale" not in proc.stderr, proc.stderr
