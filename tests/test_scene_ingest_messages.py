@@ -273,8 +273,8 @@ def test_small_input_mistakes_get_exact_messages(tmp_path):
 
 def test_inputs_in_different_units_are_warned(tmp_path):
     """walk6 #12: metre models prepared with a 2000 mm part 125 km away gave one store whose
-    orbit showed specks in an empty frame, without a word. Inputs whose sizes differ 100-fold,
-    or that lie far apart for their size, are warned; inputs of one scale are not."""
+    orbit showed specks in an empty frame, without a word. Inputs whose sizes differ over
+    500-fold are warned; inputs of one scale are not, however far apart."""
     import trimesh
 
     from conftest import run_cli
@@ -287,4 +287,9 @@ def test_inputs_in_different_units_are_warned(tmp_path):
     proc = run_cli("prepare", "scene", tmp_path / "table.ply", tmp_path / "vase.ply", tmp_path / "part_mm.stl", "-o", tmp_path / "a", "-q")
     assert "warning: the inputs differ in scale: " in proc.stderr and "part_mm.stl is 2000 units across" in proc.stderr, proc.stderr
     proc = run_cli("prepare", "scene", tmp_path / "table.ply", tmp_path / "vase.ply", "-o", tmp_path / "b", "-q")
+    assert "differ in scale" not in proc.stderr, proc.stderr
+    far = trimesh.creation.box([2.0, 1.0, 0.8])
+    far.apply_translation([5000.0, 0.0, 0.0])  # (a tile 5 km away: not a units mistake)
+    far.export(tmp_path / "far.ply")
+    proc = run_cli("prepare", "scene", tmp_path / "table.ply", tmp_path / "far.ply", "-o", tmp_path / "c", "-q")
     assert "differ in scale" not in proc.stderr, proc.stderr

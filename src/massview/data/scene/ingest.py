@@ -154,26 +154,27 @@ class _Tally:
         return msg
 
 
-_UNITS_RATIO = 100.0  # inputs this many times larger than another, or spread this far: mixed units?
+_UNITS_RATIO = 500.0  # an input this many times larger than another: mixed units? (mm against m is 1000)
 
 
 def _units_warning(tally: dict) -> list[str]:
     """One line when the inputs look like different units (walk6 #12: metre models beside a
     2000 mm part 125 km away rendered as specks in an empty frame): one input ``_UNITS_RATIO``
-    times larger than another, or all of them spread over ``_UNITS_RATIO`` times the largest."""
+    times larger than another. (Inputs spread far apart for their size are not warned: the
+    tiles of a city are.)"""
     boxes = {k: (np.asarray(t.lo), np.asarray(t.hi)) for k, t in tally.items() if t.read and np.all(np.isfinite(t.lo))}
     if len(boxes) < 2:
         return []
     size = {k: float(np.max(hi - lo)) for k, (lo, hi) in boxes.items()}
     big, small = max(size, key=size.get), min(size, key=size.get)
+    if size[big] <= _UNITS_RATIO * max(size[small], 1e-300):
+        return []
     lo = np.min([b[0] for b in boxes.values()], axis=0)
     hi = np.max([b[1] for b in boxes.values()], axis=0)
-    spread = float(np.max(hi - lo))
-    if size[big] > _UNITS_RATIO * max(size[small], 1e-300) or spread > _UNITS_RATIO * max(size[big], 1e-300):
-        return [f"the inputs differ in scale: {big} is {size[big]:.4g} units across, {small} {size[small]:.4g}, and together they span "
-                f"{spread:.4g}; are they in different units (millimetres and metres) or far apart? They are stored as they are, "
-                "in one space: scale the files to one unit and place them together, or prepare them into separate stores"]
-    return []
+    return [f"the inputs differ in scale: {big} is {size[big]:.4g} units across, {small} {size[small]:.4g} "
+            f"({size[big] / max(size[small], 1e-300):.0f}×), together spanning {float(np.max(hi - lo)):.4g}; are they in different "
+            "units (millimetres and metres)? They are stored as they are, in one space: scale the files to one unit, or "
+            "prepare them into separate stores"]
 
 
 class _Run:
