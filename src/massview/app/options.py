@@ -40,13 +40,10 @@ HAZE_WARN = 4.0  # --haze above this washes a terrain out to the sky colour (wal
 
 def _has_orthophoto(spec: str) -> bool:
     """Whether the terrain store ``spec`` holds an orthophoto (its root attribute ``color``)."""
-    import json
+    from ..data.rebuild import store_attrs
 
-    try:
-        attrs = json.loads((Path(spec) / "zarr.json").read_text()).get("attributes", {})
-    except (OSError, ValueError, AttributeError):
-        return True  # (unreadable: the store's own open names the problem)
-    return attrs.get("color") == "orthophoto"
+    attrs = store_attrs(spec)
+    return attrs is None or attrs.get("color") == "orthophoto"  # (unreadable: the store's own open names the problem)
 
 
 def option_warnings(spec: str, kind: str, cfg: RenderConfig, given) -> list[str]:

@@ -17,12 +17,14 @@ from typing import Callable, TypeVar
 
 from ..core.errors import StoreError
 
-__all__ = ["is_complete_store", "rebuild_beside"]
+__all__ = ["store_attrs", "is_complete_store", "rebuild_beside"]
 
 T = TypeVar("T")
 
 
-def _attrs(path: Path) -> dict | None:
+def store_attrs(path) -> dict | None:
+    """The root attributes of the zarr group at ``path`` ({} where it has none), or None where
+    its ``zarr.json`` cannot be read as one."""
     try:
         return json.loads((Path(path) / "zarr.json").read_text()).get("attributes") or {}
     except (OSError, ValueError, AttributeError):
@@ -31,7 +33,7 @@ def _attrs(path: Path) -> dict | None:
 
 def is_complete_store(path, fmt: str) -> bool:
     """Whether ``path`` is a complete massview store of format ``fmt`` (its root attributes)."""
-    a = _attrs(Path(path))
+    a = store_attrs(path)
     return bool(a) and a.get("format") == fmt and bool(a.get("complete"))
 
 
@@ -45,7 +47,7 @@ def rebuild_beside(out, fmt: str, build: Callable[[Path], T]) -> T:
     staging, old = out.with_name(out.name + ".rebuild"), out.with_name(out.name + ".replaced")
     for p in (staging, old):
         if p.exists():
-            if (_attrs(p) or {}).get("format") != fmt:
+            if (store_attrs(p) or {}).get("format") != fmt:
                 raise StoreError(f"{p} is in the way: --overwrite builds the new store there, beside {out}, and moves it into "
                                  "place when it is complete; move or remove that folder")
             shutil.rmtree(p)

@@ -23,6 +23,7 @@ from ..core.errors import ConfigError
 __all__ = ["Shading", "ramp", "paint_sky", "load_sky_kernel", "SKY_KERNELS", "SPECIAL_COLORMAPS"]
 
 SPECIAL_COLORMAPS = ("hypsometric", "ortho", "none")
+DRAPE_COLORMAPS = ("auto", "ortho")  # the colour maps under which a store's orthophoto is drawn
 _STOPS = np.array([0.0, 0.18, 0.42, 0.7, 0.88, 1.0])
 _RGB = np.array([[64, 112, 70], [110, 150, 82], [186, 172, 120], [140, 122, 104], [170, 165, 160], [245, 245, 250]], np.float32)
 SKY_HORIZON = (0.80, 0.86, 0.92)  # sky gradient, also the colour aerial perspective fades to (sky.glsl)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import moderngl
 import numpy as np
 
-from .colormaps import LIGHT_WEIGHTS, Shading
+from .colormaps import DRAPE_COLORMAPS, LIGHT_WEIGHTS, Shading
 from .context import load_shader
 from .meshes import _TINTS
 
@@ -124,7 +124,7 @@ class FanRenderer:
         p["u_zrange"].value = (float(geom.zrange[0]), float(geom.zrange[1]))
         p["u_tint_on"].value = 1 if tint else 0
         self._ramp.use(0)
-        drape = self._drapes.get(layer) if self.shading.colormap in ("auto", "ortho") else None  # (a ramp named: the ramp)
+        drape = self._drapes.get(layer) if self.shading.colormap in DRAPE_COLORMAPS else None  # (a ramp named: the ramp)
         p["u_drape_on"].value = 0 if drape is None else 1
         if drape is None:
             self._no_drape.use(1)

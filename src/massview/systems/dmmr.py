@@ -119,6 +119,8 @@ class DmmrSystem:
         self.server = DmmrServer(self.store, self.cfg.tau, self._layout(self.cfg), self.cfg.grid)
         self._ref: SceneDrawer | None = None
         self._split: list = []  # the last frame's client viewports (the viewer's panel)
+        self._on_record = None  # run_path's callback for the server's record of each frame
+        self._client_gl: str | None = None  # the clients' GL renderer strings, once run_path has gathered them
 
     #: what the viewer's decomposition menu offers: the server splits the frustum itself, with
     #: Algorithm 1 (the runtime's ``kd`` slot) or into equal screen tiles; sort-last does not
@@ -161,7 +163,7 @@ class DmmrSystem:
     def renderer(self) -> str:
         """What draws: the server and its clients, with the clients' GL renderer (known on rank 0
         after :meth:`run_path`; the server itself has no GL context)."""
-        gl = getattr(self, "_client_gl", None)
+        gl = self._client_gl
         return "dmmr: server + clients (each: occlusion-query and render GL contexts)" + (f"; clients' GL: {gl}" if gl else "")
 
     def ram_budget(self, clients: int) -> int:
@@ -331,7 +333,7 @@ class DmmrSystem:
             for k, x in meter.step().items():
                 st.count(k, x)
             records.append(st.to_json())
-            if getattr(self, "_on_record", None) is not None:
+            if self._on_record is not None:
                 self._on_record(records[-1])
 
     # -- one frame at a time (the viewer, and any caller of render_frame) ----------------

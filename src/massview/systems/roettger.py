@@ -42,7 +42,7 @@ from ..lod.cull import spheres_in_frustum
 from ..lod.fanstream import FanReceiver, FanSender
 from ..lod.roettger import RoettgerParams, default_c, partition_depth, portion_nodes, portion_owner
 from ..parallel.composite import deliver
-from ..render.colormaps import Shading, paint_sky
+from ..render.colormaps import DRAPE_COLORMAPS, Shading, paint_sky
 from ..parallel.decompose import parse_wall, sort_first_tiles
 from ..parallel.roles import Role, recv_bytes, send_bytes, split_roles
 from .frameloop import FrameResult, image_diff
@@ -205,7 +205,7 @@ class RoettgerSystem:
         (:func:`~massview.data.terrain.drape.drape_level`: at most 4097² texels) and sends it to
         every visualization rank, which drapes it over that layer's fans (visualization ranks
         still never open a store). Collective over ``comm``, in layer order."""
-        if self.cfg.colormap not in ("auto", "ortho") or not any(i.color for i in self.infos):
+        if self.cfg.colormap not in DRAPE_COLORMAPS or not any(i.color for i in self.infos):
             return
         from ..data.terrain import TerrainStore
         from ..data.terrain.drape import color_image, drape_level
