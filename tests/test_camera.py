@@ -78,6 +78,24 @@ def test_camera_rejects_bad_values():
         Camera((0, 0, 0), (1, 0, 0, 0), fovy=180)
 
 
+@pytest.mark.parametrize("end", [(0.5, 0, 6), (0, -0.5, 6), (-0.3, 0.4, 6)])
+def test_a_path_through_the_nadir_keeps_its_roll(tmp_path, end):
+    """walk6 #11: a keyframe straight above its target, then one beside it: the first frame's
+    roll is the limit of the next ones' (it used to jump 90 degrees to world +y at the nadir)."""
+    p = tmp_path / "up.json"
+    p.write_text(json.dumps({"keyframes": [{"time": 0, "position": [0, 0, 6], "look_at": [0, 0, 0]},
+                                           {"time": 1, "position": list(end), "look_at": [0, 0, 0]}]}))
+    cams = load_path(str(p), [-1, -1, -1], [1, 1, 1]).cameras(4, 64, 48)
+    assert np.allclose(cams[0].forward, [0, 0, -1])
+    for a, b in zip(cams, cams[1:]):
+        assert float(np.dot(a.right, b.right)) > 0.99 and float(np.dot(a.up, b.up)) > 0.99
+    top = -np.array(end[:2]) / np.hypot(*end[:2])  # the image's top points from the eye over the target
+    assert np.allclose(cams[0].up[:2], top, atol=1e-6)
+    # looking straight down with nothing to follow: north up, east right (as before)
+    still = Camera.look_at((0, 0, 6), (0, 0, 0))
+    assert np.allclose(still.up, [0, 1, 0]) and np.allclose(still.right, [1, 0, 0])
+
+
 @pytest.mark.parametrize("name", BUILTIN_PATHS)
 def test_builtin_paths_fit_the_box_and_look_at_it(name):
     lo, hi = np.array([0.0, 0.0, 0.0]), np.array([100.0, 80.0, 10.0])

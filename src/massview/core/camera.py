@@ -100,14 +100,21 @@ def _matrix_quaternion(m: np.ndarray) -> tuple[float, float, float, float]:
     return q if q[0] >= 0 else tuple(-a for a in q)
 
 
-def look_at_quaternion(eye, target, up=(0.0, 0.0, 1.0)) -> tuple[float, float, float, float]:
-    """Orientation of a camera at ``eye`` looking at ``target`` with ``up`` as the world up."""
+def look_at_quaternion(eye, target, up=(0.0, 0.0, 1.0), heading=None) -> tuple[float, float, float, float]:
+    """Orientation of a camera at ``eye`` looking at ``target`` with ``up`` as the world up.
+    Looking straight along ``up`` (down at the nadir, or up at the zenith) leaves the roll open:
+    ``heading``, a direction across ``up``, then says where the top of the image points (the
+    limit of views that look slightly towards it: a path passing over its target keeps its roll,
+    see :meth:`paths.KeyframePath.pose`); without it (or with one along ``up``) the image's top
+    is world +y (its right +x when looking down)."""
     eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
     f = target - eye
     if np.linalg.norm(f) == 0:
         raise ConfigError("look-at target coincides with the camera position")
     f /= np.linalg.norm(f)
     s = np.cross(f, up)
+    if np.linalg.norm(s) < 1e-9 and heading is not None:  # along up: the limit of views tilted towards heading
+        s = np.cross(np.asarray(heading, dtype=np.float64), up)
     if np.linalg.norm(s) < 1e-9:  # looking straight along up: pick any perpendicular
         s = np.cross(f, np.array([0.0, 1.0, 0.0]))
     s /= np.linalg.norm(s)

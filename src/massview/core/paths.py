@@ -123,12 +123,30 @@ class KeyframePath(CameraPath):
         tt = self.times[0] + t * (self.times[-1] - self.times[0])
         pos = _catmull_rom(self.positions, self.times, tt)
         if self.targets is not None:
-            return pos, look_at_quaternion(pos, _catmull_rom(self.targets, self.times, tt))
+            target = _catmull_rom(self.targets, self.times, tt)
+            return pos, look_at_quaternion(pos, target, heading=self._heading(tt, pos, target))
         i = int(np.clip(np.searchsorted(self.times, tt, side="right") - 1, 0, len(self.times) - 2))
         span = self.times[i + 1] - self.times[i] if len(self.times) > 1 else 1.0
         u = 0.0 if len(self.times) == 1 or span == 0 else (tt - self.times[i]) / span
         j = min(i + 1, len(self.times) - 1)
         return pos, tuple(_slerp(self.orientations[i], self.orientations[j], u))
+
+    def _heading(self, tt: float, pos: np.ndarray, target: np.ndarray) -> np.ndarray | None:
+        """Where the image's top points when the view at time ``tt`` is straight down or up
+        (None otherwise): the level part of the view direction at the nearest time that has one
+        (a little later first, then a little earlier, farther and farther), so a path through
+        the nadir keeps the roll of its neighbouring frames instead of jumping to +y."""
+        f = target - pos
+        if np.hypot(f[0], f[1]) > 1e-9 * np.linalg.norm(f):
+            return None
+        span = float(self.times[-1] - self.times[0]) or 1.0
+        for d in (1e-6, 1e-4, 1e-3, 1e-2, 0.1, 0.5, 1.0):
+            for sign in (1.0, -1.0):
+                t2 = min(max(tt + sign * d * span, self.times[0]), self.times[-1])
+                g = _catmull_rom(self.targets, self.times, t2) - _catmull_rom(self.positions, self.times, t2)
+                if np.hypot(g[0], g[1]) > 1e-6 * np.linalg.norm(g):
+                    return np.array([g[0], g[1], 0.0])
+        return None
 
     @classmethod
     def from_json(cls, data: dict, source: str = "<path>") -> "KeyframePath":
