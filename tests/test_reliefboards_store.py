@@ -1,6 +1,7 @@
 """`massview prepare reliefboards` on a real generated scene store, and M2 rendering its clusters."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -42,6 +43,11 @@ def test_prepare_stores_clusters_and_m2_renders_them(plant, tmp_path):
     feasible = got.status == 0
     assert feasible.any() and len(got.status) < sk.count  # components were merged
     assert np.all((hi - lo)[feasible].max(axis=1) <= got.attrs["sl_c"] + 1e-9)
+    info = json.loads(run_cli("info", plant, "--json").stdout)["reliefboards"]  # walk6 #13: info shows the clustering
+    assert (info["clusters"], info["feasible"], info["t_nz"]) == (len(got.status), int(feasible.sum()), 20000)
+    assert info["feasible"] + info["too_large"] + info["too_few_triangles"] == info["clusters"]
+    table = re.sub(r"[│\s]+", " ", run_cli("info", plant).stdout)  # (the table wraps long values in their cell)
+    assert f"{len(got.status)} clusters: {int(feasible.sum())} feasible" in table and "t_nz = 20000" in table
     out = tmp_path / "run"
     run_cli("render", plant, "--system", "reliefboards", "--ranks", 2, "--frames", 6, "--path", "orbit",
             "--size", "320x240", "--tnz", 5000, "--board-px", 32, "--out", out, "-q")

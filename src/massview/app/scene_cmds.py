@@ -166,12 +166,22 @@ def cmd_info(args) -> int:
         for k, v in info.items():
             if k.endswith("bytes") and isinstance(v, int):
                 v = f"{v / 2**20:.1f} MiB"
+            elif k == "reliefboards" and isinstance(v, dict):
+                v = _clusters_line(v)
             t.add_row(k, str(v))
         Console().print(t)
     if not info["complete"]:
         print(f"massview: error: {args.store} is incomplete; re-run the prepare/generate command to finish it", file=sys.stderr)
         return 1
     return 0
+
+
+def _clusters_line(rb: dict) -> str:
+    """The stored Reliefboards clustering in one line, as ``prepare reliefboards`` printed it."""
+    g = lambda k: f"{rb[k]:.4g}" if isinstance(rb.get(k), (int, float)) else "?"  # noqa: E731
+    return (f"{rb['clusters']} clusters: {rb['feasible']} feasible, {rb['too_large']} too large (> sl_c = {g('sl_c')}), "
+            f"{rb['too_few_triangles']} with too few triangles (< {rb.get('min_triangles', '?')}); t_nz = {rb.get('t_nz', '?')}, "
+            f"d_nz = {g('d_nz')}, board {rb.get('p', '?')} px, r_y = {rb.get('r_y', '?')} px, fovy = {rb.get('fovy', '?')}")
 
 
 def cmd_verify(args) -> int:

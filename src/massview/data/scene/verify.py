@@ -45,7 +45,25 @@ def scene_info(path) -> dict:
             "bounds": [lo.round(4).tolist(), hi.round(4).tolist()],
             "decoded_bytes_level0": int(sk.level_bytes[:, 0].sum()), "record_bytes": raw, "geometry_disk_bytes": disk,
             "compression_ratio": round(raw / disk, 3) if disk else None, "disk_bytes": _dir_size(path),
-            **{k: a[k] for k in ("textures_baked", "triangles_removed") if k in a}}  # (prepare scene; older stores lack them)
+            **{k: a[k] for k in ("textures_baked", "triangles_removed") if k in a},  # (prepare scene; older stores lack them)
+            **_reliefboards_info(path)}
+
+
+def _reliefboards_info(path) -> dict:
+    """``{"reliefboards": …}``: the clustering ``prepare reliefboards`` stored (cluster counts by
+    status and the parameters it was made with), or nothing where the store has none."""
+    from ..board_clusters import read_clusters
+
+    try:
+        cl = read_clusters(path)
+    except StoreError as e:
+        return {"reliefboards": f"unreadable ({e})"}
+    if cl is None:
+        return {}
+    counts = np.bincount(cl.status, minlength=3)
+    keep = ("t_nz", "d_nz", "sl_c", "p", "r_y", "fovy", "min_triangles")
+    return {"reliefboards": {"clusters": int(len(cl.status)), "feasible": int(counts[0]), "too_large": int(counts[1]),
+                             "too_few_triangles": int(counts[2]), **{k: cl.attrs[k] for k in keep if k in cl.attrs}}}
 
 
 def _who(st: SceneStore, owners: dict, gid: int) -> str:
