@@ -18,7 +18,8 @@ and faces removed, also those that become so only in float32 local coordinates; 
 the file, made unit, or — when the file has none, or some of the object's corners lack one or
 have a zero or NaN one, then for the whole object, with a warning — area-weighted and split
 where faces meet at more than ``crease_angle`` degrees),
-its LOD levels (:mod:`.simplify`), then its placement (the translation to its origin). With
+its LOD levels (:mod:`.simplify`; a soup's objects, which may be pieces of one surface, keep
+their open border at every level so pieces meet without cracks), then its placement (the translation to its origin). With
 ``instance``, structured objects that share a geometry (glTF nodes of one mesh) store it once,
 in its own frame, with their transforms composed with that translation. Inputs whose up axis
 (``up``, :func:`.sources.up_axis`) is y are turned to massview's z-up as they are read. Re-running an
@@ -210,16 +211,18 @@ class _Run:
     def pending(self) -> bool:
         return self.unit >= self.w.geometries_done
 
-    def write(self, source: str, mesh: Mesh, placements: list[np.ndarray | None], crease: bool = False) -> None:
+    def write(self, source: str, mesh: Mesh, placements: list[np.ndarray | None], crease: bool = False,
+              cut: bool = False) -> None:
         """Write one unit of input ``source``: ``mesh`` (local frame) placed by each of
         ``placements`` (4x4 f8); ``crease``: the file brought no normals, split them at the
-        crease angle."""
+        crease angle; ``cut``: the mesh may be a piece of a larger surface (a cell or a k-d
+        piece), so its open border stays locked at every level (``build_levels``' free_border)."""
         self.tally.setdefault(source, _Tally()).kept += mesh.triangle_count * len(placements)
         if mesh.triangle_count == 0:  # every face collapsed (degenerate at float32 in its own frame)
             return
         if self.pending():
             levels, errors = build_levels(mesh, self.prm.max_levels, backend=self.prm.simplifier,
-                                          crease=self.prm.crease_angle if crease else None)
+                                          crease=self.prm.crease_angle if crease else None, free_border=not cut)
             gid = self.w.add_geometry(levels, errors)
             for xf in placements:
                 self.w.add_object(gid, (), xf)
@@ -373,7 +376,7 @@ def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bo
                 for p, col, nrm, f in cell_objects(corners, prm.split()):
                     nrm = run.normals(str(path), nrm)
                     mesh, origin = _mesh(p, col, nrm, f)
-                    run.write(str(path), mesh, [_translation(origin)], nrm is None)
+                    run.write(str(path), mesh, [_translation(origin)], nrm is None, cut=True)
     attrs = w.finish({"ingest_seconds": round(time.perf_counter() - t0, 3), "textures_baked": textures,
                       "triangles_removed": {k: t.read - t.kept for k, t in run.tally.items()}})
     shutil.rmtree(out / "_spill", ignore_errors=True)

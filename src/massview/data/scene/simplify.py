@@ -138,10 +138,14 @@ def _split(p: np.ndarray, colors: np.ndarray, f: np.ndarray, crease: float) -> M
 
 
 def build_levels(mesh: Mesh, max_levels: int = 8, min_triangles: int = 64, backend: str = "fast-simplification",
-                 crease: float | None = None) -> tuple[list[Mesh], list[float]]:
+                 crease: float | None = None, free_border: bool = True) -> tuple[list[Mesh], list[float]]:
     """Level meshes (level 0 = ``mesh`` itself) and their errors (object units, level 0: 0.0).
     With ``crease`` (degrees), ``mesh.normals`` are ignored and every level gets normals split
-    at edges sharper than that (level 0 = ``mesh`` with vertices duplicated along them)."""
+    at edges sharper than that (level 0 = ``mesh`` with vertices duplicated along them).
+    Every level keeps the open border (its vertices stay where they are); where that stops a
+    halving, ``free_border`` halves it with the border free, else the levels end there (a piece
+    cut from a larger surface: its neighbours share the border, which must stay the same polyline
+    at every level, or neighbours drawn at different levels would show cracks between them)."""
     from scipy.spatial import cKDTree
 
     levels, errors = [mesh if crease is None else _split(mesh.positions, mesh.colors, mesh.indices, crease)], [0.0]
@@ -157,7 +161,7 @@ def build_levels(mesh: Mesh, max_levels: int = 8, min_triangles: int = 64, backe
         if target < min_triangles:
             break
         q, f = simplify_once(p, t, target, backend)
-        if len(f) > 0.8 * len(t):  # the locked outline holds it (an open mesh with a long border): halve it freely
+        if len(f) > 0.8 * len(t) and free_border:  # the locked outline holds it (an open mesh with a long border): halve it freely
             q, f = simplify_once(p, t, target, backend, lock_border=False)
         if len(f) == 0 or len(f) > 0.8 * len(t):
             break
