@@ -208,3 +208,21 @@ def test_buffer_pool_reuses_given_buffers_and_keeps_no_more_than_its_budget():
     got = [pool.take((10, 100), np.float32) for _ in range(3)]
     assert sum(any(g is x for x in (a, b)) for g in got) == 2 and not any(g is c for g in got)
     assert pool.take((10, 100), np.float16) is not a  # another dtype: a new buffer
+
+
+def test_bench_ingest_deletes_at_its_end_and_the_next_run_says_so(tmp_path):
+    """``bench ingest`` deletes its store and its floor copy only after measuring, notes when,
+    and a run started soon after says that its prepare follows that deletion (ext4's
+    recently-deleted inodes cost new files more); a kept store is moved aside, not deleted
+    before the prepare."""
+    from conftest import run_cli
+
+    np.save(tmp_path / "dem.npy", SyntheticSource(300, seed=2).read(0, 300, 0, 300).astype(np.float32))
+    args = ("bench", "ingest", "--dem", tmp_path / "dem.npy", "--workdir", tmp_path / "w", "--fly", "off", "--workers", 1)
+    first = run_cli(*args, "--keep")
+    assert "files were deleted" not in first.stdout
+    assert (tmp_path / "w" / "dem.zarr").is_dir() and not list((tmp_path / "w").glob("floor.tmp*"))
+    second = run_cli(*args)
+    assert "files were deleted" in " ".join(second.stdout.split())  # (the floor copy of the first run)
+    left = sorted(p.name for p in (tmp_path / "w").iterdir())
+    assert not [n for n in left if n.endswith(".zarr") or ".old-" in n or n.startswith("floor.tmp")], left
