@@ -33,15 +33,16 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def first_frame(store) -> np.ndarray:
-    """RGB (H, W, 3) of the first view ``massview view STORE --ranks 1`` streams, once its
-    geometry is in (loads are asynchronous: the first frames draw what is resident): the
-    first frame equal to the two before it, from the fifth on."""
+def first_frame(store, *extra, stats: list | None = None) -> np.ndarray:
+    """RGB (H, W, 3) of the first view ``massview view STORE --ranks 1 [extra]`` streams, once
+    its geometry is in (loads are asynchronous: the first frames draw what is resident): the
+    first frame equal to the two before it, from the fifth on. ``stats`` receives the frames'
+    stats messages."""
     from websockets.sync.client import connect
 
     port = _free_port()
     proc = subprocess.Popen([sys.executable, "-m", "massview", "view", str(store), "--ranks", "1", "--port", str(port),
-                             "--size", f"{W}x{H}"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                             "--size", f"{W}x{H}", *map(str, extra)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=clean_env(), start_new_session=True)
     try:
         line, t0 = "", time.monotonic()
@@ -58,7 +59,10 @@ def first_frame(store) -> np.ndarray:
                 if isinstance(msg, bytes):
                     frames.append(np.asarray(Image.open(io.BytesIO(msg)).convert("RGB")))
                 else:
-                    assert json.loads(msg)["type"] in ("hello", "stats", "role")
+                    doc = json.loads(msg)
+                    assert doc["type"] in ("hello", "stats", "role")
+                    if stats is not None and doc["type"] == "stats":
+                        stats.append(doc)
         return frames[-1]
     finally:
         stop_job(proc)
@@ -118,3 +122,37 @@ def test_a_terrain_and_builtin_objects_start_where_they_did(terrain_store):
     for spec, kind in ((str(terrain_store), "terrain"), ("builtin:objects?n=300&seed=4", "objects")):
         lo, hi = scene_bounds(spec, kind)
         assert start_camera(kind, lo, hi, W, H) == load_path("flyover", lo, hi).camera(0.0, W, H)
+
+
+def test_an_exaggerated_terrain_starts_above_its_relief_and_the_eye_follows_the_slider(terrain_store):
+    """walk7 H1: ``view STORE --exaggeration 5`` started at flyover's start fitted to the 1× box,
+    under the relief drawn at 5× (its underside hanging from the top of the frame); and raising
+    the exaggeration in the browser left the eye where it was, underground. Now the start is
+    flyover's at the exaggeration drawn (as ``render``'s), and a new exaggeration moves the eye
+    with the relief and refits the far plane to it."""
+    from massview.api import open_scene
+    from massview.app.viewer import ViewerState
+    from massview.core.paths import exaggerated_box, load_path
+
+    scene = open_scene(str(terrain_store))
+    stats: list = []
+    img = first_frame(terrain_store, "--exaggeration", 5, stats=stats)
+    x, y, z = stats[-1]["position"]
+    assert z > float(scene.ground(5.0)(np.array([[x, y]]))[0]), "the first view is under the relief"
+    assert drawn(img)[H // 2:].mean() > 0.5  # the ground below the horizon, not sky
+    lo, hi = scene.bounds
+    start = load_path("flyover", lo, hi).camera(0.0, W, H)
+    state = ViewerState(start, {"exaggeration": 1.0}, {"decomposition": [], "compositor": []}, 1.0, (lo, hi))
+    z1 = start.position[2]
+    assert z1 > float(scene.ground(1.0)(np.array([start.position[:2]]))[0])
+    state.apply('{"type": "settings", "exaggeration": 5}')
+    cam = state.camera()
+    assert np.isclose(cam.position[2], lo[2] + (z1 - lo[2]) * 5)
+    assert cam.position[2] > float(scene.ground(5.0)(np.array([cam.position[:2]]))[0])
+    far_corner = max(np.linalg.norm(np.array(c) - cam.position) for c in np.array(np.meshgrid(*zip(*exaggerated_box(lo, hi, 5)))).T.reshape(-1, 3))
+    assert cam.far > far_corner
+    with pytest.raises(Exception):  # a message with an unknown key changes nothing
+        state.apply('{"type": "settings", "exaggeration": 2, "bogus": 1}')
+    assert state.camera().position == cam.position
+    state.apply('{"type": "settings", "exaggeration": 1}')
+    assert np.isclose(state.camera().position[2], z1)

@@ -71,7 +71,10 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
         from .viewer import ViewerServer, ViewerState
 
         logging.basicConfig(level=logging.WARNING, format="massview viewer: %(message)s", stream=sys.stderr)
-        lo, hi = system.bounds
+        relief = None  # a terrain drawn at an exaggeration the browser may change: its box at 1×, kept by the state
+        if hasattr(system, "bounds_at"):  # (walk7 H1: the start was fitted to the 1× box, under a relief drawn at 5×)
+            relief = system.bounds_at(RenderConfig(**{**cfg.to_json(), "exaggeration": 1.0}))
+        lo, hi = system.bounds_at(cfg) if relief is not None else system.bounds
         start = start_camera(scene.kind, lo, hi, cfg.width, cfg.height)
         modes = [f"sort-first:{m}" for m in SORT_FIRST_LAYOUTS] + (
             [f"sort-last:{m}" for m in system.sort_last_modes] if system.sort_last_modes else ["sort-last"])
@@ -85,7 +88,8 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
         base_speed = float(np.linalg.norm((hi - lo)[:2])) * 0.02
         cmaps = list(dict.fromkeys([cfg.colormap, *VIEWER_COLORMAPS]))
         state = ViewerState(start, settings, {"decomposition": modes, "compositor": list(COMPOSITORS), "colormap": cmaps,
-                                              "decomposition_note": getattr(system, "viewer_note", "")}, base_speed)
+                                              "decomposition_note": getattr(system, "viewer_note", "")}, base_speed,
+                            relief)
         server = ViewerServer(state, args.host, args.port)
         server.start()
         bound = "" if server.loopback else f"; bound to {args.host}, the token in the URL is required"

@@ -39,8 +39,14 @@ def _num(v, lo, hi, what):
 
 
 class ViewerState:
-    def __init__(self, start: Camera, settings: dict, choices: dict, base_speed: float):
+    """The browser's camera and settings. ``relief``: a terrain's world box at exaggeration 1
+    (lo, hi); a new exaggeration then moves the eye with the relief (heights scale about the
+    lowest one, ``base + e·(z − base)``, the eye's height too, so it keeps its place over the
+    ground instead of ending under it) and refits the far plane to the box as drawn."""
+
+    def __init__(self, start: Camera, settings: dict, choices: dict, base_speed: float, relief: tuple | None = None):
         self._lock = threading.Lock()
+        self.relief = None if relief is None else tuple(np.asarray(v, np.float64) for v in relief)
         self.pos = np.array(start.position)
         f = start.forward
         self.yaw = math.atan2(f[1], f[0])
@@ -101,6 +107,19 @@ class ViewerState:
             right = np.array([math.sin(self.yaw), -math.cos(self.yaw), 0.0])
             self.pos = self.pos + (fwd * f + right * r + np.array([0, 0, 1.0]) * u) * self.speed * dt
 
+    def _follow_relief(self, e0: float, e1: float) -> None:
+        """The eye's height from exaggeration ``e0`` to ``e1`` (see the class docstring)."""
+        from ...core.framing import scene_clip
+        from ...core.paths import exaggerated_box
+
+        if e1 == e0:
+            return
+        base = float(self.relief[0][2])
+        with self._lock:
+            self.pos = np.array([self.pos[0], self.pos[1], base + (self.pos[2] - base) * e1 / e0])
+            near, far = scene_clip(*exaggerated_box(*self.relief, e1), self.pos[None])
+            self.template = self.template.replace(far=max(far, self.template.near * 2))
+
     def _settings(self, msg: dict) -> None:
         new = {}
         for key in ("decomposition", "compositor"):
@@ -118,6 +137,8 @@ class ViewerState:
         unknown = set(msg) - {"type", "decomposition", "compositor", "tau", "color_by_rank", "exaggeration", "sun", "colormap", "haze"}
         if unknown:
             raise MessageError(f"unknown setting(s) {', '.join(sorted(unknown))[:80]}")
+        if "exaggeration" in new and self.relief is not None:
+            self._follow_relief(float(self.settings.get("exaggeration", 1.0)), new["exaggeration"])
         with self._lock:
             self.settings.update(new)
 
