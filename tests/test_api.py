@@ -205,6 +205,9 @@ def test_size_and_frames_that_disagree_with_cameras_are_refused(scene):
         mv.render_frame(scene, cams[0], frames=3)
     res = mv.render(scene, iter(cams), frames=2, size="64x48")  # (agreeing values, and a generator of cameras, are fine)
     assert len(res.images) == 2 and res.images[0].shape == (48, 64, 3)
+    with pytest.raises(ConfigError, match="render_frame renders one camera, and got a list of 2"):  # (walk7 L7: it rendered
+        mv.render_frame(scene, cams)                                                               # both, returned one)
+    assert np.array_equal(mv.render_frame(scene, cams[1:]), res.images[1])
 
 
 def test_grid_takes_the_clis_string_form(scene):

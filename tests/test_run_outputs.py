@@ -48,3 +48,15 @@ def test_the_summary_names_the_split_m1_makes(tmp_path):
     run_cli("render", "builtin:objects?n=200", "--system", "dmmr", "--ranks", 2, "--frames", 1, "--size", "96x72", "--out", out, "-q")
     s = json.loads((out / "summary.json").read_text())
     assert (s["decomposition"], s["compositor"]) == ("sort-first:balanced", "sub-frame assembly")
+
+
+def test_a_gpu_budget_too_small_for_one_block_is_refused_before_the_earlier_run_is_cleared(tmp_path, terrain_store):
+    """walk7 M1: ``--gpu-mb 1`` on a 257-block store was refused by the GL pool, after the earlier
+    run's frames and summary in the same --out had been removed; it is a check of the options
+    now, made before anything is touched."""
+    out = tmp_path / "keep"
+    run_cli("render", terrain_store, "--frames", 2, "--size", "160x120", "--out", out, "-q")
+    before = sorted(p.name for p in out.rglob("*"))
+    bad = run_cli("render", terrain_store, "--frames", 2, "--size", "160x120", "--gpu-mb", 1, "--out", out, "-q", check=False)
+    assert bad.returncode != 0 and "--gpu-mb 1" in bad.stderr and "raise --gpu-mb" in bad.stderr
+    assert sorted(p.name for p in out.rglob("*")) == before and json.loads((out / "summary.json").read_text())["frames"] == 2

@@ -585,9 +585,15 @@ def _render(scene: Scene, what, ranks, out, depth, images, progress, frames, siz
 @_keyword_errors
 def render_frame(scene: Scene | str | Path, what: Camera | str | Path | None = None, *, depth: bool = False, **kw):
     """One frame: (H, W, 3) uint8, or ``(rgb, depth)`` with ``depth=True``. ``what`` is a camera
-    or a path (its first camera); other keywords as :func:`render`."""
+    or a path (its first camera); other keywords as :func:`render`. A list of several cameras
+    is refused (:func:`render` renders them all)."""
     if what is None or isinstance(what, (str, Path)):
         kw.setdefault("frames", 1)
+    elif isinstance(what, (list, tuple)):
+        if len(what) != 1:
+            raise ConfigError(f"render_frame renders one camera, and got a list of {len(what)}: pass one of them "
+                              "(e.g. cams[0]), or use render(scene, cams) for every one")
+        what = what[0]
     res = render(scene, what, depth=depth, **kw)
     if res is None:
         return None
@@ -608,6 +614,13 @@ def validate(spec: str, cfg: RenderConfig, nranks: int) -> None:
         from .render.colormaps import ramp
 
         ramp(cfg.colormap)  # a name matplotlib does not know: ConfigError now, not after the ranks started
+    if kind == "terrain" and cfg.system != "roettger":  # a --gpu-mb too small for one block: now, not after the
+        from .data.rebuild import store_attrs         # earlier run's outputs were cleared (walk7 M1)
+        from .render.terrain_pool import check_pool_budget
+
+        attrs = store_attrs(spec) or {}
+        if isinstance(attrs.get("M"), int):
+            check_pool_budget(int(cfg.gpu_mb) << 20, attrs["M"], attrs.get("color") == "orthophoto")
     if cfg.system == "roettger":  # T2: roles, wall per visualization rank, the stores' tables
         from .systems.roettger import validate as validate_roettger
 

@@ -53,20 +53,33 @@ def layer_bytes(M: int, texel: int) -> int:
     return -(-M // 4) * 4 * (-(-M * texel // 64) * 64)
 
 
+def pool_sizes(M: int, ortho: bool) -> tuple[int, int]:
+    """(bytes of one slot with its instance record, fixed bytes) of a :class:`BlockPool` of
+    M² blocks: the slot's heights, shading layer (and colour layer), + 16; the fixed part is the
+    one-layer orthophoto array drawn when the store has none."""
+    return M * M * 4 + layer_bytes(M, 8) + (layer_bytes(M, 4) if ortho else 0) + 16, 0 if ortho else layer_bytes(M, 4)
+
+
+def check_pool_budget(budget_bytes: int, M: int, ortho: bool) -> None:
+    """ConfigError naming ``--gpu-mb`` where it cannot hold one block (what :class:`BlockPool`
+    would refuse; also checked before any rank starts, :func:`massview.api.validate`)."""
+    per_slot, fixed = pool_sizes(M, ortho)
+    if budget_bytes - fixed < per_slot:
+        need = fixed + per_slot
+        raise ConfigError(f"--gpu-mb {budget_bytes / 2**20:g}: the GL pool needs at least {need / 2**20:.2f} MiB for one "
+                          f"{M}² block ({need} bytes with its shading, colour and instance record); raise --gpu-mb")
+
+
 class BlockPool:
     """Fixed GL slots for resident blocks, LRU; ``resident[level]`` is a (nb, nb) bool grid."""
 
     def __init__(self, ctx: moderngl.Context, M: int, levels: int, top: int, budget_bytes: int, ortho: bool = False):
         self.M, self.has_ortho = M, ortho
         self.vertex_bytes, self.shade_bytes = M * M * 4, M * M * 6
-        self.slot_bytes = self.vertex_bytes + layer_bytes(M, 8) + (layer_bytes(M, 4) if ortho else 0)
-        self._fixed = 0 if ortho else layer_bytes(M, 4)  # the one-layer orthophoto array drawn when there is none
-        per_slot = self.slot_bytes + 16  # + its instance record
+        per_slot, self._fixed = pool_sizes(M, ortho)  # (+ its instance record)
+        self.slot_bytes = per_slot - 16
+        check_pool_budget(budget_bytes, M, ortho)
         self.capacity = min(int((budget_bytes - self._fixed) // per_slot), int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256)))
-        if self.capacity < 1:
-            need = self._fixed + per_slot
-            raise ConfigError(f"--gpu-mb {budget_bytes / 2**20:g}: the GL pool needs at least {need / 2**20:.2f} MiB for one "
-                              f"{M}² block ({need} bytes with its shading, colour and instance record); raise --gpu-mb")
         self.vbo = ctx.buffer(reserve=self.capacity * self.vertex_bytes)
         self.inst = ctx.buffer(reserve=self.capacity * 16)
         self.shade = ctx.texture_array((M, M, self.capacity), 3, dtype="f2")
