@@ -120,6 +120,8 @@ def test_a_signal_to_the_render_launcher_stops_the_whole_job(tmp_path, signum, s
         said = re.findall(r"massview: interrupted after (\d+) frames?; frames so far in (\S+)", text)
         assert len(said) == 1 and said[0][1] == str(out), text[-3000:]
         assert int(said[0][0]) == len({json.loads(line)["frame"] for line in (out / "stats.jsonl").read_text().splitlines()})
+        pngs = len(list((out / "frames").glob("*.png")))  # walk7 L2: an image written before its record is counted apart
+        assert (f"({pngs} images in frames/, the last without its stats record)" in text) == (pngs > int(said[0][0])), text[-3000:]
         assert "error on rank" not in text and "Abort(" not in text and "[mpiexec@" not in text, text[-3000:]
     finally:
         if proc.poll() is None or _alive(tree):
@@ -230,3 +232,19 @@ def test_a_job_that_ignores_the_signal_is_killed_after_the_grace_period(tmp_path
     finally:
         if proc.poll() is None or _alive(tree):
             _kill_all(proc, tree)
+
+
+def test_a_rank_whose_command_returned_ignores_a_late_sigterm(terrain_store):
+    """walk7 L1: a Ctrl-C just after the last frame reached the ranks as SIGTERM while they
+    finished (MPI_Finalize): MPICH printed its "BAD TERMINATION" banner and the launcher said
+    "interrupted" for a run that had completed. A rank ignores SIGTERM once its command has
+    returned; before that it is an interruption (interrupt_on_sigterm), as the tests above show."""
+    code = ("import os, signal, sys, time\n"
+            "from massview.app.cli import main\n"
+            f"rc = main(['info', {str(terrain_store)!r}])\n"
+            "os.kill(os.getpid(), signal.SIGTERM)\n"
+            "time.sleep(0.3)\n"
+            "print('finished', rc)\n")
+    env = {**clean_env(), "PMI_RANK": "0"}  # (what marks a process as a rank: massview.parallel.runtime.in_mpi_job)
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and "finished 0" in proc.stdout, proc.stderr[-2000:]

@@ -25,7 +25,7 @@ from ..core.config import COMPOSITOR_NAMES, RenderConfig, parse_size, parse_sun
 from ..core.errors import ConfigError, MassviewError, StoreError
 from ..core.paths import BUILTIN_PATHS
 from ..parallel.codec import CODEC_CHOICES
-from ..parallel.runtime import in_mpi_job, interrupt_on_sigterm, reuse_freed_memory
+from ..parallel.runtime import ignore_late_sigterm, in_mpi_job, interrupt_on_sigterm, reuse_freed_memory
 from . import upgrade_cmds
 from .dmmr_cmds import add_dmmr_args
 
@@ -309,7 +309,10 @@ def _say_interrupted(out: Path) -> None:
                     pass  # (a last line cut short)
     except OSError:
         pass
-    where = f"; frames so far in {out}" if frames else ""
+    pngs = len(list((out / "frames").glob("[0-9]*.png"))) if (out / "frames").is_dir() else 0
+    where = f"; frames so far in {out}" if frames or pngs else ""
+    if pngs > len(frames):  # (the last frame's image is written before its stats record: walk7 L2)
+        where += f" ({pngs} images in frames/, the last without its stats record)"
     print(f"massview: interrupted after {len(frames)} frame{'' if len(frames) == 1 else 's'}{where}", file=sys.stderr, flush=True)
 
 
@@ -451,8 +454,16 @@ def main(argv: list[str] | None = None) -> int:
         _EXIT_HANDLER.append(atexit.register(_no_final_collection))
     _report_peak_rss()
     reuse_freed_memory()  # per-frame images reuse freed pages (issue 20)
-    if in_mpi_job():
-        interrupt_on_sigterm()  # a rank stopped by SIGTERM says so and aborts the job like Ctrl-C
+    if not in_mpi_job():
+        return _main(argv)
+    interrupt_on_sigterm()  # a rank stopped by SIGTERM says so and aborts the job like Ctrl-C
+    try:
+        return _main(argv)
+    finally:
+        ignore_late_sigterm()  # its work is done: a stop arriving now is not an interruption
+
+
+def _main(argv: list[str]) -> int:
     if argv[:1] == ["__job"] and len(argv) == 2:  # a rank of a job started by massview.api.render
         from .render_job import run_job
 

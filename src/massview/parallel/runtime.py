@@ -25,7 +25,7 @@ from pathlib import Path
 from ..core.errors import MassviewError, ParallelError
 from .launcher import run_job
 
-__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env", "local_cores", "interrupt_on_sigterm"]
+__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env", "local_cores", "interrupt_on_sigterm", "ignore_late_sigterm"]
 
 _JOB_VARS = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "HYDRA_CONTROL_FD", "MASSVIEW_UNDER_MPI")
 
@@ -69,6 +69,21 @@ def interrupt_on_sigterm() -> None:
 
     if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
         signal.signal(signal.SIGTERM, signal.default_int_handler)
+
+
+def ignore_late_sigterm() -> None:
+    """In a rank whose work is done (its command returned): SIGTERM is ignored from now on, so a
+    stop that reaches the ranks while they finish (Ctrl-C just after the last frame) lets the
+    job end as the success it is, instead of interrupting ranks in ``MPI_Finalize``, which
+    MPICH reported under its "BAD TERMINATION" banner (walk7 L1). Only where
+    :func:`interrupt_on_sigterm` installed its handler."""
+    import signal
+
+    try:
+        if signal.getsignal(signal.SIGTERM) is signal.default_int_handler:
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    except ValueError:  # (not the main thread)
+        pass
 
 
 def world():
