@@ -1,6 +1,8 @@
 """Offline renders are final quality, and keyframe files fit their clip planes to the scene."""
 
 import json
+import re
+import subprocess
 
 import numpy as np
 import pytest
@@ -192,3 +194,29 @@ def test_render_video_has_every_frame_and_a_later_run_removes_a_stale_one(tmp_pa
     assert imageio_ffmpeg.count_frames_and_secs(str(tmp_path / "video.mp4"))[0] == 5
     run_cli("render", steep_scene, "--path", "orbit", "--frames", 2, "--size", "96x64", "--out", tmp_path, "-q")
     assert not (tmp_path / "video.mp4").exists() and len(list((tmp_path / "frames").glob("*.png"))) == 2
+
+
+def test_a_video_keeps_the_frames_size_and_pixels(tmp_path, capfd):
+    """walk7 L3: a 641x361 run's video came out 648x368, stretched by ffmpeg's scaler, with
+    imageio's raw warning. Now it is the frames' size (an odd side one row or column more, a
+    copy of the last: yuv420p needs even sizes), pixel for pixel up to H.264's loss."""
+    import imageio_ffmpeg
+    from PIL import Image
+
+    from massview.app.demo import write_video
+
+    (tmp_path / "f").mkdir()
+    yy, xx = np.mgrid[0:37, 0:65]
+    frames = [np.stack([(xx * 4 + 20 * k) % 256, yy * 6, np.full_like(xx, 128)], -1).astype(np.uint8) for k in range(3)]
+    for k, f in enumerate(frames):
+        Image.fromarray(f).save(tmp_path / "f" / f"{k:05d}.png")
+    write_video(tmp_path / "f", tmp_path / "v.mp4")
+    probe = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-i", str(tmp_path / "v.mp4")], capture_output=True, text=True)
+    assert re.search(r"Video: h264.*, 66x38", probe.stderr), probe.stderr[-1500:]
+    raw = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-i", str(tmp_path / "v.mp4"), "-f", "rawvideo",
+                          "-pix_fmt", "rgb24", "-"], capture_output=True, check=True).stdout
+    got = np.frombuffer(raw, np.uint8).reshape(-1, 38, 66, 3)
+    assert len(got) == 3
+    for g, f in zip(got, frames):
+        assert np.abs(g[:37, :65].astype(int) - f).mean() < 6  # (H.264 loss only: not shifted or stretched)
+    assert "resizing" not in capfd.readouterr().err

@@ -18,6 +18,9 @@ __all__ = ["run_demo", "write_video"]
 
 
 def write_video(frames_dir: Path, out: Path, fps: int = 30) -> Path:
+    """H.264 (yuv420p) of the frames at their own size, pixel for pixel; an odd width or height
+    gets one more column or row, a copy of the last (yuv420p needs even sizes). (It was
+    rescaled to a multiple of 8, with ffmpeg's warning: 641×361 became 648×368, stretched.)"""
     import imageio_ffmpeg
     import numpy as np
     from PIL import Image
@@ -26,13 +29,17 @@ def write_video(frames_dir: Path, out: Path, fps: int = 30) -> Path:
     if not files:
         raise FileNotFoundError(f"no frames in {frames_dir}")
     with Image.open(files[0]) as im:
-        size = im.size
+        width, height = im.size
+    size = (width + width % 2, height + height % 2)
     w = imageio_ffmpeg.write_frames(str(out), size, fps=fps, codec="libx264", pix_fmt_out="yuv420p", quality=7,
-                                    macro_block_size=8, ffmpeg_log_level="error")
+                                    macro_block_size=1, ffmpeg_log_level="error")
     w.send(None)
     for f in files:
         with Image.open(f) as im:
-            w.send(np.ascontiguousarray(np.asarray(im.convert("RGB"))))
+            rgb = np.asarray(im.convert("RGB"))
+        if rgb.shape[:2] != (size[1], size[0]):
+            rgb = np.pad(rgb, ((0, size[1] - rgb.shape[0]), (0, size[0] - rgb.shape[1]), (0, 0)), mode="edge")
+        w.send(np.ascontiguousarray(rgb))
     w.close()
     return out
 
