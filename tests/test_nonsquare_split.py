@@ -51,3 +51,15 @@ def test_imbalance_is_over_the_ranks_that_share_the_work():
     assert summarize(recs)["imbalance"] == pytest.approx(30 / (40 / 3))
     assert summarize(recs, work_ranks=[1, 2])["imbalance"] == pytest.approx(1.5)
     assert summarize(recs, work_ranks=[])["imbalance"] == pytest.approx(30 / (40 / 3))  # (none given: all)
+
+
+def test_the_summary_says_the_frame_time_imbalance_and_the_time_in_no_stage():
+    """walk7 L4: the demo's summary said imbalance 1.0003 (triangles) while rank 1 took 1.6× rank
+    0's frame time, and 44 % of that time was in no listed stage. Now both are figures."""
+    from massview.core.stats import summarize
+
+    recs = [{"frame": f, "rank": r, "triangles": 10, "bytes_sent": 0,
+             "times_ms": {"lod": 1.0, "draw": 2.0 + 2 * r, "total": [4.0, 10.0][r]}} for f in range(2) for r in range(2)]
+    s = summarize(recs)
+    assert s["imbalance"] == 1.0 and s["time_imbalance"] == pytest.approx(10 / 7, abs=1e-4)
+    assert s["stage_ms_mean"]["other"] == pytest.approx((1.0 + 5.0) / 2)  # rank 0: 4 − 3; rank 1: 10 − 5

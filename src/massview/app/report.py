@@ -80,7 +80,7 @@ def print_summary(summary: dict, console=None) -> None:
         console.print(t)
         return
     for key in ("scene", "system", "decomposition", "compositor", "ranks", "roles", "wall", "frames", "size", "mean_frame_ms", "fps",
-                "triangles_per_frame", "imbalance", "bytes_per_frame", "max_abs_diff", "diff_fraction", "renderer"):
+                "triangles_per_frame", "imbalance", "time_imbalance", "bytes_per_frame", "max_abs_diff", "diff_fraction", "renderer"):
         if key in summary and summary[key] is not None:
             v = summary[key]
             if key == "bytes_per_frame":
@@ -91,8 +91,11 @@ def print_summary(summary: dict, console=None) -> None:
                 v = "x".join(str(a) for a in v)
             elif key == "roles":
                 v = ", ".join(f"{r}: {role}" for r, role in enumerate(v))
-            elif key == "imbalance" and summary.get("roles"):
-                v = f"{v} (over the {'computation ranks' if summary.get('system') == 'roettger' else 'clients'})"
+            over = f", over the {'computation ranks' if summary.get('system') == 'roettger' else 'clients'}" if summary.get("roles") else ""
+            if key == "imbalance":  # (walk7 L4: a triangle figure beside the timings, unlabelled)
+                key, v = "imbalance (triangles)", f"{v} (max ÷ mean a frame{over})"
+            elif key == "time_imbalance":
+                key, v = "imbalance (frame time)", f"{v} (max ÷ mean a frame{over})"
             t.add_row(key, str(v))
     if "triangles_per_rank" in summary:
         t.add_row("triangles_per_rank", ", ".join(f"{v / 1e3:.1f}k" for v in summary["triangles_per_rank"]))
