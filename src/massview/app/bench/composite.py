@@ -212,7 +212,7 @@ def run(args) -> int:
 
     counts = [int(v) for v in args.ranks.split(",") if v.strip()]
     modes, codecs = parse_modes(args.wait), parse_codecs(args.codec)
-    console = Console(width=None if Console().is_terminal else 170)
+    console = Console(width=None if Console().is_terminal else 400)  # (a log or file: no column cut; walk7 L5)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for n in counts:
@@ -239,7 +239,7 @@ def _print(console, results: list[dict], args) -> None:
     table = Table(title=f"sort-last compositing + delivery to rank 0, {w}x{h}, {args.scene}, best of {args.repeat}; codecs {'; '.join(used)}")
     for col in ("algorithm", "ranks", "codec", "wait", "ms/frame", "MB moved", "p2p MB/s", "mem MB/s (frame / 64 MiB)", "floor ms", "ratio to floor",
                 "shared-core floor ms", "ratio to it", "CPU ms"):
-        table.add_column(col, justify="right")
+        table.add_column(col, justify="right", overflow="fold")
     for r in results:
         table.add_row(r["algorithm"], str(r["ranks"]), r["codec"], r["wait"], f"{r['ms']:.2f}", f"{r['bytes'] / 1e6:.2f}", f"{r['bandwidth_MBps']:.0f}",
                       f"{r['mem_frame_MBps']:.0f} / {r['mem_64MiB_MBps']:.0f}", f"{r['floor_ms']:.2f}", f"{r['ratio']:.2f}",
@@ -255,7 +255,7 @@ def _print_ranks(console, results: list[dict]) -> None:
                          "asleep from the main thread's schedstat; context switches voluntary / involuntary")
     for col in ("algorithm", "ranks", "codec", "wait", "rank", "ms", "compositing", "delivery", *PIECES, "other", "work", "polling", "run queue",
                 "asleep", "csw v/i", "MB in", "MB touched", "floor net", "floor mem"):
-        pieces.add_column(col, justify="right")
+        pieces.add_column(col, justify="right", overflow="fold")
     for r in results:
         for p in r["per_rank"]:
             pieces.add_row(r["algorithm"], str(r["ranks"]), r["codec"], r["wait"], str(p["rank"]), f"{p['ms']:.2f}", f"{p['composite']:.2f}",

@@ -267,7 +267,7 @@ def run(args) -> int:
         return worker(args)
     from rich.console import Console
 
-    console = Console(width=None if Console().is_terminal else 170)
+    console = Console(width=None if Console().is_terminal else 400)  # (a log or file: no column cut; walk7 L5)
     store = Path(args.store) if args.store else demo_store(args.workdir)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -294,7 +294,7 @@ def _print(console, results, args, store) -> None:
                     f"{args.decomposition}, {args.compositor}, codec {args.codec}")
     for c in ("ranks", "LP thr", "Mtri/s plain", *STAGES, "frame ms", "floor ms", "not drawing", "pipelined fps", "sync fps", "latency ms on/off",
               "cores busy sync/pipe"):
-        t.add_column(c, justify="right")
+        t.add_column(c, justify="right", overflow="fold")
     for r in results:
         s, p = r["sync"], r["pipelined"]
         cells = [f"{m:.1f} ({m / f:.1f}×)" if f > 0 else f"{m:.1f}" for m, f in zip(s["stage_ms"], s["floor_ms"])]

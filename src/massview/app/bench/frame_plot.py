@@ -35,8 +35,9 @@ def plot_stages(results: list[dict], path: Path, title: str) -> None:
         ax.plot([i - 0.37, i + 0.13], [period] * 2, color="black", ls="--", lw=1.5, label="frame period, pipelined" if i == 0 else None)
         labels.append(f"{r['ranks']} rank{'s' if r['ranks'] > 1 else ''}\nLP {r['lp_threads']}")
     ax.set_xticks(range(len(results)), labels)
-    ax.set_ylabel("ms per frame (slowest rank)")
-    ax.set_title(title + "\nwide bars: measured; narrow hatched bars: floors", fontsize=9)
+    ax.set_ylabel("ms per frame (each stage: its slowest rank)")
+    ax.set_title(title + "\nwide bars: each stage of its slowest rank (so their stack may exceed the frame period); "
+                 "narrow hatched bars: floors", fontsize=9)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
