@@ -171,6 +171,7 @@ def test_small_budgets_never_wait_and_stay_correct(cases):
     recs = [json.loads(x) for x in (out / "stats.jsonl").read_text().splitlines()]
     assert sum(r["counters"].get("deferred_splits", 0) for r in recs) > 0  # data was missing at times
     assert sum(r["counters"].get("blocks_loaded", 0) for r in recs) > 0
+    assert sum(r["triangles"] for r in recs if r["frame"] == 0) > 0  # walk7 L6: the first frame waits for the top block
 
 
 def test_complete_loading_with_budgets_too_small_says_so(tmp_path, terrain_store):

@@ -6,7 +6,8 @@ Every rank runs the same K-patch LOD on the same camera. Per frame:
 2. the ranks agree on the blocks resident everywhere (one Allreduce of a bit per block), so
    the cut — a pure function of (camera, data, agreed residency) — is identical on every rank
    and in the serial reference; missing blocks are requested by priority and their coarser
-   ancestors drawn meanwhile (the frame never waits, unless ``loading="complete"``);
+   ancestors drawn meanwhile (the frame never waits, unless ``loading="complete"``; async
+   waits only for the one top block when it is not resident: the first frame);
 3. the cut: sort-first ranks with a layout fixed before the frame (horizontal, vertical,
    grid) restrict it to their own tile's sub-frustum, as the paper's §4.2 does ("the meta
    bintree traversal is then restricted to the particular view frustum"), so the LOD cost
@@ -246,7 +247,7 @@ class TerrainSystem:
         """Upload, agree, select; with ``loading="complete"`` repeat until no rank defers a split."""
         _, pool, _, _ = self._renderers()
         top = (self.lay.L, 0, 0)
-        stalled, best = 0, -1
+        stalled, best, waited = 0, -1, False
         while True:
             if not pool.resident[top[0]][0, 0]:
                 self._wanted.add(top)
@@ -255,6 +256,10 @@ class TerrainSystem:
             stats.count("blocks_uploaded", self._upload_ready(keep))
             grids = self._agree(comm, pool, vp is not None)
             self._want_mask[:] = False
+            if not grids[top[0]][0, 0] and not waited:  # (agreed: the same on every rank) the one top block, which every
+                waited = True                           # view can draw: a first async frame waits for it (walk7 L6: empty sky)
+                stats.count("blocks_uploaded", self._wait_for_loads(keep))
+                continue
             front = select_front(self.h, camera, cfg.tau, grids, self._request, vp) if grids[top[0]][0, 0] else None
             missing = front is None or front.deferred > 0
             if self.loading != "complete" or not any_rank(comm, missing or self._shading_missing(grids)):
