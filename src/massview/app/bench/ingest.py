@@ -31,8 +31,8 @@ the work folder): ext4 without a journal skips inodes deleted in the last 1–6 
 one while allocating new ones (``recently_deleted``), so a prepare started soon after such a
 deletion pays for it (creating 11 520 small files in 64 folders: 0.41 s of system time on a
 quiet file system, 1.40 s right after deleting 23 000; without the store's allocation hint
-0.75 s against 3.93 s). A
-run that starts within 6 minutes of the last one's deletion says so beside its figures.
+0.75 s against 3.93 s). A run that starts within 6 minutes of the last one's deletion says so
+beside its figures.
 """
 
 from __future__ import annotations

@@ -117,7 +117,7 @@ class ViewerState:
         base = float(self.relief[0][2])
         with self._lock:
             self.pos = np.array([self.pos[0], self.pos[1], base + (self.pos[2] - base) * e1 / e0])
-            near, far = scene_clip(*exaggerated_box(*self.relief, e1), self.pos[None])
+            _, far = scene_clip(*exaggerated_box(*self.relief, e1), self.pos[None])
             self.template = self.template.replace(far=max(far, self.template.near * 2))
 
     def _settings(self, msg: dict) -> None:
