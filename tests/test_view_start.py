@@ -132,6 +132,7 @@ def test_an_exaggerated_terrain_starts_above_its_relief_and_the_eye_follows_the_
     with the relief and refits the far plane to it."""
     from massview.api import open_scene
     from massview.app.viewer import ViewerState
+    from massview.app.viewer.state import MessageError
     from massview.core.paths import exaggerated_box, load_path
 
     scene = open_scene(str(terrain_store))
@@ -151,7 +152,7 @@ def test_an_exaggerated_terrain_starts_above_its_relief_and_the_eye_follows_the_
     assert cam.position[2] > float(scene.ground(5.0)(np.array([cam.position[:2]]))[0])
     far_corner = max(np.linalg.norm(np.array(c) - cam.position) for c in np.array(np.meshgrid(*zip(*exaggerated_box(lo, hi, 5)))).T.reshape(-1, 3))
     assert cam.far > far_corner
-    with pytest.raises(Exception):  # a message with an unknown key changes nothing
+    with pytest.raises(MessageError, match="unknown setting"):  # a message with an unknown key changes nothing
         state.apply('{"type": "settings", "exaggeration": 2, "bogus": 1}')
     assert state.camera().position == cam.position
     state.apply('{"type": "settings", "exaggeration": 1}')
