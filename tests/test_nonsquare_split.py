@@ -63,3 +63,13 @@ def test_the_summary_says_the_frame_time_imbalance_and_the_time_in_no_stage():
     s = summarize(recs)
     assert s["imbalance"] == 1.0 and s["time_imbalance"] == pytest.approx(10 / 7, abs=1e-4)
     assert s["stage_ms_mean"]["other"] == pytest.approx((1.0 + 5.0) / 2)  # rank 0: 4 − 3; rank 1: 10 − 5
+    for r in recs:  # a stage outside STAGES is listed and not counted as other; parts (dotted, M1's vis_*) are not stages
+        r["times_ms"].update({"finish": 1.0, "piece.decode": 0.5, "vis_load": 0.5})
+    s = summarize(recs)
+    assert s["stage_ms_mean"]["finish"] == 1.0 and "piece.decode" not in s["stage_ms_mean"]
+    assert s["stage_ms_mean"]["other"] == pytest.approx((0.0 + 4.0) / 2)
+    for r in recs:  # walk8 M1: M1's clients record no total (the server's period is the frame time): no such figures
+        if r["rank"] == 1:
+            r["times_ms"]["total"] = 0.0
+    s = summarize(recs, work_ranks=[1])
+    assert s["time_imbalance"] is None and "other" not in s["stage_ms_mean"]

@@ -20,6 +20,7 @@ import numpy as np
 __all__ = ["STAGES", "FrameStats", "summarize", "read_stats", "clear_run_outputs"]
 
 STAGES = ("lod", "draw", "readback", "encode", "transfer", "composite", "total")
+_PARTS = ("vis_load", "vis_issue", "vis_retrieve")  # parts of M1's ``visibility`` stage (timed inside it)
 
 
 @dataclass
@@ -107,9 +108,11 @@ def summarize(records: list[dict], work_ranks=None, **extra) -> dict:
     ``imbalance`` (max ÷ mean triangles a frame) and ``time_imbalance`` (max ÷ mean ``total``
     a frame) are over ``work_ranks`` where given: the ranks that share the drawing (T2's
     computation ranks, M1's clients), not those that never draw by their role.
-    ``stage_ms_mean`` has each stage's mean over the records and ``other``: the part of
-    ``total`` in none of the stages listed (waiting for the slowest rank, the frame's
-    hand-over, a system's own stages)."""
+    ``stage_ms_mean`` has each stage's mean over the records (:data:`STAGES`, then any other
+    stage the records time, e.g. the frame loop's ``finish``) and ``other``: the part of
+    ``total`` in none of them (waiting for the slowest rank; in the first frame, setting up).
+    ``time_imbalance`` and ``other`` are left out where a work rank records no ``total`` (M1's
+    clients time only their stages: the server's period is the frame time)."""
     frames = sorted({r["frame"] for r in records})
     ranks = sorted({r["rank"] for r in records})
     if not frames:
@@ -133,13 +136,17 @@ def summarize(records: list[dict], work_ranks=None, **extra) -> dict:
     for s in STAGES:
         vals = [r["times_ms"].get(s, 0.0) for r in records]
         stage_means[s] = float(np.mean(vals))
-    timed = [r["times_ms"] for r in records if r["times_ms"].get("total", 0.0) > 0]
-    if timed:  # (walk7 L4: 44 % of a rank's frame time was in no listed stage, and nothing said so)
-        stage_means["other"] = float(np.mean([max(t["total"] - sum(t.get(k, 0.0) for k in STAGES if k != "total"), 0.0)
-                                              for t in timed]))
-    mean_total = total[:, work].mean(axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        timb = np.where(mean_total > 0, total[:, work].max(axis=1) / np.where(mean_total > 0, mean_total, 1), 1.0)
+    timb = None
+    if all(r["times_ms"].get("total", 0.0) > 0 for r in records):  # (walk7 L4: 44 % of a frame was in no listed stage)
+        more = sorted(k for k in {k for r in records for k in r["times_ms"]} - set(STAGES) - set(_PARTS)
+                      if "." not in k)  # (dotted keys, piece.decode, cpu.wait …, are parts of the compositing stages)
+        for s in more:
+            stage_means[s] = float(np.mean([r["times_ms"].get(s, 0.0) for r in records]))
+        listed = [k for k in stage_means if k != "total"]
+        stage_means["other"] = float(np.mean([max(r["times_ms"]["total"] - sum(r["times_ms"].get(k, 0.0) for k in listed), 0.0)
+                                              for r in records]))
+        mean_total = total[:, work].mean(axis=1)
+        timb = round(float((total[:, work].max(axis=1) / mean_total).mean()), 4)
     mean_frame_ms = float(frame_ms.mean())
     return {
         "frames": len(frames),
@@ -150,7 +157,7 @@ def summarize(records: list[dict], work_ranks=None, **extra) -> dict:
         "triangles_per_rank": [float(v) for v in tri.mean(axis=0)],
         "triangles_per_frame": float(tri.sum(axis=1).mean()),
         "imbalance": round(float(imb.mean()), 4),
-        "time_imbalance": round(float(timb.mean()), 4),
+        "time_imbalance": timb,
         "bytes_per_frame": float(sent.sum(axis=1).mean()),
         "stage_ms_mean": {k: round(v, 3) for k, v in stage_means.items()},
     }
