@@ -230,12 +230,33 @@ def render_config(args) -> RenderConfig:
 
 
 def typed_options(argv: list[str]) -> set[str]:
-    """The RenderConfig fields whose flags ``argv`` (a ``render``/``view`` command line) gives,
+    """The RenderConfig fields whose flags ``argv`` (a ``render``/``view`` command line) gives
+    (:func:`typed_flags`)."""
+    from dataclasses import fields
+
+    return typed_flags(argv) & {f.name for f in fields(RenderConfig)}
+
+
+M2_FLAGS = ("tnz", "epsilon", "max_error", "size_threshold", "board_px", "min_triangles", "replicas", "placement_seed",
+            "stall_backend", "tie_rule", "reference_every", "wait_boards")  # reliefboards_cmds.add_render_args' options
+
+
+def m2_option_warning(argv: list[str]) -> str | None:
+    """The warning line for M2's options typed on a render without ``--system reliefboards``
+    (walk8 M2: they were ignored silently), or None."""
+    hit = [n for n in M2_FLAGS if n in typed_flags(argv)]
+    if not hit:
+        return None
+    flags = ", ".join("--" + n.replace("_", "-") for n in hit)
+    return f"{flags}: no effect without --system reliefboards (M2 options); leave {'it' if len(hit) == 1 else 'them'} out"
+
+
+def typed_flags(argv: list[str]) -> set[str]:
+    """The option names (argparse dests) ``argv`` (a ``render``/``view`` command line) gives,
     as argparse resolves them (abbreviations, ``--opt=value``): the line is parsed by the
     command's own arguments once for every name, then again into a namespace that holds a
     marker under each name — argparse fills in a default only where a name is missing, so the
     names still marked were not typed."""
-    from dataclasses import fields
 
     def parser() -> argparse.ArgumentParser:
         p = argparse.ArgumentParser(prog=f"massview {argv[0]}")
@@ -251,7 +272,7 @@ def typed_options(argv: list[str]) -> set[str]:
     typed = {name for name, v in got.items() if v is not unset and v != []}  # ([]: no further T2 layer given)
     if "size" in typed:
         typed |= {"width", "height"}
-    return typed & {f.name for f in fields(RenderConfig)}
+    return typed
 
 
 def cmd_render(args, argv: list[str]) -> int:
@@ -262,6 +283,9 @@ def cmd_render(args, argv: list[str]) -> int:
     if in_mpi_job() and world().Get_rank() == 0 and args.ranks and args.ranks != world().Get_size() and not _launched_by_us():
         print(f"massview: note: running on the {world().Get_size()} ranks mpiexec gave, not --ranks {args.ranks}", file=sys.stderr)
     typed = {name: getattr(cfg, name) for name in typed_options(argv)}  # (judged by massview.app.options)
+    m2 = None if in_mpi_job() else m2_option_warning(argv)
+    if m2:
+        print(f"massview: warning: {m2}", file=sys.stderr)
     try:
         res = api.render(args.scene, cfg.path, ranks=args.ranks, out=args.out, images=False, progress=not args.quiet, config=cfg,
                          **typed)

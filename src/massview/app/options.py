@@ -69,6 +69,9 @@ def option_warnings(spec: str, kind: str, cfg: RenderConfig, given) -> list[str]
         check(T2_OPTIONS, "without --system roettger (T2 options" + ("; add it to use them" if kind == "terrain" else "") + ")")
     if system != "dmmr":
         check(M1_OPTIONS, "without --system dmmr (M1 options)")
+    if system == "reliefboards":  # (walk8 M2: accepted silently, even a terrain's sort-last:kpatch)
+        check(("decomposition", "wall"), "with --system reliefboards (its one visualization rank draws every frame whole; "
+                                         "the others are board backends)")
     if kind == "objects" and system == "auto":
         check(STORE_BUDGETS, f"on {spec} (its objects are drawn whole from memory: no LOD, no block caches)")
     if kind == "terrain" and "colormap" in given and cfg.colormap == "ortho" and not _has_orthophoto(spec):
