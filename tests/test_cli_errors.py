@@ -202,6 +202,28 @@ def test_options_without_effect_get_one_warning_line_each(terrain_store, tmp_pat
                                         "(T2 options; add it to use them); leave it out"], proc.stderr
     plain = run_cli("render", "builtin:objects?n=60", "--frames", 1, "--size", "64x48", "--out", tmp_path / "p", "-q")
     assert "warning" not in plain.stderr
+    m2 = run_cli("render", "builtin:objects?n=60", "--tnz", 1000, "--stall-backend", 1, "--frames", 1, "--size", "64x48",
+                 "--out", tmp_path / "m", "-q")  # walk8 M2: M2's options were ignored without a word
+    assert m2.stderr.splitlines() == ["massview: warning: --tnz, --stall-backend: no effect without --system reliefboards "
+                                      "(M2 options); leave them out"], m2.stderr
+    from massview.app.options import option_warnings
+    from massview.core.config import RenderConfig
+
+    said = option_warnings("x.scene", "scene", RenderConfig(system="reliefboards", decomposition="sort-last:kpatch", wall="2x1"),
+                           {"decomposition", "wall", "system"})
+    assert said == ["--decomposition, --wall: no effect with --system reliefboards (its one visualization rank draws every "
+                    "frame whole; the others are board backends); leave them out"]
+
+
+def test_dmmr_with_a_wall_and_a_negative_roettger_c_are_refused_before_any_rank(tmp_path, terrain_store):
+    """walk8 L1: these were refused inside the ranks, each under MPICH's MPI_Abort lines."""
+    for args, needle in ((["builtin:objects?n=60", "--system", "dmmr", "--wall", "2x1", "--ranks", 3],
+                          "--wall and --tile-targets are not available with --system dmmr"),
+                         ([terrain_store, "--system", "roettger", "--compute-ranks", 1, "--roettger-c", -2, "--ranks", 2],
+                          "--roettger-c must be a finite number >= 0, got -2")):
+        proc = run_cli("render", *args, "--frames", 1, "--size", "64x48", "--out", tmp_path / "o", check=False)
+        assert proc.returncode == 2 and needle in proc.stderr, proc.stderr
+        assert "Abort" not in proc.stderr and "on rank" not in proc.stderr, proc.stderr
 
 
 def test_dmmr_with_sort_last_is_refused_before_any_rank(tmp_path):

@@ -625,6 +625,10 @@ def validate(spec: str, cfg: RenderConfig, nranks: int) -> None:
         from .systems.roettger import validate as validate_roettger
 
         return validate_roettger(spec, cfg, nranks)
+    if cfg.system == "dmmr" and (cfg.wall or cfg.tile_targets):  # (walk8 L1: refused only inside the ranks, under MPI_Abort)
+        from .systems.dmmr import NO_WALL
+
+        raise ConfigError(NO_WALL)
     parse_decomposition(cfg.decomposition, modes)
     if cfg.decomposition == "sort-first:grid":
         sort_first_tiles("grid", nranks, cfg.width, cfg.height, cfg.grid)

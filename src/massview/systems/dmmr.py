@@ -105,6 +105,9 @@ class DmmrServer:
         return tasks, vis, lv
 
 
+NO_WALL = "--wall and --tile-targets are not available with --system dmmr (the server assembles one frame); leave them out"
+
+
 class DmmrSystem:
     """``--system dmmr``: see the module doc. ``run_path`` is the system's own frame loop."""
 
@@ -114,7 +117,7 @@ class DmmrSystem:
         self.spec = spec
         self.cfg = cfg or RenderConfig()
         if self.cfg.wall or self.cfg.tile_targets:
-            raise ConfigError("--wall and --tile-targets are not available with --system dmmr (the server assembles one frame); leave them out")
+            raise ConfigError(NO_WALL)
         self.store = open_scene(spec)
         self.server = DmmrServer(self.store, self.cfg.tau, self._layout(self.cfg), self.cfg.grid)
         self._ref: SceneDrawer | None = None

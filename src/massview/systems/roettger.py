@@ -75,6 +75,8 @@ def validate(scene: str, cfg: RenderConfig, nranks: int) -> None:
         if c * r != vis:
             raise ConfigError(f"--wall {cfg.wall} needs {c * r} visualization ranks (one per tile); the run has {vis} "
                               f"(--ranks {nranks} minus --compute-ranks {cfg.compute_ranks})")
+    if cfg.roettger_c is not None:
+        RoettgerParams(c=cfg.roettger_c)  # (walk8 L1: a negative c failed only inside the ranks, under MPI_Abort)
     infos = []
     for spec in (scene, *cfg.layers):
         info = LayerInfo.of(spec)  # a missing store or table fails here with its message
