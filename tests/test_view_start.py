@@ -146,8 +146,11 @@ def test_an_exaggerated_terrain_starts_above_its_relief_and_the_eye_follows_the_
     state = ViewerState(start, {"exaggeration": 1.0}, {"decomposition": [], "compositor": []}, 1.0, (lo, hi))
     z1 = start.position[2]
     assert z1 > float(scene.ground(1.0)(np.array([start.position[:2]]))[0])
+    f1 = np.array(state.camera().forward)
     state.apply('{"type": "settings", "exaggeration": 5}')
     cam = state.camera()
+    f5 = np.array(cam.forward)  # walk8 L3: the view turns with the stretch, towards the same point of the relief
+    assert np.isclose(f5[2] / np.hypot(*f5[:2]), 5 * f1[2] / np.hypot(*f1[:2]))
     assert np.isclose(cam.position[2], lo[2] + (z1 - lo[2]) * 5)
     assert cam.position[2] > float(scene.ground(5.0)(np.array([cam.position[:2]]))[0])
     far_corner = max(np.linalg.norm(np.array(c) - cam.position) for c in np.array(np.meshgrid(*zip(*exaggerated_box(lo, hi, 5)))).T.reshape(-1, 3))
@@ -156,4 +159,4 @@ def test_an_exaggerated_terrain_starts_above_its_relief_and_the_eye_follows_the_
         state.apply('{"type": "settings", "exaggeration": 2, "bogus": 1}')
     assert state.camera().position == cam.position
     state.apply('{"type": "settings", "exaggeration": 1}')
-    assert np.isclose(state.camera().position[2], z1)
+    assert np.isclose(state.camera().position[2], z1) and np.allclose(state.camera().forward, f1)

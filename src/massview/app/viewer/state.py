@@ -42,7 +42,9 @@ class ViewerState:
     """The browser's camera and settings. ``relief``: a terrain's world box at exaggeration 1
     (lo, hi); a new exaggeration then moves the eye with the relief (heights scale about the
     lowest one, ``base + e·(z − base)``, the eye's height too, so it keeps its place over the
-    ground instead of ending under it) and refits the far plane to the box as drawn."""
+    ground instead of ending under it), turns its view direction with the same vertical
+    stretch (so it looks at the same point of the relief) and refits the far plane to the box
+    as drawn."""
 
     def __init__(self, start: Camera, settings: dict, choices: dict, base_speed: float, relief: tuple | None = None):
         self._lock = threading.Lock()
@@ -114,9 +116,10 @@ class ViewerState:
 
         if e1 == e0:
             return
-        base = float(self.relief[0][2])
-        with self._lock:
-            self.pos = np.array([self.pos[0], self.pos[1], base + (self.pos[2] - base) * e1 / e0])
+        base, k = float(self.relief[0][2]), e1 / e0
+        with self._lock:  # the eye and the direction it looks in, stretched with the world (walk8 L3: the pitch kept,
+            self.pos = np.array([self.pos[0], self.pos[1], base + (self.pos[2] - base) * k])  # it looked over the relief)
+            self.pitch = max(-1.5, min(1.5, math.atan2(k * math.sin(self.pitch), math.cos(self.pitch))))
             _, far = scene_clip(*exaggerated_box(*self.relief, e1), self.pos[None])
             self.template = self.template.replace(far=max(far, self.template.near * 2))
 
