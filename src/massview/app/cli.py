@@ -237,18 +237,13 @@ def typed_options(argv: list[str]) -> set[str]:
     return typed_flags(argv) & {f.name for f in fields(RenderConfig)}
 
 
-M2_FLAGS = ("tnz", "epsilon", "max_error", "size_threshold", "board_px", "min_triangles", "replicas", "placement_seed",
-            "stall_backend", "tie_rule", "reference_every", "wait_boards")  # reliefboards_cmds.add_render_args' options
-
-
 def m2_option_warning(argv: list[str]) -> str | None:
     """The warning line for M2's options typed on a render without ``--system reliefboards``
-    (walk8 M2: they were ignored silently), or None."""
-    hit = [n for n in M2_FLAGS if n in typed_flags(argv)]
-    if not hit:
-        return None
-    flags = ", ".join("--" + n.replace("_", "-") for n in hit)
-    return f"{flags}: no effect without --system reliefboards (M2 options); leave {'it' if len(hit) == 1 else 'them'} out"
+    (walk8 M2: they were ignored silently), or None. (They are no RenderConfig fields, so
+    :func:`massview.app.options.option_warnings` never sees them.)"""
+    from .options import M2_OPTIONS, no_effect_line
+
+    return no_effect_line(M2_OPTIONS, typed_flags(argv), "without --system reliefboards (M2 options)")
 
 
 def typed_flags(argv: list[str]) -> set[str]:

@@ -35,6 +35,16 @@ def _flags(names) -> str:
     return ", ".join("--no-fan-delta" if n == "fan_delta" else f"--{n.replace('_', '-')}" for n in names)
 
 
+M2_OPTIONS = ("tnz", "epsilon", "max_error", "size_threshold", "board_px", "min_triangles", "replicas", "placement_seed",
+              "stall_backend", "tie_rule", "reference_every", "wait_boards")  # reliefboards_cmds.add_render_args' options
+
+
+def no_effect_line(names, given, why: str) -> str | None:
+    """The warning line for those of ``names`` in ``given`` (option names), or None."""
+    hit = [n for n in names if n in given]
+    return f"{_flags(hit)}: no effect {why}; leave {'it' if len(hit) == 1 else 'them'} out" if hit else None
+
+
 HAZE_WARN = 4.0  # --haze above this washes a terrain out to the sky colour (walk5: 5 strongly faded, 50 a ghost)
 
 
@@ -59,9 +69,9 @@ def option_warnings(spec: str, kind: str, cfg: RenderConfig, given) -> list[str]
     out = []
 
     def check(names, why: str) -> None:
-        hit = [n for n in names if n in given]
-        if hit:
-            out.append(f"{_flags(hit)}: no effect {why}; leave {'it' if len(hit) == 1 else 'them'} out")
+        line = no_effect_line(names, given, why)
+        if line:
+            out.append(line)
 
     if kind != "terrain":
         check(TERRAIN_SHADING, f"on {spec}, a polygon scene (terrain shading and heights only)")

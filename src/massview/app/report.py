@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import ConfigError
-from ..core.stats import read_stats, summarize
+from ..core.stats import PARTS, read_stats, summarize
 
 __all__ = ["print_summary", "write_report"]
 
@@ -104,7 +104,7 @@ def print_summary(summary: dict, console=None) -> None:
     console.print(t)
 
 
-NESTED_STAGES = ("total", "vis_load", "vis_issue", "vis_retrieve")  # the frame itself; parts of M1's "visibility"
+NESTED_STAGES = ("total", *PARTS)  # the frame itself; parts of M1's "visibility"
 
 
 def rank_times(records: list[dict]):

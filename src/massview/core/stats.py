@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["STAGES", "FrameStats", "summarize", "read_stats", "clear_run_outputs"]
+__all__ = ["STAGES", "PARTS", "FrameStats", "summarize", "read_stats", "clear_run_outputs"]
 
 STAGES = ("lod", "draw", "readback", "encode", "transfer", "composite", "total")
-_PARTS = ("vis_load", "vis_issue", "vis_retrieve")  # parts of M1's ``visibility`` stage (timed inside it)
+PARTS = ("vis_load", "vis_issue", "vis_retrieve")  # parts of M1's ``visibility`` stage (timed inside it)
 
 
 @dataclass
@@ -138,7 +138,7 @@ def summarize(records: list[dict], work_ranks=None, **extra) -> dict:
         stage_means[s] = float(np.mean(vals))
     timb = None
     if all(r["times_ms"].get("total", 0.0) > 0 for r in records):  # (walk7 L4: 44 % of a frame was in no listed stage)
-        more = sorted(k for k in {k for r in records for k in r["times_ms"]} - set(STAGES) - set(_PARTS)
+        more = sorted(k for k in {k for r in records for k in r["times_ms"]} - set(STAGES) - set(PARTS)
                       if "." not in k)  # (dotted keys, piece.decode, cpu.wait …, are parts of the compositing stages)
         for s in more:
             stage_means[s] = float(np.mean([r["times_ms"].get(s, 0.0) for r in records]))
