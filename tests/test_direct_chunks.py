@@ -15,7 +15,7 @@ from zarr.codecs import BloscCodec
 from massview.data.terrain import ArraySource, TerrainStore, prepare_terrain
 from massview.data.terrain.metadata import compute_metadata, write_metadata
 from massview.data.terrain.roettger import TABLE_CODEC, VERSION, k_factor, write_table
-from massview.data.terrain.store import array_chunk_writer
+from massview.data.terrain.store import CHUNK_KEYS, array_chunk_writer
 
 
 def tree(root) -> dict:
@@ -62,13 +62,14 @@ CASES = [  # shape, chunks, dtype, compressors, fill value
 
 @pytest.mark.parametrize("shape, chunks, dtype, compressors, fill", CASES)
 @pytest.mark.parametrize("write_empty", [False, True])
-def test_direct_chunks_are_the_files_zarr_writes(tmp_path, shape, chunks, dtype, compressors, fill, write_empty):
+@pytest.mark.parametrize("sep", [".", "/"])  # this prepare's chunk keys (CHUNK_KEYS), and older stores'
+def test_direct_chunks_are_the_files_zarr_writes(tmp_path, shape, chunks, dtype, compressors, fill, write_empty, sep):
     a = awkward(shape, dtype, chunks, fill)
     trees = []
     for way in ("zarr", "direct"):
         g = zarr.open_group(str(tmp_path / way), mode="w", zarr_format=3)
         arr = g.create_array("x/y", shape=shape, chunks=chunks, dtype=dtype, compressors=compressors, fill_value=fill,
-                             config={"write_empty_chunks": write_empty})
+                             config={"write_empty_chunks": write_empty}, chunk_key_encoding={"name": "default", "separator": sep})
         w = array_chunk_writer(arr)
         assert w is not None
         for data in ((a + 1).astype(dtype), a):  # written twice: the second write's fill chunks remove the first's files
@@ -79,7 +80,7 @@ def test_direct_chunks_are_the_files_zarr_writes(tmp_path, shape, chunks, dtype,
         trees.append(tree(tmp_path / way))
         np.testing.assert_array_equal(arr[...], a)
     assert trees[0] == trees[1]
-    assert any(k.endswith("zarr.json") for k in trees[0]) and sum("/c/" in k or k.startswith("c/") for k in trees[0]) >= 1
+    assert any(k.endswith("zarr.json") for k in trees[0]) and sum(f"/c{sep}" in k for k in trees[0]) >= 1
 
 
 def test_writer_is_refused_where_it_does_not_apply(tmp_path):
@@ -97,7 +98,7 @@ def write_table_through_zarr(g, d2, C_min):
     for t, a in enumerate(d2):
         ch = (min(a.shape[0], 256), min(a.shape[1], 256))
         g.create_array(f"roettger/d2/{t}", shape=a.shape, chunks=ch, dtype="float32", overwrite=True,
-                       compressors=BloscCodec(**TABLE_CODEC))[...] = a
+                       compressors=BloscCodec(**TABLE_CODEC), chunk_key_encoding=CHUNK_KEYS)[...] = a
     g.attrs["roettger"] = {"version": VERSION, "C_min": float(C_min), "K": k_factor(C_min), "depths": len(d2)}
 
 
@@ -120,20 +121,20 @@ def test_table_is_the_one_zarr_writes(tmp_path, workers):
                 write_table(g, iter(list(enumerate(d2))), 4.0, workers=workers)
         trees.append(tree(tmp_path / way))
     assert trees[0] == trees[1]
-    assert "roettger/d2/9/c/0/0" not in trees[1] and "roettger/d2/9/c/1/0" in trees[1]
+    assert "roettger/d2/9/c.0.0" not in trees[1] and "roettger/d2/9/c.1.0" in trees[1]
 
 
 def write_metadata_through_zarr(g, lay, meta):
     """The metadata arrays as write_metadata wrote them before the direct writes."""
     for lv in range(lay.levels):
         for name, arr in ((f"blocks/{lv}/minmax", meta.minmax[lv]), (f"blocks/{lv}/error", meta.block_error[lv])):
-            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True)[...] = arr
+            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True, chunk_key_encoding=CHUNK_KEYS)[...] = arr
     for j in range(lay.J):
-        g.create_array(f"lod/square_error/{j}", shape=meta.sq[j].shape, dtype="float32", chunks=meta.sq[j].shape, overwrite=True)[...] = meta.sq[j]
-        g.create_array(f"lod/edge_error/{j}", shape=meta.dg[j].shape, dtype="float32", chunks=meta.dg[j].shape, overwrite=True)[...] = meta.dg[j]
+        for name, arr in ((f"lod/square_error/{j}", meta.sq[j]), (f"lod/edge_error/{j}", meta.dg[j])):
+            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True, chunk_key_encoding=CHUNK_KEYS)[...] = arr
     for j in range(lay.J + 1):
         for name, arr in ((f"lod/zmin/{j}", meta.zmin[j]), (f"lod/zmax/{j}", meta.zmax[j])):
-            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True)[...] = arr
+            g.create_array(name, shape=arr.shape, dtype="float32", chunks=arr.shape, overwrite=True, chunk_key_encoding=CHUNK_KEYS)[...] = arr
 
 
 @pytest.mark.parametrize("flat", [False, True])
@@ -154,7 +155,7 @@ def test_metadata_arrays_are_the_ones_zarr_writes(tmp_path, flat):
     assert trees[0] == trees[1]
     assert {k: v for k, v in tree(tmp_path / "s.zarr").items() if k.startswith("lod/")} == {k: v for k, v in trees[1].items() if k.startswith("lod/")}
     n_arrays = sum(k.endswith("zarr.json") and k.count("/") == 3 and "done" not in k for k in trees[1])
-    n_chunks = sum("/c/" in k and "done" not in k for k in trees[1])
+    n_chunks = sum("/c." in k and "done" not in k for k in trees[1])
     assert n_arrays == 2 * store.layout.levels + 2 * store.layout.J + 2 * (store.layout.J + 1)
     assert (n_chunks == 0) if flat else (n_arrays // 2 < n_chunks <= n_arrays)
 
@@ -176,14 +177,15 @@ def test_store_arrays_are_the_ones_zarr_creates(tmp_path, monkeypatch, color):
             monkeypatch.undo()
         g, resumed = st.create_store(tmp_path / way, lay, {"source": "x", "spacing": [1.0, 1.0]}, color)
         assert not resumed
-        old = tmp_path / way / "shade" / "1" / "c" / "0" / "0" / "0" / "0"
+        old = tmp_path / way / "shade" / "1" / "c" / "0" / "0" / "0" / "0"  # an older store's chunk
         old.parent.mkdir(parents=True)
         old.write_bytes(b"old chunk")
+        (tmp_path / way / "shade" / "1" / "c.0.1.0.0.0").write_bytes(b"old chunk")
         st.create_shade_arrays(g, lay)
         trees.append(tree(tmp_path / way))
     assert trees[0] == trees[1]
     assert sum(k.endswith("zarr.json") for k in trees[1]) == 1 + 3 + color + lay.levels * (4 + color)  # groups: root, heights, shade, blocks (color); per level: heights, shade, blocks/<l>, its done (color)
-    assert not any("/c/" in k for k in trees[1])
+    assert not any("/c/" in k or "/c." in k for k in trees[1])
 
 
 @pytest.mark.parametrize("order", ["data, then flat", "flat, then data"])
@@ -209,7 +211,7 @@ def test_metadata_rewritten_over_old_arrays_is_what_zarr_leaves(tmp_path, order)
             (write_metadata_through_zarr if way == "zarr" else write_metadata)(g, store.layout, meta)
         trees.append(tree(tmp_path / way))
     assert trees[0] == trees[1]
-    assert ("lod/zarr.json" in trees[1]) and any(k.startswith("lod/zmin/0/c/") for k in trees[1]) == (metas[1] is data)
+    assert ("lod/zarr.json" in trees[1]) and any(k.startswith("lod/zmin/0/c.") for k in trees[1]) == (metas[1] is data)
 
 
 def test_table_beside_the_shading_pass_or_alone_gives_the_same_store(tmp_path, monkeypatch):
@@ -223,7 +225,7 @@ def test_table_beside_the_shading_pass_or_alone_gives_the_same_store(tmp_path, m
         assert ("Röttger table" in res.stages) == (limit == 0)
         trees.append(tree(tmp_path / f"s{limit}.zarr"))
     assert trees[0] == trees[1]
-    assert sum(k.startswith("roettger/d2/") and "/c/" in k for k in trees[0]) > 0
+    assert sum(k.startswith("roettger/d2/") and "/c." in k for k in trees[0]) > 0
 
 
 def test_table_writer_raises_its_error_on_join(tmp_path):

@@ -7,7 +7,7 @@
 * the shading pass with the edge rows kept from the pyramid pass (each worker decodes its own
   row) writes the same shading chunks as reading the neighbouring rows back;
 * ``bench ingest``'s write floor writes the same names and bytes as the store it copies;
-* ``make_chunk_root`` is only a hint: it makes the folder and never fails on a file system
+* ``make_top_folder`` is only a hint: it makes the folder and never fails on a file system
   without the flag;
 * ``run_ready`` (the shading pass's scheduler) starts a task that a finished one made ready
   before the next first task, and after a failure finishes what runs, then raises.
@@ -98,13 +98,13 @@ def test_page_cost_times_new_and_cached_pages_and_leaves_nothing(tmp_path):
     assert isinstance(_free_page_reporting(), bool)
 
 
-def test_make_chunk_root_is_only_a_hint(tmp_path):
-    from massview.data.terrain.store import make_chunk_root
+def test_make_top_folder_is_only_a_hint(tmp_path):
+    from massview.data.terrain.store import make_top_folder
 
     root = tmp_path / "x" / "c"
-    first = make_chunk_root(str(root))
+    first = make_top_folder(str(root))
     assert root.is_dir() and isinstance(first, bool)
-    assert make_chunk_root(str(root)) == first  # again: no error, same answer
+    assert make_top_folder(str(root)) == first  # again: no error, same answer
 
 
 def test_run_ordered_keeps_workers_busy_behind_a_slow_task_and_delivers_in_order():

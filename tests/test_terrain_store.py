@@ -553,3 +553,42 @@ def test_an_interrupted_overwrite_keeps_the_complete_store(tmp_path, monkeypatch
     with pytest.raises(StoreError, match="s.zarr.rebuild is in the way"):
         prepare_terrain(ArraySource(a, "dem"), out, block=129, overwrite=True)
     assert (tmp_path / "s.zarr.rebuild" / "mine.txt").exists()
+
+
+def test_older_nested_chunk_keys_read_as_the_flat_ones(tmp_path, monkeypatch):
+    """A store written with zarr's nested chunk keys (``c/i/j/0/0``, every store before
+    2026-11-29) and one with this prepare's flat keys (``c.i.j.0.0``): the same decoded blocks,
+    block rows, shading and Röttger table through the direct reads, both verify clean, and a
+    chunk rewritten into the older store keeps its nested name and bytes."""
+    from massview.data.terrain.store import CHUNK_KEYS, ChunkWriter
+    from massview.data.terrain.verify import verify_store
+
+    h = np.random.default_rng(11).standard_normal((600, 500)).astype(np.float32).cumsum(axis=0).cumsum(axis=1)
+    new = prepare(h, tmp_path, "new.zarr", workers=2)
+    monkeypatch.setitem(CHUNK_KEYS, "separator", "/")
+    old = prepare(h, tmp_path, "old.zarr", workers=2)
+    monkeypatch.undo()
+    assert (tmp_path / "new.zarr/heights/0/c.1.2.0.0").is_file() and not (tmp_path / "new.zarr/heights/0/c").exists()
+    assert (tmp_path / "old.zarr/heights/0/c/1/2/0/0").is_file() and (tmp_path / "old.zarr/shade/0/c/1/2/0/0/0").is_file()
+    assert not list((tmp_path / "new.zarr").rglob("c/"))  # no chunk folders at all
+    lay = new.layout
+    for lv in range(lay.levels):
+        for i in range(lay.blocks(lv)):
+            np.testing.assert_array_equal(new.get_block_row(lv, i), old.get_block_row(lv, i))
+            for j in range(lay.blocks(lv)):
+                for s in (new, old):
+                    assert s.chunk_path(lv, i, j).is_file() and s.chunk_path(lv, i, j, "shade").is_file()
+                    assert s._direct_block("heights", lv, i, j, "<f4") is not None  # read directly, not through zarr
+                np.testing.assert_array_equal(new.get_block(lv, i, j), old.get_block(lv, i, j))
+                np.testing.assert_array_equal(new.get_shade(lv, i, j), old.get_shade(lv, i, j))
+                np.testing.assert_array_equal(new.get_block(lv, i, j), np.asarray(new._heights[lv][i, j]))
+    for t in range(new.attrs["roettger"]["depths"]):
+        np.testing.assert_array_equal(new.group[f"roettger/d2/{t}"][...], old.group[f"roettger/d2/{t}"][...])
+    assert verify_store(tmp_path / "new.zarr") == [] and verify_store(tmp_path / "old.zarr") == []
+    import zarr
+
+    f, row = tmp_path / "old.zarr/heights/0/c/1/0/0/0", old.get_block_row(0, 1).copy()
+    before = f.read_bytes()
+    f.unlink()
+    ChunkWriter(zarr.open_group(str(tmp_path / "old.zarr"), mode="r+"), "heights/0").write(1, 0, row[:1])
+    assert f.read_bytes() == before

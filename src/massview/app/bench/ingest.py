@@ -127,43 +127,50 @@ def _free_page_reporting() -> bool:
 
 
 def _write_floor(store: Path, dst: Path, threads: int = 2) -> tuple[float, float]:
-    """Write every file of ``store`` again under ``dst``: the same names and bytes, chunks
-    through the chunk writer's own calls (:func:`store.make_chunk_root` once per array, the
-    row folder once, :func:`store.write_chunk_file` per chunk), block rows shared out over
-    ``threads`` threads as prepare's workers share them. Each file's bytes are read first,
-    outside the timed part. Returns (the slowest thread's seconds in those calls, the system
-    CPU seconds of all threads in them): what writing this store costs on this file system,
-    whatever computes it."""
+    """Write every file of ``store`` again under ``dst``: the same names and bytes, with the
+    chunk writer's own calls (each folder once, :func:`store.make_top_folder` for the folders
+    prepare marks; a chunk file with one ``open`` + ``write``, an older store's nested chunk
+    folders by :func:`store.write_chunk_file`), block rows shared out over ``threads`` threads
+    as prepare's workers share them. Each file's bytes are read first, outside the timed part.
+    Returns (the slowest thread's seconds in those calls, the system CPU seconds of all threads
+    in them): what writing this store costs on this file system, whatever computes it."""
     import resource
     import threading
 
-    from ...data.terrain.store import make_chunk_root, write_chunk_file
+    from ...data.terrain.store import make_top_folder, write_chunk_file
 
     files = sorted(p.relative_to(store) for p in store.rglob("*") if p.is_file())
     rows: dict = {}
-    for rel in files:  # a chunk's block row is the folder under "c"; metadata files go with row 0
+    for rel in files:  # a chunk's block row: "c.<i>.…", or the folder under "c"; metadata files go with row 0
         parts = rel.parts
-        rows.setdefault(parts[parts.index("c") + 1] if "c" in parts else "0", []).append(rel)
+        row = parts[parts.index("c") + 1] if "c" in parts[:-1] else parts[-1].split(".")[1] if parts[-1].startswith("c.") else "0"
+        rows.setdefault(row, []).append(rel)
     shares: list = [[] for _ in range(threads)]
     for k, key in enumerate(sorted(rows, key=lambda r: (len(r), r))):
         shares[k % threads].extend(rows[key])
     made, lock = set(), threading.Lock()
     spent, system = [0.0] * threads, [0.0] * threads
+    top = {dst / "heights", dst / "shade", dst / "color"}
 
-    def folder(d: Path) -> None:  # folders above the chunk rows: once each, under the lock
+    def folder(d: Path) -> None:  # each folder once, parents first, under the lock
+        if d in made:
+            return
         with lock:
-            if d not in made:
-                if d.name == "c":
-                    make_chunk_root(str(d))
-                else:
-                    d.mkdir(parents=True, exist_ok=True)
-                made.add(d)
+            for f in [*reversed(d.relative_to(dst).parents), d.relative_to(dst)]:
+                f = dst / f
+                if f not in made:
+                    if f in top or f.name == "c":
+                        make_top_folder(str(f))
+                    else:
+                        f.mkdir(exist_ok=True)
+                    made.add(f)
 
     def put(rel: Path, data: bytes) -> None:
         parts = rel.parts
-        if "c" not in parts:
+        if "c" not in parts[:-1]:
             folder((dst / rel).parent)
-            (dst / rel).write_bytes(data)
+            with open(dst / rel, "wb") as fh:
+                fh.write(data)
             return
         c = parts.index("c")
         folder(dst.joinpath(*parts[:c + 1]))

@@ -198,7 +198,7 @@ def write_metadata(g, lay: TerrainLayout, meta: Metadata) -> None:
     the files ``create_array`` + ``arr[...] = a`` write (tests/test_direct_chunks.py), without
     zarr's ~5 ms event-loop round trip for each of the ~60 arrays (0.3 s at the end of every
     prepare)."""
-    from .store import _ArraysLike, array_chunk_writer
+    from .store import CHUNK_KEYS, _ArraysLike, array_chunk_writer
 
     items = []
     for lv in range(lay.levels):
@@ -209,7 +209,8 @@ def write_metadata(g, lay: TerrainLayout, meta: Metadata) -> None:
         items += [(f"lod/zmin/{j}", meta.zmin[j]), (f"lod/zmax/{j}", meta.zmax[j])]
     new, first = _ArraysLike(g), None  # first: the chunk writer of the first array that has one
     for name, a in items:
-        arr = new.create(name, "metadata", shape=a.shape, chunks=a.shape, dtype="float32", overwrite=True)
+        arr = new.create(name, "metadata", shape=a.shape, chunks=a.shape, dtype="float32", overwrite=True,
+                         chunk_key_encoding=CHUNK_KEYS)
         if arr is None and first is not None:  # made from the first's zarr.json
             w = first.like(new.folder(name), a.shape, a.shape)
         else:

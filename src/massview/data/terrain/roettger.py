@@ -26,7 +26,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from ...core.errors import CorruptBlockError, StoreError, describe
-from .store import TerrainStore
+from .store import CHUNK_KEYS, TerrainStore
 
 __all__ = ["C_RANGE", "k_factor", "local_d2", "propagate_into", "DEFAULT_C_MIN", "compute_table", "write_table",
            "prepare_roettger", "RoettgerTable", "has_table", "table_from_grid", "iter_table", "TableBuilder",
@@ -313,7 +313,7 @@ def _create_depth(g, t: int, shape: tuple):
 
     ch = (min(shape[0], 256), min(shape[1], 256))
     return g.create_array(f"roettger/d2/{t}", shape=shape, chunks=ch, dtype="float32", overwrite=True,
-                          compressors=BloscCodec(**TABLE_CODEC))
+                          compressors=BloscCodec(**TABLE_CODEC), chunk_key_encoding=CHUNK_KEYS)
 
 
 def prepare_roettger(path, C_min: float = DEFAULT_C_MIN, progress=None) -> dict:

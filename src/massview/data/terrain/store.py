@@ -7,7 +7,8 @@ Layout (readable with plain zarr; ``M`` = block size, ``nb_l = 2^(L-l)``)::
            crs (WKT or null), transform (GDAL 6-tuple or null), nodata {value, filled},
            source, height_range [min, max], color ("computed" | "orthophoto" | null)
     heights/<l>     float32 (nb_l, nb_l, M, M), chunk (1, 1, M, M), blosc lz4 5 + shuffle (_compressor):
-                    block (i, j) = finest samples rows (i(M-1)+r)2^l, cols (j(M-1)+c)2^l
+                    block (i, j) = finest samples rows (i(M-1)+r)2^l, cols (j(M-1)+c)2^l;
+                    its file ``heights/<l>/c.<i>.<j>.0.0`` (CHUNK_KEYS)
     shade/<l>       float16 (nb_l, nb_l, M, M, 3), chunk (1, 1, M, M, 3): slope ∂h/∂x, ∂h/∂y
                     (per metre, x east, y north) and height fraction, mip-filtered (colors.py)
     color/<l>       uint8 (nb_l, nb_l, M, M, 3), chunk (1, 1, M, M, 3)     [orthophoto only]
@@ -18,6 +19,11 @@ Layout (readable with plain zarr; ``M`` = block size, ``nb_l = 2^(L-l)``)::
                           bound on |drawn patch − finest samples| under it (deviation.py)
     lod/edge_error/<j>    float32 (2, 2^j+1, 2^j+1)     edge diamonds: [0] horizontal, [1] vertical
     lod/zmin/<j>, lod/zmax/<j>  float32 (2^j, 2^j)      height range of each level-j square
+
+Every array's chunk files lie in the array's own folder, named ``c.<i>.<j>…`` (zarr's default
+chunk keys with a "." separator, :data:`CHUNK_KEYS`). Stores written before 2026-11-29 name
+them ``c/<i>/<j>/…``, a folder per chunk and per trailing 0 (~28 000 folders at 16385²); both
+are read, each array by its own ``zarr.json``, and a resumed prepare keeps the old names.
 
 Samples beyond ``rows``/``cols`` are padding (edge-replicated) and are not drawn. A store is
 only opened when ``complete`` is true, which ``prepare`` sets after everything is written.
@@ -39,11 +45,18 @@ import numpy as np
 from ...core.errors import BlockNotFoundError, CorruptBlockError, StoreError
 from .layout import TerrainLayout
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "rows_done", "create_shade_arrays", "dir_size", "ChunkWriter", "block_blosc", "make_chunk_root", "write_chunk_file", "block_view", "wide_row",
+__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "rows_done", "create_shade_arrays", "dir_size", "ChunkWriter", "block_blosc", "make_top_folder", "CHUNK_KEYS", "write_chunk_file", "block_view", "wide_row",
            "ArrayChunkWriter", "array_chunk_writer"]
 
 FORMAT = "massview-terrain"
 FORMAT_VERSION = 2
+CHUNK_KEYS = {"name": "default", "separator": "."}
+"""The chunk key encoding of every array a prepare creates: ``c.i.j.0.0``, one file per chunk in
+the array's folder. zarr's ``c/i/j/0/0`` made three or four folders per chunk (27 874 folders
+for 11 441 files at 16385²): on ext4 a ``mkdir`` costs ~50 µs of system time against ~35 µs
+for a whole chunk file's ``open`` + ``close``, so making the folders took ~190 µs a chunk
+against ~38 flat, measured on a fresh file system (issue 20); folders are as costly on the
+metadata servers of cluster file systems."""
 
 
 def _compressor(typesize: int = 4):
@@ -105,14 +118,17 @@ def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, ov
     g.attrs.update({"format": FORMAT, "format_version": FORMAT_VERSION, "complete": False, **layout.to_json(),
                     "levels": layout.levels, "padded": layout.S, **attrs})
     M, new = layout.M, _ArraysLike(g)
+    for family in ("heights", "color")[:1 + bool(color)]:
+        make_top_folder(str(path / family))
     for lv in range(layout.levels):
         nb = layout.blocks(lv)
         new.create(f"heights/{lv}", "heights", shape=(nb, nb, M, M), chunks=(1, 1, M, M), dtype="float32",
-                   compressors=_compressor(), fill_value=np.nan)
+                   compressors=_compressor(), fill_value=np.nan, chunk_key_encoding=CHUNK_KEYS)
         if color:
             new.create(f"color/{lv}", "color", shape=(nb, nb, M, M, 3), chunks=(1, 1, M, M, 3), dtype="uint8",
-                       compressors=_compressor(1), fill_value=0)
-        new.create(f"blocks/{lv}/done", "done", shape=(nb, nb), chunks=(nb, nb), dtype="uint8", fill_value=0)
+                       compressors=_compressor(1), fill_value=0, chunk_key_encoding=CHUNK_KEYS)
+        new.create(f"blocks/{lv}/done", "done", shape=(nb, nb), chunks=(nb, nb), dtype="uint8", fill_value=0,
+                   chunk_key_encoding=CHUNK_KEYS)
     create_shade_arrays(g, layout, new)
     return g, False
 
@@ -134,10 +150,13 @@ def rows_done(path) -> tuple[int, int] | None:
 
 def create_shade_arrays(g, layout: TerrainLayout, new: _ArraysLike | None = None) -> None:
     M, new = layout.M, new or _ArraysLike(g)
+    if new.base is not None:
+        make_top_folder(new.folder("shade"))
     for lv in range(layout.levels):
         nb = layout.blocks(lv)
         new.create(f"shade/{lv}", "shade", shape=(nb, nb, M, M, 3), chunks=(1, 1, M, M, 3), dtype="float16",
-                   compressors=_compressor(2), fill_value=0, overwrite=True)
+                   compressors=_compressor(2), fill_value=0, overwrite=True,
+                   chunk_key_encoding=CHUNK_KEYS)
 
 
 class _ArraysLike:
@@ -250,7 +269,8 @@ class ChunkWriter:
     """Whole-chunk writes of one array of a store, encoded on the calling thread.
 
     The bytes are exactly those zarr writes (its blosc codec object encodes the chunk's
-    little-endian bytes, stored under the array's default chunk key ``c/i/j/0/...``), but
+    little-endian bytes, stored under the array's chunk key, ``c.i.j.0…`` or an older store's
+    ``c/i/j/0/…``), but
     without zarr's per-chunk event-loop round trip, so worker threads compress in parallel
     (blosc releases the GIL). Reads go through zarr as before. Only for arrays whose chunks are
     single blocks (``(1, 1, M, M[, 3])``) with codecs ``bytes`` + ``blosc``."""
@@ -261,35 +281,63 @@ class ChunkWriter:
         if self.blosc is None:
             raise StoreError(f"{name}: unexpected codecs {arr.metadata.codecs} or chunks {arr.metadata.chunk_grid} for direct chunk writes")
         self.dtype = np.dtype(arr.dtype).newbyteorder("<")
-        self.root = Path(str(group.store.root)) / group.path / name / "c" if group.path else Path(str(group.store.root)) / name / "c"
-        self.tail = ["0"] * (arr.ndim - 2)
-        self._rows: set = set()
-        self._root_made = False
-        self._lock = threading.Lock()
+        root = Path(str(group.store.root))
+        self.files = _ChunkFiles(str(root / group.path / name if group.path else root / name), arr.metadata.encode_chunk_key)
+        self.tail = (0,) * (arr.ndim - 2)
 
     def write(self, i: int, j0: int, blocks: np.ndarray) -> None:
-        """Blocks (n, M, M[, 3]) into chunks (i, j0 .. j0+n-1). The chunk row's folder is made
-        once (under :func:`make_chunk_root`); each chunk's file by :func:`write_chunk_file`."""
-        row = os.path.join(str(self.root), str(i))
-        if i not in self._rows:
-            with self._lock:
-                if not self._root_made:
-                    make_chunk_root(str(self.root))
-                    self._root_made = True
-            os.makedirs(row, exist_ok=True)
-            self._rows.add(i)
+        """Blocks (n, M, M[, 3]) into chunks (i, j0 .. j0+n-1), each written by
+        :meth:`_ChunkFiles.put`."""
         for k in range(blocks.shape[0]):
             data = self.blosc.encode(np.ascontiguousarray(blocks[k], self.dtype).reshape(-1).view(np.uint8))
-            write_chunk_file(os.path.join(row, str(j0 + k)), self.tail, data)
+            self.files.put((i, j0 + k) + self.tail, data)
+
+
+class _ChunkFiles:
+    """The chunk files of one array at folder ``root`` whose chunk keys ``key`` gives: a ``c.i.j``
+    key is one file in that folder; a ``c/i/j/…`` key (stores before :data:`CHUNK_KEYS`) gets its
+    folders made as zarr would, ``c`` once (:func:`make_top_folder`), each chunk row's once, the
+    rest by :func:`write_chunk_file`. Thread-safe."""
+
+    def __init__(self, root: str, key):
+        self.root, self.key = root, key
+        self._made: set = set()
+        self._lock = threading.Lock()
+
+    def path(self, coords: tuple) -> str:
+        return os.path.join(self.root, *self.key(coords).split("/"))
+
+    def put(self, coords: tuple, data) -> None:
+        parts = self.key(coords).split("/")
+        if len(parts) == 1:
+            with open(os.path.join(self.root, parts[0]), "wb") as fh:
+                fh.write(data)
+            return
+        row = os.path.join(self.root, *parts[:2])
+        if row not in self._made:
+            with self._lock:
+                if parts[0] not in self._made:
+                    make_top_folder(os.path.join(self.root, parts[0]))
+                    self._made.add(parts[0])
+            os.makedirs(row, exist_ok=True)
+            self._made.add(row)
+        write_chunk_file(os.path.join(row, parts[2]), parts[3:], data)
+
+    def remove(self, coords: tuple) -> None:
+        try:
+            os.unlink(self.path(coords))
+        except FileNotFoundError:
+            pass
 
 
 _FS_IOC_GETFLAGS, _FS_IOC_SETFLAGS, _FS_TOPDIR_FL = 0x80086601, 0x40086602, 0x00020000  # <linux/fs.h>
 
 
-def make_chunk_root(root: str) -> bool:
-    """Make an array's chunk folder ``…/c`` and mark it a "top directory" (``chattr +T``):
-    ext4's Orlov allocator then places each chunk row's folder, and the ~60–250 inodes under
-    it, in a block group with many free inodes instead of next to the parent. Without it, a
+def make_top_folder(root: str) -> bool:
+    """Make a folder whose sub-folders hold many chunk files (a store's ``heights``, ``shade``,
+    ``color``; an older store's ``…/c``) and mark it a "top directory" (``chattr +T``): ext4's
+    Orlov allocator then places each sub-folder, and the inodes under it, in a block group
+    with many free inodes instead of next to the parent. Without it, a
     store written where another was just deleted (``--overwrite``, a benchmark loop) lands in
     groups whose free inodes were all deleted in the last 1–5 minutes, which ext4 without a
     journal skips one by one on every ``mkdir`` and ``open`` (``find_inode_bit`` →
@@ -386,6 +434,7 @@ class TerrainStore:
             self.check_array(f"heights/{lv}", h, raise_=True)
         self._shade: dict = {}  # level → the open shade/<level> array (_shade_array)
         self._codecs: dict = {}  # (what, level) → block_blosc of that array, or False (_block_codec)
+        self._keys: dict = {}  # (what, level) → that array's chunk key function (_chunk_key)
         self.has_color = "color" in self.group and self.attrs.get("color") == "orthophoto"
         self.has_shade = "shade" in self.group and not upgrading
         self._color = [self.group[f"color/{lv}"] for lv in range(self.layout.levels)] if self.has_color else None
@@ -491,8 +540,21 @@ class TerrainStore:
             raise BlockNotFoundError(f"{self.path}: block (level {level}, {i}, {j}) is outside the pyramid ({self.layout.levels} levels)")
 
     def chunk_path(self, level: int, i: int, j: int, what: str = "heights") -> Path:
-        tail = "/0/0/0" if what in ("color", "shade") else "/0/0"
-        return self.path / what / str(level) / "c" / f"{i}/{j}{tail}"
+        """The file of block (level, i, j) of ``what`` (``heights``, ``shade`` or ``color``)."""
+        return self.path / what / str(level) / self._chunk_key(what, level)((i, j, 0, 0, 0)[:4 + (what != "heights")])
+
+    def _chunk_key(self, what: str, level: int):
+        """The chunk key function of ``<what>/<level>`` (its ``zarr.json``'s encoding), looked up
+        once; zarr's default ``c/i/j/…`` where the array does not open (a store being upgraded
+        has no ``shade``)."""
+        key = (what, level)
+        if key not in self._keys:
+            try:
+                arr = self._heights[level] if what == "heights" else self._color[level] if what == "color" else self._shade_array(level)
+                self._keys[key] = arr.metadata.encode_chunk_key
+            except Exception:  # noqa: BLE001 - no such array: name where zarr would look
+                self._keys[key] = lambda c: "c/" + "/".join(map(str, c))
+        return self._keys[key]
 
     def _block_codec(self, what: str, level: int):
         """:func:`block_blosc` of ``<what>/<level>``, looked up once; False where there is none
@@ -568,10 +630,10 @@ class TerrainStore:
     def _direct_row(self, level: int, i: int, out: np.ndarray | None = None) -> np.ndarray | None:
         """Block row ``i`` decoded straight from its chunk files with the array's blosc codec
         (the inverse of :class:`ChunkWriter`: the same decoded values as zarr's read, without its
-        per-chunk event-loop round trip; each file opened relative to the row's folder and read
-        with one call), or None when any chunk is missing, longer than a block's chunk can be,
-        does not decode to a whole block, or the codecs are not bytes + blosc — the caller then
-        reads through zarr, which names the bad block."""
+        per-chunk event-loop round trip; each file opened relative to the array's folder and
+        read with one call), or None when any chunk is missing, longer than a block's chunk can
+        be, does not decode to a whole block, or the codecs are not bytes + blosc — the caller
+        then reads through zarr, which names the bad block."""
         blosc = self._block_codec("heights", level)
         if blosc is False:
             return None
@@ -579,14 +641,14 @@ class TerrainStore:
         if out is None or out.shape != (nb, M, M) or out.dtype != np.dtype("<f4") or not out.flags.c_contiguous:
             out = np.empty((nb, M, M), "<f4")
         cap = out[0].nbytes + 16  # the largest a chunk of a block can be (blosc's 16-byte header, data stored uncompressed)
-        tail = "/0" * (self._heights[level].ndim - 2)
+        key = self._chunk_key("heights", level)
         try:
-            row = os.open(os.path.join(self.path, "heights", str(level), "c", str(i)), os.O_RDONLY | os.O_DIRECTORY)
+            row = os.open(os.path.join(self.path, "heights", str(level)), os.O_RDONLY | os.O_DIRECTORY)
         except OSError:
             return None
         try:
             for j in range(nb):
-                fd = os.open(f"{j}{tail}", os.O_RDONLY | getattr(os, "O_CLOEXEC", 0), dir_fd=row)
+                fd = os.open(key((i, j, 0, 0)), os.O_RDONLY | getattr(os, "O_CLOEXEC", 0), dir_fd=row)
                 try:
                     data = os.read(fd, cap + 1)
                 finally:
@@ -680,18 +742,14 @@ class ArrayChunkWriter:
         self.fill = meta.fill_value
         self.skip_fill = not arr._async_array.config.write_empty_chunks
         self.encode = encode
-        self.root = os.path.join(str(arr.store.root), *arr.path.split("/"))
-        self.key = meta.encode_chunk_key
+        self.files = _ChunkFiles(os.path.join(str(arr.store.root), *arr.path.split("/")), meta.encode_chunk_key)
         self._nd = default_buffer_prototype().nd_buffer.from_numpy_array
-        self._root_made = False
-        self._lock = threading.Lock()
 
     def like(self, root: str, shape: tuple, chunks: tuple) -> ArrayChunkWriter:
         """The writer of the array at folder ``root`` made from this one's by :func:`array_like`
         (same dtype, fill value, codecs and chunk keys; ``shape`` and ``chunks`` its own)."""
         out = copy.copy(self)
-        out.shape, out.chunks, out.root = tuple(shape), tuple(chunks), root
-        out._root_made, out._lock = False, threading.Lock()
+        out.shape, out.chunks, out.files = tuple(shape), tuple(chunks), _ChunkFiles(root, self.files.key)
         return out
 
     @property
@@ -703,7 +761,7 @@ class ArrayChunkWriter:
         """The chunks at ``coords`` (an iterable of chunk index tuples) of the whole array ``a``
         (the array's shape and dtype)."""
         if a.shape != self.shape or a.dtype != self.dtype:
-            raise StoreError(f"{self.root}: direct chunk write of a {a.dtype} {a.shape} array into a {self.dtype} {self.shape} one")
+            raise StoreError(f"{self.files.root}: direct chunk write of a {a.dtype} {a.shape} array into a {self.dtype} {self.shape} one")
         for c in coords:
             self._write_chunk(a, tuple(c))
 
@@ -714,28 +772,17 @@ class ArrayChunkWriter:
         else:  # an edge chunk: the fill value beyond the array's end, as zarr pads it
             buf = np.full(self.chunks, self.fill, self.dtype)
             buf[tuple(slice(0, k) for k in part.shape)] = part
-        parts = self.key(c).split("/")  # "c/i/j/…" (or one name, "c.i.j", with a "." separator)
         if self.skip_fill and self._nd(buf.reshape(-1)[:1]).all_equal(self.fill) and self._nd(buf).all_equal(self.fill):
-            try:  # (the first element decides almost every chunk; the whole chunk only where it is the fill value)
-                os.unlink(os.path.join(self.root, *parts))
-            except FileNotFoundError:
-                pass
+            self.files.remove(c)  # (the first element decides almost every chunk; the whole chunk only where it is the fill value)
             return
         data = np.ascontiguousarray(buf, self.dtype.newbyteorder("<")).reshape(-1).view(np.uint8)
-        if self.encode is not None:
-            data = self.encode(data)
-        if len(parts) > 1 and not self._root_made:  # the chunk folder "c" once, as ChunkWriter makes it
-            with self._lock:
-                if not self._root_made:
-                    make_chunk_root(os.path.join(self.root, parts[0]))
-                    self._root_made = True
-        write_chunk_file(os.path.join(self.root, *parts[:2]), parts[2:], data)
+        self.files.put(c, data if self.encode is None else self.encode(data))
 
 
 def array_chunk_writer(arr) -> ArrayChunkWriter | None:
     """An :class:`ArrayChunkWriter` for the zarr array ``arr``, or None (write through zarr)
     unless it is a zarr v3 array in a local store with a regular chunk grid, the default
-    ``c/…`` chunk keys, codecs ``bytes`` (little-endian) + at most one blosc or zstd
+    chunk keys (``c.…`` or ``c/…``), codecs ``bytes`` (little-endian) + at most one blosc or zstd
     compressor, and a fill value."""
     from zarr.codecs import BloscCodec, BytesCodec, ZstdCodec
     from zarr.core.chunk_grids import RegularChunkGrid
