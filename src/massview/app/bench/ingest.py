@@ -129,7 +129,7 @@ def _free_page_reporting() -> bool:
 def _write_floor(store: Path, dst: Path, threads: int = 2) -> tuple[float, float]:
     """Write every file of ``store`` again under ``dst``: the same names and bytes, with the
     chunk writer's own calls (each folder once, :func:`store.make_top_folder` for the folders
-    prepare marks; a chunk file with one ``open`` + ``write``, an older store's nested chunk
+    prepare marks; a file by :func:`store.write_file`, an older store's nested chunk
     folders by :func:`store.write_chunk_file`), block rows shared out over ``threads`` threads
     as prepare's workers share them. Each file's bytes are read first, outside the timed part.
     Returns (the slowest thread's seconds in those calls, the system CPU seconds of all threads
@@ -137,7 +137,7 @@ def _write_floor(store: Path, dst: Path, threads: int = 2) -> tuple[float, float
     import resource
     import threading
 
-    from ...data.terrain.store import make_top_folder, write_chunk_file
+    from ...data.terrain.store import make_top_folder, write_chunk_file, write_file
 
     files = sorted(p.relative_to(store) for p in store.rglob("*") if p.is_file())
     rows: dict = {}
@@ -169,8 +169,7 @@ def _write_floor(store: Path, dst: Path, threads: int = 2) -> tuple[float, float
         parts = rel.parts
         if "c" not in parts[:-1]:
             folder((dst / rel).parent)
-            with open(dst / rel, "wb") as fh:
-                fh.write(data)
+            write_file(str(dst / rel), data)
             return
         c = parts.index("c")
         folder(dst.joinpath(*parts[:c + 1]))

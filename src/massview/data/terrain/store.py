@@ -45,7 +45,7 @@ import numpy as np
 from ...core.errors import BlockNotFoundError, CorruptBlockError, StoreError
 from .layout import TerrainLayout
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "rows_done", "create_shade_arrays", "dir_size", "ChunkWriter", "block_blosc", "make_top_folder", "CHUNK_KEYS", "write_chunk_file", "block_view", "wide_row",
+__all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "rows_done", "create_shade_arrays", "dir_size", "ChunkWriter", "block_blosc", "make_top_folder", "CHUNK_KEYS", "write_file", "write_chunk_file", "block_view", "wide_row",
            "ArrayChunkWriter", "array_chunk_writer"]
 
 FORMAT = "massview-terrain"
@@ -310,8 +310,7 @@ class _ChunkFiles:
     def put(self, coords: tuple, data) -> None:
         parts = self.key(coords).split("/")
         if len(parts) == 1:
-            with open(os.path.join(self.root, parts[0]), "wb") as fh:
-                fh.write(data)
+            write_file(os.path.join(self.root, parts[0]), data)
             return
         row = os.path.join(self.root, *parts[:2])
         if row not in self._made:
@@ -366,15 +365,32 @@ def make_top_folder(root: str) -> bool:
 def write_chunk_file(d: str, tail: list, data) -> None:
     """Write one chunk's encoded bytes at ``d/<tail...>``: its own folders (``i/j``, ``i/j/0`` …)
     with one ``mkdir`` each, parents first (``Path.mkdir(parents=True)`` tried the deepest
-    first: 3–5 calls, two failing), then ``open``, one ``write``, ``close``."""
+    first: 3–5 calls, two failing), then the file by :func:`write_file`."""
     for name in tail:
         try:
             os.mkdir(d)
         except FileExistsError:  # (a resumed run, or a rewritten chunk)
             pass
         d = os.path.join(d, name)
-    with open(d, "wb") as fh:
-        fh.write(data)
+    write_file(d, data)
+
+
+_NEW_FILE = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0)
+
+
+def write_file(path: str, data) -> None:
+    """``data`` (bytes or a contiguous buffer) as the whole file ``path``, with ``os.open`` /
+    ``os.write`` / ``os.close``: a chunk file without Python's file objects, ~15–20 µs of
+    interpreter time (and two GIL hand-offs) less per file than ``open(path, "wb")`` (issue 20;
+    11 441 files at 16385²)."""
+    view = memoryview(data).cast("B")
+    fd = os.open(path, _NEW_FILE, 0o666)
+    try:
+        done = os.write(fd, view)
+        while done < len(view):  # (a regular file takes it all at once; a short write only on a full disk or a signal)
+            done += os.write(fd, view[done:])
+    finally:
+        os.close(fd)
 
 
 def block_view(wide: np.ndarray, nb: int, M: int) -> np.ndarray:
