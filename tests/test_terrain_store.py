@@ -555,40 +555,41 @@ def test_an_interrupted_overwrite_keeps_the_complete_store(tmp_path, monkeypatch
     assert (tmp_path / "s.zarr.rebuild" / "mine.txt").exists()
 
 
-def test_older_nested_chunk_keys_read_as_the_flat_ones(tmp_path, monkeypatch):
-    """A store written with zarr's nested chunk keys (``c/i/j/0/0``, every store before
-    2026-11-29) and one with this prepare's flat keys (``c.i.j.0.0``): the same decoded blocks,
-    block rows, shading and Röttger table through the direct reads, both verify clean, and a
-    chunk rewritten into the older store keeps its nested name and bytes."""
+def test_flat_chunk_keys_read_as_the_nested_ones(tmp_path, monkeypatch):
+    """A store written with zarr's nested chunk keys (``c/i/j/0/0``, what prepare writes) and one
+    with flat keys (``c.i.j.0.0``, a "." separator: tried as prepare's default, see
+    store.CHUNK_KEYS): the same decoded blocks, block rows, shading and Röttger table through
+    the direct reads (each array's chunk names from its own zarr.json), both verify clean, and
+    a chunk rewritten into the flat store keeps its name and bytes."""
+    import zarr
+
     from massview.data.terrain.store import CHUNK_KEYS, ChunkWriter
     from massview.data.terrain.verify import verify_store
 
     h = np.random.default_rng(11).standard_normal((600, 500)).astype(np.float32).cumsum(axis=0).cumsum(axis=1)
-    new = prepare(h, tmp_path, "new.zarr", workers=2)
-    monkeypatch.setitem(CHUNK_KEYS, "separator", "/")
-    old = prepare(h, tmp_path, "old.zarr", workers=2)
+    nested = prepare(h, tmp_path, "nested.zarr", workers=2)
+    monkeypatch.setitem(CHUNK_KEYS, "separator", ".")
+    flat = prepare(h, tmp_path, "flat.zarr", workers=2)
     monkeypatch.undo()
-    assert (tmp_path / "new.zarr/heights/0/c.1.2.0.0").is_file() and not (tmp_path / "new.zarr/heights/0/c").exists()
-    assert (tmp_path / "old.zarr/heights/0/c/1/2/0/0").is_file() and (tmp_path / "old.zarr/shade/0/c/1/2/0/0/0").is_file()
-    assert not list((tmp_path / "new.zarr").rglob("c/"))  # no chunk folders at all
-    lay = new.layout
+    assert (tmp_path / "nested.zarr/heights/0/c/1/2/0/0").is_file() and (tmp_path / "nested.zarr/shade/0/c/1/2/0/0/0").is_file()
+    assert (tmp_path / "flat.zarr/heights/0/c.1.2.0.0").is_file() and not (tmp_path / "flat.zarr/heights/0/c").exists()
+    assert not [p for p in (tmp_path / "flat.zarr").rglob("c") if p.is_dir()]  # no chunk folders at all
+    lay = flat.layout
     for lv in range(lay.levels):
         for i in range(lay.blocks(lv)):
-            np.testing.assert_array_equal(new.get_block_row(lv, i), old.get_block_row(lv, i))
+            np.testing.assert_array_equal(flat.get_block_row(lv, i), nested.get_block_row(lv, i))
             for j in range(lay.blocks(lv)):
-                for s in (new, old):
+                for s in (flat, nested):
                     assert s.chunk_path(lv, i, j).is_file() and s.chunk_path(lv, i, j, "shade").is_file()
                     assert s._direct_block("heights", lv, i, j, "<f4") is not None  # read directly, not through zarr
-                np.testing.assert_array_equal(new.get_block(lv, i, j), old.get_block(lv, i, j))
-                np.testing.assert_array_equal(new.get_shade(lv, i, j), old.get_shade(lv, i, j))
-                np.testing.assert_array_equal(new.get_block(lv, i, j), np.asarray(new._heights[lv][i, j]))
-    for t in range(new.attrs["roettger"]["depths"]):
-        np.testing.assert_array_equal(new.group[f"roettger/d2/{t}"][...], old.group[f"roettger/d2/{t}"][...])
-    assert verify_store(tmp_path / "new.zarr") == [] and verify_store(tmp_path / "old.zarr") == []
-    import zarr
-
-    f, row = tmp_path / "old.zarr/heights/0/c/1/0/0/0", old.get_block_row(0, 1).copy()
+                np.testing.assert_array_equal(flat.get_block(lv, i, j), nested.get_block(lv, i, j))
+                np.testing.assert_array_equal(flat.get_shade(lv, i, j), nested.get_shade(lv, i, j))
+                np.testing.assert_array_equal(flat.get_block(lv, i, j), np.asarray(flat._heights[lv][i, j]))
+    for t in range(flat.attrs["roettger"]["depths"]):
+        np.testing.assert_array_equal(flat.group[f"roettger/d2/{t}"][...], nested.group[f"roettger/d2/{t}"][...])
+    assert verify_store(tmp_path / "flat.zarr") == [] and verify_store(tmp_path / "nested.zarr") == []
+    f, row = tmp_path / "flat.zarr/heights/0/c.1.0.0.0", flat.get_block_row(0, 1).copy()
     before = f.read_bytes()
     f.unlink()
-    ChunkWriter(zarr.open_group(str(tmp_path / "old.zarr"), mode="r+"), "heights/0").write(1, 0, row[:1])
+    ChunkWriter(zarr.open_group(str(tmp_path / "flat.zarr"), mode="r+"), "heights/0").write(1, 0, row[:1])
     assert f.read_bytes() == before

@@ -51,19 +51,19 @@ def test_undamaged_stores_verify_ok(terrain, scene):
 
 def test_terrain_missing_shading_chunk(terrain, tmp_path):
     st = _copy(terrain, tmp_path)
-    (st / "shade/0/c.3.3.0.0.0").unlink()
-    _fails(st, "shading block (level 0, 3, 3) is missing", "shade/0/c.3.3.0.0.0", "--overwrite")
+    (st / "shade/0/c/3/3/0/0/0").unlink()
+    _fails(st, "shading block (level 0, 3, 3) is missing", "shade/0/c/3/3/0/0/0", "--overwrite")
 
 
 def test_terrain_truncated_roettger_chunk_in_verify_and_render(terrain, tmp_path):
     st = _copy(terrain, tmp_path)
-    f = st / "roettger/d2/3/c.0.0"
+    f = st / "roettger/d2/3/c/0/0"
     f.write_bytes(f.read_bytes()[:100])
-    _fails(st, "roettger/d2/3", "roettger/d2/3/c.0.0", "does not decode", "massview prepare roettger")
-    err = _fails(st, "roettger/d2/3", "roettger/d2/3/c.0.0", "massview prepare roettger",
+    _fails(st, "roettger/d2/3", "roettger/d2/3/c/0/0", "does not decode", "massview prepare roettger")
+    err = _fails(st, "roettger/d2/3", "roettger/d2/3/c/0/0", "massview prepare roettger",
                  cmd=("render", "--system", "roettger", "--ranks", 2, "--compute-ranks", 1, "--frames", 1,
                       "--size", "64x48", "-o", tmp_path / "r", "-q"))
-    line = next(x for x in err.splitlines() if "roettger/d2/3/c.0.0" in x)
+    line = next(x for x in err.splitlines() if "roettger/d2/3/c/0/0" in x)
     assert line.startswith("massview: error") and "damaged" in line, err
 
 

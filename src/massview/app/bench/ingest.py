@@ -128,9 +128,9 @@ def _free_page_reporting() -> bool:
 
 def _write_floor(store: Path, dst: Path, threads: int = 2) -> tuple[float, float]:
     """Write every file of ``store`` again under ``dst``: the same names and bytes, with the
-    chunk writer's own calls (each folder once, :func:`store.make_top_folder` for the folders
-    prepare marks; a file by :func:`store.write_file`, an older store's nested chunk
-    folders by :func:`store.write_chunk_file`), block rows shared out over ``threads`` threads
+    chunk writer's own calls (each folder once, :func:`store.make_top_folder` for an array's
+    ``c``; the nested chunk folders and the file by :func:`store.write_chunk_file`, a flat
+    key's file by :func:`store.write_file`), block rows shared out over ``threads`` threads
     as prepare's workers share them. Each file's bytes are read first, outside the timed part.
     Returns (the slowest thread's seconds in those calls, the system CPU seconds of all threads
     in them): what writing this store costs on this file system, whatever computes it."""
@@ -150,7 +150,6 @@ def _write_floor(store: Path, dst: Path, threads: int = 2) -> tuple[float, float
         shares[k % threads].extend(rows[key])
     made, lock = set(), threading.Lock()
     spent, system = [0.0] * threads, [0.0] * threads
-    top = {dst / "heights", dst / "shade", dst / "color"}
 
     def folder(d: Path) -> None:  # each folder once, parents first, under the lock
         if d in made:
@@ -159,7 +158,7 @@ def _write_floor(store: Path, dst: Path, threads: int = 2) -> tuple[float, float
             for f in [*reversed(d.relative_to(dst).parents), d.relative_to(dst)]:
                 f = dst / f
                 if f not in made:
-                    if f in top or f.name == "c":
+                    if f.name == "c":
                         make_top_folder(str(f))
                     else:
                         f.mkdir(exist_ok=True)

@@ -8,7 +8,7 @@ Layout (readable with plain zarr; ``M`` = block size, ``nb_l = 2^(L-l)``)::
            source, height_range [min, max], color ("computed" | "orthophoto" | null)
     heights/<l>     float32 (nb_l, nb_l, M, M), chunk (1, 1, M, M), blosc lz4 5 + shuffle (_compressor):
                     block (i, j) = finest samples rows (i(M-1)+r)2^l, cols (j(M-1)+c)2^l;
-                    its file ``heights/<l>/c.<i>.<j>.0.0`` (CHUNK_KEYS)
+                    its file ``heights/<l>/c/<i>/<j>/0/0`` (zarr's default keys, CHUNK_KEYS)
     shade/<l>       float16 (nb_l, nb_l, M, M, 3), chunk (1, 1, M, M, 3): slope ∂h/∂x, ∂h/∂y
                     (per metre, x east, y north) and height fraction, mip-filtered (colors.py)
     color/<l>       uint8 (nb_l, nb_l, M, M, 3), chunk (1, 1, M, M, 3)     [orthophoto only]
@@ -20,10 +20,9 @@ Layout (readable with plain zarr; ``M`` = block size, ``nb_l = 2^(L-l)``)::
     lod/edge_error/<j>    float32 (2, 2^j+1, 2^j+1)     edge diamonds: [0] horizontal, [1] vertical
     lod/zmin/<j>, lod/zmax/<j>  float32 (2^j, 2^j)      height range of each level-j square
 
-Every array's chunk files lie in the array's own folder, named ``c.<i>.<j>…`` (zarr's default
-chunk keys with a "." separator, :data:`CHUNK_KEYS`). Stores written before 2026-11-29 name
-them ``c/<i>/<j>/…``, a folder per chunk and per trailing 0 (~28 000 folders at 16385²); both
-are read, each array by its own ``zarr.json``, and a resumed prepare keeps the old names.
+The direct chunk reads and writes take each array's chunk file names from its own
+``zarr.json`` (its chunk key encoding): a store whose arrays use flat keys (``c.<i>.<j>…``)
+reads and resumes as well as one with zarr's default nested keys, which prepare writes.
 
 Samples beyond ``rows``/``cols`` are padding (edge-replicated) and are not drawn. A store is
 only opened when ``complete`` is true, which ``prepare`` sets after everything is written.
@@ -50,13 +49,17 @@ __all__ = ["FORMAT", "FORMAT_VERSION", "TerrainStore", "create_store", "rows_don
 
 FORMAT = "massview-terrain"
 FORMAT_VERSION = 2
-CHUNK_KEYS = {"name": "default", "separator": "."}
-"""The chunk key encoding of every array a prepare creates: ``c.i.j.0.0``, one file per chunk in
-the array's folder. zarr's ``c/i/j/0/0`` made three or four folders per chunk (27 874 folders
-for 11 441 files at 16385²): on ext4 a ``mkdir`` costs ~50 µs of system time against ~35 µs
-for a whole chunk file's ``open`` + ``close``, so making the folders took ~190 µs a chunk
-against ~38 flat, measured on a fresh file system (issue 20); folders are as costly on the
-metadata servers of cluster file systems."""
+CHUNK_KEYS = {"name": "default", "separator": "/"}
+"""The chunk key encoding of every array a prepare creates: zarr's default ``c/i/j/0/0``, three
+or four folders per chunk (27 874 folders for 11 441 files at 16385²). Flat keys (``"."``:
+``c.i.j.0.0``, one folder per array) were measured twice and lost where it matters here (issue
+20): on a fresh ext4 file system they save the folders' ``mkdir`` (~190 µs a chunk against ~38;
+prepare of the 16385² DEM 12.6–13.5 s against 13.8–14.6 s, system CPU −1.1 s), but on ext4
+without a journal, as this host's, a store written 35 s after another was deleted took
+17.0–21.0 s against 12.6–14.7 s (system CPU 12.6–17.7 s against 6.0–7.6 s): thousands of files
+in one folder are all allocated in one block group, and each allocation scans that group's
+recently freed inodes (``find_inode_bit`` → ``recently_deleted``), where the row folders spread
+them over many groups (:func:`make_top_folder`)."""
 
 
 def _compressor(typesize: int = 4):
@@ -118,8 +121,6 @@ def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, ov
     g.attrs.update({"format": FORMAT, "format_version": FORMAT_VERSION, "complete": False, **layout.to_json(),
                     "levels": layout.levels, "padded": layout.S, **attrs})
     M, new = layout.M, _ArraysLike(g)
-    for family in ("heights", "color")[:1 + bool(color)]:
-        make_top_folder(str(path / family))
     for lv in range(layout.levels):
         nb = layout.blocks(lv)
         new.create(f"heights/{lv}", "heights", shape=(nb, nb, M, M), chunks=(1, 1, M, M), dtype="float32",
@@ -150,8 +151,6 @@ def rows_done(path) -> tuple[int, int] | None:
 
 def create_shade_arrays(g, layout: TerrainLayout, new: _ArraysLike | None = None) -> None:
     M, new = layout.M, new or _ArraysLike(g)
-    if new.base is not None:
-        make_top_folder(new.folder("shade"))
     for lv in range(layout.levels):
         nb = layout.blocks(lv)
         new.create(f"shade/{lv}", "shade", shape=(nb, nb, M, M, 3), chunks=(1, 1, M, M, 3), dtype="float16",
@@ -269,8 +268,8 @@ class ChunkWriter:
     """Whole-chunk writes of one array of a store, encoded on the calling thread.
 
     The bytes are exactly those zarr writes (its blosc codec object encodes the chunk's
-    little-endian bytes, stored under the array's chunk key, ``c.i.j.0…`` or an older store's
-    ``c/i/j/0/…``), but
+    little-endian bytes, stored under the array's chunk key, ``c/i/j/0/…`` or a flat
+    ``c.i.j.0…``), but
     without zarr's per-chunk event-loop round trip, so worker threads compress in parallel
     (blosc releases the GIL). Reads go through zarr as before. Only for arrays whose chunks are
     single blocks (``(1, 1, M, M[, 3])``) with codecs ``bytes`` + ``blosc``."""
@@ -294,10 +293,10 @@ class ChunkWriter:
 
 
 class _ChunkFiles:
-    """The chunk files of one array at folder ``root`` whose chunk keys ``key`` gives: a ``c.i.j``
-    key is one file in that folder; a ``c/i/j/…`` key (stores before :data:`CHUNK_KEYS`) gets its
-    folders made as zarr would, ``c`` once (:func:`make_top_folder`), each chunk row's once, the
-    rest by :func:`write_chunk_file`. Thread-safe."""
+    """The chunk files of one array at folder ``root`` whose chunk keys ``key`` gives: a
+    ``c/i/j/…`` key (:data:`CHUNK_KEYS`) gets its folders made as zarr would, ``c`` once
+    (:func:`make_top_folder`), each chunk row's once, the rest by :func:`write_chunk_file`; a
+    flat ``c.i.j`` key is one file in that folder. Thread-safe."""
 
     def __init__(self, root: str, key):
         self.root, self.key = root, key
@@ -333,10 +332,9 @@ _FS_IOC_GETFLAGS, _FS_IOC_SETFLAGS, _FS_TOPDIR_FL = 0x80086601, 0x40086602, 0x00
 
 
 def make_top_folder(root: str) -> bool:
-    """Make a folder whose sub-folders hold many chunk files (a store's ``heights``, ``shade``,
-    ``color``; an older store's ``…/c``) and mark it a "top directory" (``chattr +T``): ext4's
-    Orlov allocator then places each sub-folder, and the inodes under it, in a block group
-    with many free inodes instead of next to the parent. Without it, a
+    """Make an array's chunk folder ``…/c`` and mark it a "top directory" (``chattr +T``):
+    ext4's Orlov allocator then places each chunk row's folder, and the ~60–250 inodes under
+    it, in a block group with many free inodes instead of next to the parent. Without it, a
     store written where another was just deleted (``--overwrite``, a benchmark loop) lands in
     groups whose free inodes were all deleted in the last 1–5 minutes, which ext4 without a
     journal skips one by one on every ``mkdir`` and ``open`` (``find_inode_bit`` →
