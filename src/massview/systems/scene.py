@@ -16,7 +16,9 @@ Every rank holds the skeleton and computes the same cut from the same camera. Pe
    finest coarser resident level (or a finer one) — so parallel == serial whatever finished
    loading where. Missing meshes are requested by screen size (the coarsest level first, so
    something shows soon); with ``loading="complete"`` the frame waits until the desired
-   levels are in, otherwise it never waits.
+   levels are in, otherwise it waits only once: the first frame, for the coarsest levels of
+   the objects it draws that have nothing resident (their smallest meshes), so it is not
+   empty.
 
 Sort-last modes: ``visible`` (default) — the visible objects, in id order, split into ranges
 of equal chosen-level triangles; ``static`` — object id ranges of equal level-0 triangles over
@@ -175,6 +177,7 @@ class SceneSystem:
         if self.loading == "complete":
             self._check_fits(cut, claim)
         stalled, best = 0, -1
+        first = self.loading != "complete" and self._frame == 1  # (the same on every rank)
         while True:
             stats.count("meshes_uploaded", self._upload_ready(keep))
             mask = pool.resident[g]
@@ -182,6 +185,16 @@ class SceneSystem:
             cut.drawn = resolve_levels(cut.desired, agree_all(comm, mask))
             missing = claim & (cut.drawn != cut.desired)
             self._request(cut, claim)
+            if first:  # async's first frame waits once for the coarsest levels of what it claims (walk8 L2: an empty frame 0)
+                first = False
+                empty = claim & (cut.drawn < 0)
+                if any_rank(comm, empty.any()):
+                    obj = cut.vis[empty]
+                    keys = list(zip(self.geometry[obj].tolist(), (self.levels[obj] - 1).tolist()))
+                    for key in keys:  # (all of them: _request issues at most max_requests a frame)
+                        self._want(key, 2e12)
+                    self._wait_for_keys(keys)
+                    continue
             if self.loading != "complete" or not any_rank(comm, missing.any()):
                 return
             done = int(np.count_nonzero(claim & (cut.drawn == cut.desired)))
@@ -217,10 +230,11 @@ class SceneSystem:
         prio = self.sk.radius[obj] * lod_scale(cam) / d
         g, lv = self.geometry[obj], cut.desired[need]
         coarse = (self.levels[obj] - 1)
-        first = (cut.drawn[need] < 0) & (coarse != lv) & (self.loading != "complete")
-        keys_g = np.concatenate([g[first], g])
-        keys_l = np.concatenate([coarse[first], lv])
-        keys_p = np.concatenate([prio[first] + 1e12, prio])
+        first = (cut.drawn[need] < 0) & (self.loading != "complete")  # nothing resident: its coarsest level before any finer one
+        rest = ~(first & (coarse == lv))  # (an object whose desired level is its coarsest: requested once, as a first)
+        keys_g = np.concatenate([g[first], g[rest]])
+        keys_l = np.concatenate([coarse[first], lv[rest]])
+        keys_p = np.concatenate([prio[first] + 1e12, prio[rest]])
         top = np.argsort(-keys_p, kind="stable")[: self.max_requests]
         for gi, li, p in zip(keys_g[top].tolist(), keys_l[top].tolist(), keys_p[top].tolist()):
             self._want((gi, li), p)
@@ -240,6 +254,15 @@ class SceneSystem:
                 del self._wanted[key]
                 n += 1
         return n
+
+    def _wait_for_keys(self, keys: list, limit_s: float = 10.0) -> None:
+        """Wait until every mesh of ``keys`` (requested already) is in the cache, nothing is
+        loading any more (a budget too small to hold them all), or ``limit_s`` passed."""
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < limit_s:
+            if all(self.cache.contains(k) for k in keys) or self.cache.idle():
+                return
+            time.sleep(0.002)
 
     def _wait_for_loads(self) -> None:
         t0 = time.monotonic()
