@@ -215,12 +215,14 @@ def test_options_without_effect_get_one_warning_line_each(terrain_store, tmp_pat
                     "frame whole; the others are board backends); leave them out"]
 
 
-def test_dmmr_with_a_wall_and_a_negative_roettger_c_are_refused_before_any_rank(tmp_path, terrain_store):
+def test_dmmr_with_a_wall_a_negative_roettger_c_and_a_stalled_non_backend_are_refused_before_any_rank(tmp_path, terrain_store):
     """walk8 L1: these were refused inside the ranks, each under MPICH's MPI_Abort lines."""
     for args, needle in ((["builtin:objects?n=60", "--system", "dmmr", "--wall", "2x1", "--ranks", 3],
                           "--wall and --tile-targets are not available with --system dmmr"),
                          ([terrain_store, "--system", "roettger", "--compute-ranks", 1, "--roettger-c", -2, "--ranks", 2],
-                          "--roettger-c must be a finite number >= 0, got -2")):
+                          "--roettger-c must be a finite number >= 0, got -2"),
+                         (["builtin:objects?n=60", "--system", "reliefboards", "--stall-backend", 7, "--ranks", 2],
+                          "--stall-backend 7 is not a backend rank (with --ranks 2 the backends are rank 1)")):
         proc = run_cli("render", *args, "--frames", 1, "--size", "64x48", "--out", tmp_path / "o", check=False)
         assert proc.returncode == 2 and needle in proc.stderr, proc.stderr
         assert "Abort" not in proc.stderr and "on rank" not in proc.stderr, proc.stderr

@@ -66,6 +66,7 @@ def options_from_args(args):
 def cmd_render(args, argv, cfg: RenderConfig) -> int:
     """``massview render --system reliefboards``: relaunch under mpiexec, run, print."""
     from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
+    from ..systems.reliefboards import check_stall
     from ..systems.reliefboards_job import check_scene, run
 
     opts = options_from_args(args)
@@ -77,6 +78,7 @@ def cmd_render(args, argv, cfg: RenderConfig) -> int:
         check_render_out(args.out, args.scene)
         if (args.ranks or 1) < 2:
             raise ConfigError("--system reliefboards needs a visualization rank and at least one backend: give --ranks 2 or more")
+        check_stall(opts, args.ranks)  # (walk8 L1: said by every rank, under MPI_Abort lines)
         return relaunch(argv, args.ranks)
     comm = world()
     summary = guarded(comm, run, comm, args.scene, cfg, opts, args.out, args.quiet)
@@ -114,6 +116,7 @@ def summary_lines(s: dict) -> str:
 def cmd_view(args, argv, cfg: RenderConfig) -> int:
     """``massview view --system reliefboards``: relaunch under mpiexec, serve the viewer."""
     from ..parallel.runtime import guarded, in_mpi_job, relaunch, world
+    from ..systems.reliefboards import check_stall
     from .reliefboards_view import run_view_reliefboards
 
     opts = options_from_args(args)
@@ -125,6 +128,7 @@ def cmd_view(args, argv, cfg: RenderConfig) -> int:
         check_port(args.host, args.port)  # before any rank starts
         if (args.ranks or 1) < 2:
             raise ConfigError("--system reliefboards needs a visualization rank and at least one backend: give --ranks 2 or more")
+        check_stall(opts, args.ranks)
         return relaunch(argv, args.ranks)
     comm = world()
     return guarded(comm, run_view_reliefboards, comm, args, cfg, opts)

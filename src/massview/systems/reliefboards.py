@@ -43,7 +43,7 @@ from ..lod.cull import spheres_in_frustum
 from ..lod.reliefboard import decode_board, encode_board
 from ..parallel.boardlink import BoardRequest, BackendLink, VisualizationLink
 from ..parallel.ccollision import assign_requests, place_replicas
-from ..parallel.roles import Role, split_roles
+from ..parallel.roles import Role, assign_roles, split_roles
 from ..render.boards import BoardBuilder, BoardRenderer
 from ..render.context import create_context, renderer_string
 from ..render.meshes import MeshRenderer, rank_tint
@@ -290,6 +290,17 @@ class BackendRank:
                 "objects_held": int(self.held.sum())}
 
 
+def check_stall(opts: ReliefboardOptions, nranks: int) -> None:
+    """``--stall-backend RANK`` must name a backend of an ``nranks`` job: a ConfigError naming
+    them where not (before the job starts, so it is said once, not by every rank)."""
+    if opts.stall_backend is None:
+        return
+    backends = assign_roles(ROLES, nranks)["backend"]
+    if opts.stall_backend not in backends:
+        which = f"rank {backends[0]}" if len(backends) == 1 else f"ranks {backends[0]}..{backends[-1]}"
+        raise ConfigError(f"--stall-backend {opts.stall_backend} is not a backend rank (with --ranks {nranks} the backends are {which})")
+
+
 def run_reliefboards(comm, objects: BoardObjects, opts: ReliefboardOptions, cameras: list[Camera] | None,
                      sink=None, reference: bool = False, egl_device=None, tint_boards: bool = False):
     """Run M2 on every rank of ``comm`` (split into :data:`ROLES`): the visualization rank
@@ -297,10 +308,9 @@ def run_reliefboards(comm, objects: BoardObjects, opts: ReliefboardOptions, came
     stats)`` gets every frame on the visualization rank. Returns ``(records, extra)`` there and
     ``None`` elsewhere. The only collective after the split is the gather of the backends'
     counters once the last frame is done."""
+    check_stall(opts, comm.Get_size())
     rc = split_roles(comm, ROLES)
     parent, viz, backends = rc.parent, rc.leader("visualization"), rc.ranks["backend"]
-    if opts.stall_backend is not None and opts.stall_backend not in backends:
-        raise ConfigError(f"--stall-backend {opts.stall_backend} is not a backend rank (backends are ranks {backends[0]}..{backends[-1]})")
     if rc.role == "backend":
         counters = BackendRank(parent, viz, backends, objects, opts, egl_device).run()
         parent.gather(counters, root=viz)
