@@ -36,6 +36,10 @@ from conftest import clean_env, run_cli
     (["render", "builtin:objects", "--size=32768x8", "--frames", "1"], "draws frames of at most"),
     (["render", "builtin:objects", "--size=32768x8", "--frames", "1", "--ranks", "2"], "draws frames of at most"),
     (["render", "/nonexistent/s.zarr", "--system", "reliefboards", "--ranks", "2"], "not found"),
+    # walk8 L5: T2 on a polygon scene (was "create one with massview prepare terrain INPUT -o builtin:objects"), info of a built-in
+    (["render", "builtin:objects", "--system", "roettger", "--ranks", "2", "--compute-ranks", "1"],
+     "--system roettger (T2) draws terrain stores, and builtin:objects is a polygon scene"),
+    (["info", "builtin:objects"], "builtin:objects: a built-in scene, generated when it is rendered, not a store on disk"),
 ])
 def test_bad_input_is_reported_plainly(args, needle, tmp_path):
     proc = run_cli(*args, "--out", tmp_path, check=False) if args[0] == "render" else run_cli(*args, check=False)
@@ -74,6 +78,17 @@ def test_terrain_options_are_checked_before_any_rank_or_output(terrain_store, tm
     proc = run_cli("render", terrain_store, *args, "--frames", "1", "--size", "64x48", "--out", tmp_path / "out", check=False)
     assert proc.returncode != 0 and needle in proc.stderr and "Traceback" not in proc.stderr and "MPI_Abort" not in proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_info_of_a_render_folder_points_to_report(tmp_path):
+    """walk8 L5: `massview info RUN` said "not a readable zarr group (No group found …)"."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "summary.json").write_text("{}")
+    for cmd in ("info", "verify"):
+        proc = run_cli(cmd, run, check=False)
+        assert proc.returncode != 0 and f"`massview report {run}` summarises it" in proc.stderr, proc.stderr
+        assert "zarr" not in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_version():

@@ -607,6 +607,10 @@ def validate(spec: str, cfg: RenderConfig, nranks: int) -> None:
 
     kind = scene_kind(spec)
     modes = {"terrain": ("kpatch", "linear", "quadtree"), "scene": ("visible", "static")}.get(kind, ())
+    if cfg.system == "roettger" and kind != "terrain":  # (walk8 L5: "not a massview terrain store", exit 1, or a prepare hint for builtin:)
+        what = "builtin:objects is a polygon scene" if kind == "objects" else f"{spec} is a scene store"
+        raise ConfigError(f"--system roettger (T2) draws terrain stores, and {what}: leave --system out (T1 draws scenes too) "
+                          "or use --system dmmr (M1) or --system reliefboards (M2)")
     if cfg.system == "dmmr" and kind == "terrain":
         raise ConfigError(f"--system dmmr draws polygon scenes (a scene store or builtin:objects), and {spec} is a terrain store: "
                           "leave --system out (T1) or use --system roettger (T2)")

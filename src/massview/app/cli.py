@@ -505,6 +505,19 @@ def _main(argv: list[str]) -> int:
         return 130
 
 
+def _check_store_spec(store: str, command: str) -> None:
+    """``info``/``verify`` of a built-in scene or of a render's output folder: a StoreError
+    saying what it is and what to run instead (walk8 L5: "no such store", "not a readable zarr
+    group")."""
+    if store.startswith("builtin:"):
+        raise StoreError(f"{store}: a built-in scene, generated when it is rendered, not a store on disk: nothing to {'inspect' if command == 'info' else command} "
+                         "(`massview render builtin:objects` draws it; `massview generate scene plant -o SCENE` makes a scene store)")
+    p = Path(store)
+    if p.is_dir() and not (p / "zarr.json").exists() and ((p / "summary.json").exists() or (p / "stats.jsonl").exists()):
+        raise StoreError(f"{store}: the output folder of a `massview render` run, not a store: `massview report {store}` "
+                         f"summarises it (report.png); `massview {command}` takes the store that run drew")
+
+
 def _dispatch(args, argv: list[str]) -> int:
     """Run the parsed command; its status."""
     if args.command == "render" and args.system == "reliefboards":
@@ -539,6 +552,8 @@ def _dispatch(args, argv: list[str]) -> int:
     if args.command in ("generate", "prepare", "info", "verify"):
         from . import scene_cmds, terrain_cmds
 
+        if args.command in ("info", "verify"):
+            _check_store_spec(args.store, args.command)
         if args.command in ("info", "verify") and not Path(args.store).exists():
             raise StoreError(f"{args.store}: no such store; make a terrain store with `massview prepare terrain INPUT -o STORE` "
                              "or a scene store with `massview prepare scene MESH... -o SCENE`")
