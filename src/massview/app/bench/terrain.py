@@ -75,6 +75,17 @@ def _parallel(args, console, table_cls) -> None:
                     t.add_row(path, d if n > 1 else "(1 rank)", str(n), ", ".join(f"{v / 1e3:.0f}" for v in s["triangles_per_rank"]),
                               f"{s['imbalance']:.3f}", f"{s['stage_ms_mean']['lod']:.1f}", f"{front:.0f}", f"{s['mean_frame_ms']:.0f}")
     console.print(t)
+    console.print(PAPER_NOTE)
+
+
+PAPER_NOTE = (  # (walk8 L4: the T2, M1 and M2 benches say which figure is which; this one did not)
+    "Beside the paper (Goswami et al., EGPGV 2010): the sort-last rows are its Figs. 4-6 (linear block and quadtree "
+    "enumeration of the M-blocks against active K-patch enumeration, four nodes) and sort-first horizontal against "
+    "vertical its Fig. 7, which the paper shows as screenshots; the imbalance column measures what they show. Its Fig. 9 "
+    "(frames/s on 1-10 machines, turning and zooming, 16k² Puget Sound and 32k² SRTM, each with its own GPU) has no "
+    "counterpart on this host, whose ranks share its cores and one software rasterizer: `massview bench frame` gives the "
+    "frame per stage at 1-4 ranks. 'LOD ms' is the whole LOD stage of a frame, with the waits for loads (--loading "
+    "complete); the selection alone is the 'LOD selection time' table.")
 
 
 def _vs_plain(args, console, table_cls) -> None:
