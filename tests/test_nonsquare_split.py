@@ -68,8 +68,13 @@ def test_the_summary_says_the_frame_time_imbalance_and_the_time_in_no_stage():
     s = summarize(recs)
     assert s["stage_ms_mean"]["finish"] == 1.0 and "piece.decode" not in s["stage_ms_mean"]
     assert s["stage_ms_mean"]["other"] == pytest.approx((0.0 + 4.0) / 2)
-    for r in recs:  # walk8 M1: M1's clients record no total (the server's period is the frame time): no such figures
-        if r["rank"] == 1:
-            r["times_ms"]["total"] = 0.0
-    s = summarize(recs, work_ranks=[1])
-    assert s["time_imbalance"] is None and "other" not in s["stage_ms_mean"]
+    # walk8 M1: M1's clients record no total (the server's period is the frame time): their own stages and busy time
+    recs = [{"frame": f, "rank": 0, "triangles": 0, "bytes_sent": 0, "times_ms": {"total": 50.0, "divide": 1.0, "assemble": 5.0}}
+            for f in range(2)]
+    recs += [{"frame": f, "rank": r, "triangles": 10, "bytes_sent": 0,
+              "times_ms": {"total": 0.0, "draw": 10.0 * r, "visibility": 4.0, "vis_issue": 3.0, "send": 1.0}}
+             for f in range(2) for r in (1, 2)]  # busy: rank 1 15 ms, rank 2 25 ms (vis_issue is part of visibility)
+    s = summarize(recs, work_ranks=[1, 2])
+    assert s["time_imbalance"] == pytest.approx(25 / 20) and s["time_imbalance_of"] == "busy" and s["stage_ms_over"] == "ranks 1, 2"
+    assert s["stage_ms_mean"] == {"draw": 15.0, "send": 1.0, "visibility": 4.0, "busy": 20.0}
+    assert s["mean_frame_ms"] == 50.0 and summarize(recs)["stage_ms_mean"]["busy"] == 20.0  # (no roles given: the ranks without a total)

@@ -95,12 +95,14 @@ def print_summary(summary: dict, console=None) -> None:
             if key == "imbalance":  # (walk7 L4: a triangle figure beside the timings, unlabelled)
                 key, v = "imbalance (triangles)", f"{v} (max ÷ mean a frame{over})"
             elif key == "time_imbalance":
-                key, v = "imbalance (frame time)", f"{v} (max ÷ mean a frame{over})"
+                busy = summary.get("time_imbalance_of") == "busy"  # (M1: the clients' busy time, the sum of their stages)
+                key, v = f"imbalance ({'busy time' if busy else 'frame time'})", f"{v} (max ÷ mean a frame{over})"
             t.add_row(key, str(v))
     if "triangles_per_rank" in summary:
         t.add_row("triangles_per_rank", ", ".join(f"{v / 1e3:.1f}k" for v in summary["triangles_per_rank"]))
     if "stage_ms_mean" in summary:
-        t.add_row("stage ms (mean)", ", ".join(f"{k} {v:.1f}" for k, v in summary["stage_ms_mean"].items()))
+        over = f", {summary['stage_ms_over']}" if summary.get("stage_ms_over") else ""
+        t.add_row(f"stage ms (mean{over})", ", ".join(f"{k} {v:.1f}" for k, v in summary["stage_ms_mean"].items()))
     console.print(t)
 
 

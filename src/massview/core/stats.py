@@ -103,6 +103,32 @@ def read_stats(path) -> list[dict]:
         return [json.loads(line) for line in f if line.strip()]
 
 
+def _busy_summary(records: list[dict], frames: list, ranks: list, work_ranks, fi: dict, ri: dict) -> tuple[dict, float | None, dict]:
+    """Where ranks time only their own stages and no ``total`` (M1's clients; the server's
+    period is the frame time): (the mean of each stage those ranks time, over their records,
+    with ``busy``, a frame's sum of them; the max ÷ mean busy time a frame over them; the
+    summary's ``stage_ms_over`` and ``time_imbalance_of`` keys). The ranks are the work ranks
+    without a ``total`` (all ranks without one where no work ranks are given)."""
+    bare = {r["rank"] for r in records} - {r["rank"] for r in records if r["times_ms"].get("total", 0.0) > 0}
+    own = sorted(bare & set(work_ranks)) if work_ranks else sorted(bare)
+    mine = [r for r in records if r["rank"] in own]
+    keys = [k for k in STAGES if k != "total"]
+    keys += sorted({k for r in mine for k in r["times_ms"]} - set(STAGES) - set(PARTS))
+    keys = [k for k in keys if "." not in k and any(r["times_ms"].get(k, 0.0) for r in mine)]
+    if not mine or not keys:
+        return {s: float(np.mean([r["times_ms"].get(s, 0.0) for r in records])) for s in STAGES}, None, {}
+    busy = np.zeros((len(frames), len(own)))
+    col = {r: j for j, r in enumerate(own)}
+    for r in mine:
+        busy[fi[r["frame"]], col[r["rank"]]] = sum(r["times_ms"].get(k, 0.0) for k in keys)
+    means = {k: float(np.mean([r["times_ms"].get(k, 0.0) for r in mine])) for k in keys}
+    means["busy"] = float(busy.mean())
+    m = busy.mean(axis=1)
+    ok = m > 0
+    timb = round(float((busy[ok].max(axis=1) / m[ok]).mean()), 4) if ok.any() else None
+    return means, timb, {"stage_ms_over": f"ranks {', '.join(map(str, own))}", "time_imbalance_of": "busy"}
+
+
 def summarize(records: list[dict], work_ranks=None, **extra) -> dict:
     """Summary of per-frame per-rank records: frame time is the max ``total`` over ranks.
     ``imbalance`` (max ÷ mean triangles a frame) and ``time_imbalance`` (max ÷ mean ``total``
@@ -111,8 +137,10 @@ def summarize(records: list[dict], work_ranks=None, **extra) -> dict:
     ``stage_ms_mean`` has each stage's mean over the records (:data:`STAGES`, then any other
     stage the records time, e.g. the frame loop's ``finish``) and ``other``: the part of
     ``total`` in none of them (waiting for the slowest rank; in the first frame, setting up).
-    ``time_imbalance`` and ``other`` are left out where a work rank records no ``total`` (M1's
-    clients time only their stages: the server's period is the frame time)."""
+    Where work ranks record no ``total`` (M1's clients time only their stages: the server's
+    period is the frame time), ``stage_ms_mean`` is over those ranks' records, their own stages
+    and ``busy`` (a frame's sum of them), and ``time_imbalance`` is the max ÷ mean busy time a
+    frame over them (``stage_ms_over`` names the ranks, ``time_imbalance_of`` is "busy")."""
     frames = sorted({r["frame"] for r in records})
     ranks = sorted({r["rank"] for r in records})
     if not frames:
@@ -147,11 +175,15 @@ def summarize(records: list[dict], work_ranks=None, **extra) -> dict:
                                               for r in records]))
         mean_total = total[:, work].mean(axis=1)
         timb = round(float((total[:, work].max(axis=1) / mean_total).mean()), 4)
+    busy_of = {}
+    if timb is None:  # M1: its clients time only their own stages (walk8 M1: "1.0" and other > total before)
+        stage_means, timb, busy_of = _busy_summary(records, frames, ranks, work_ranks, fi, ri)
     mean_frame_ms = float(frame_ms.mean())
     return {
         "frames": len(frames),
         "ranks": len(ranks),
         **extra,
+        **busy_of,
         "mean_frame_ms": round(mean_frame_ms, 3),
         "fps": round(1000.0 / mean_frame_ms, 3) if mean_frame_ms > 0 else None,
         "triangles_per_rank": [float(v) for v in tri.mean(axis=0)],
