@@ -103,7 +103,7 @@ def read_stats(path) -> list[dict]:
         return [json.loads(line) for line in f if line.strip()]
 
 
-def _busy_summary(records: list[dict], frames: list, ranks: list, work_ranks, fi: dict, ri: dict) -> tuple[dict, float | None, dict]:
+def _busy_summary(records: list[dict], frames: list, work_ranks, fi: dict) -> tuple[dict, float | None, dict]:
     """Where ranks time only their own stages and no ``total`` (M1's clients; the server's
     period is the frame time): (the mean of each stage those ranks time, over their records,
     with ``busy``, a frame's sum of them; the max ÷ mean busy time a frame over them; the
@@ -177,7 +177,7 @@ def summarize(records: list[dict], work_ranks=None, **extra) -> dict:
         timb = round(float((total[:, work].max(axis=1) / mean_total).mean()), 4)
     busy_of = {}
     if timb is None:  # M1: its clients time only their own stages (walk8 M1: "1.0" and other > total before)
-        stage_means, timb, busy_of = _busy_summary(records, frames, ranks, work_ranks, fi, ri)
+        stage_means, timb, busy_of = _busy_summary(records, frames, work_ranks, fi)
     mean_frame_ms = float(frame_ms.mean())
     return {
         "frames": len(frames),
