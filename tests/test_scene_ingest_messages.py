@@ -293,3 +293,22 @@ def test_inputs_in_different_units_are_warned(tmp_path):
     far.export(tmp_path / "far.ply")
     proc = run_cli("prepare", "scene", tmp_path / "table.ply", tmp_path / "far.ply", "-o", tmp_path / "c", "-q")
     assert "differ in scale" not in proc.stderr, proc.stderr
+
+
+def test_a_model_thinnest_along_y_gets_an_up_hint(tmp_path):
+    """walk6 #14: a y-up PLY (a 10 × 0.2 × 10 slab with a house on it) rendered as a wall with
+    no word at prepare time. Now prepare says it looks y-up; the same model z-up, or with
+    --up y, gets no such line."""
+    slab = trimesh.creation.box((10.0, 0.2, 10.0))
+    house = trimesh.creation.box((3.0, 2.5, 3.0))
+    house.apply_translation((0.0, 1.35, 0.0))
+    yup = trimesh.util.concatenate([slab, house])
+    zup = yup.copy()
+    zup.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (1, 0, 0)))  # y-up → z-up
+    yup.export(tmp_path / "house_yup.ply")
+    zup.export(tmp_path / "house_zup.ply")
+    said = lambda name, **kw: [w for w in prepare_scene([tmp_path / name], tmp_path / f"{name}_{kw}.zarr",  # noqa: E731
+                                                        IngestParams(**kw))["warnings"] if "--up y" in w]
+    hint = said("house_yup.ply")
+    assert len(hint) == 1 and "house_yup.ply: it is thinnest along y (2.7 against 10 along x and 10 along z)" in hint[0], hint
+    assert said("house_zup.ply") == [] and said("house_yup.ply", up="y") == []

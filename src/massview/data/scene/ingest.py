@@ -44,7 +44,7 @@ from .normals import CREASE_ANGLE
 from .plystream import PlyLayout
 from .simplify import build_levels
 from .soup import Corners, SplitParams, cell_grid, cell_objects, cell_of, clean_mesh, clean_soup, split_dense
-from .sources import UP_CHOICES, MemorySoup, StructuredObject, check_input, open_input, stream_bounds, stream_corners, transform_normals
+from .sources import UP_CHOICES, MemorySoup, StructuredObject, check_input, open_input, stream_bounds, stream_corners, transform_normals, up_axis
 from .store import FORMAT
 from .writer import CHECKPOINT_BYTES, SceneWriter
 
@@ -158,6 +158,28 @@ class _Tally:
 _UNITS_RATIO = 500.0  # an input this many times larger than another: mixed units? (mm against m is 1000)
 
 
+_FLAT_RATIO = 1 / 3  # an input thinner along y than this × its x and z extents looks like a y-up model lying flat
+
+
+def _up_warnings(tally: dict, up: str) -> list[str]:
+    """A line per input read as z-up only by ``--up auto`` (PLY, OBJ, STL, OFF: no convention)
+    whose box is thinnest along y by far, as a y-up model's would be (walk6 #14: a y-up house
+    on a 10 × 0.2 × 10 slab rendered as a wall, with no word at prepare time). Only a hint:
+    nothing is turned."""
+    if up != "auto":
+        return []
+    out = []
+    for name, t in tally.items():
+        if not t.read or up_axis(Path(name), up) != "z" or not np.all(np.isfinite(t.lo)):
+            continue
+        ex, ey, ez = (float(v) for v in np.asarray(t.hi) - np.asarray(t.lo))
+        if ez > 0 and ey < _FLAT_RATIO * min(ex, ez):
+            out.append(f"{name}: it is thinnest along y ({ey:.3g} against {ex:.3g} along x and {ez:.3g} along z), as a y-up "
+                       "model lying flat would be; massview's world is z-up and this format has no up convention — if it "
+                       "renders standing on edge, prepare it again with --up y")
+    return out
+
+
 def _units_warning(tally: dict) -> list[str]:
     """One line when the inputs look like different units (walk6 #12: metre models beside a
     2000 mm part 125 km away rendered as specks in an empty frame): one input ``_UNITS_RATIO``
@@ -206,7 +228,8 @@ class _Run:
         out = [f"{name}: {bad} of {total} objects have faces without a usable normal (no vn, zero or NaN); those objects "
                f"got computed normals (split at {self.prm.crease_angle:g}°) instead of the file's"
                for name, (bad, total) in self.computed.items() if bad]
-        return out + [m for m in (t.warning(name) for name, t in self.tally.items()) if m] + _units_warning(self.tally)
+        return (out + [m for m in (t.warning(name) for name, t in self.tally.items()) if m] + _units_warning(self.tally)
+                + _up_warnings(self.tally, self.prm.up))
 
     def pending(self) -> bool:
         return self.unit >= self.w.geometries_done
