@@ -57,15 +57,15 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
     from ..api import open_scene
 
     rank, n = comm.Get_rank(), comm.Get_size()
-    scene = open_scene(args.scene)
-    system = scene.system(cfg)
     stop = {"flag": False}
 
     def on_sigint(signum, frame):
         stop["flag"] = True
 
-    signal.signal(signal.SIGINT, on_sigint)
-    signal.signal(signal.SIGTERM, on_sigint)
+    signal.signal(signal.SIGINT, on_sigint)  # first: a stop while a rank still opens the scene ends the loop at
+    signal.signal(signal.SIGTERM, on_sigint)  # its first test, as a clean stop (it interrupted that rank's setup)
+    scene = open_scene(args.scene)
+    system = scene.system(cfg)
     server = state = None
     if rank == 0:
         from .viewer import ViewerServer, ViewerState
@@ -92,6 +92,8 @@ def run_view(comm, args, cfg: RenderConfig) -> int:
                             relief)
         server = ViewerServer(state, args.host, args.port)
         server.start()
+    comm.Barrier()  # every rank set up, its stop handler in place, before the URL is announced (a stop right after
+    if rank == 0:   # "serving" reached a rank still opening the scene: exit 143 instead of a clean stop)
         bound = "" if server.loopback else f"; bound to {args.host}, the token in the URL is required"
         print(f"massview: serving {server.url} on {n} rank{'s' if n > 1 else ''} (Ctrl-C stops{bound})", flush=True)
     times: deque = deque(maxlen=20)
