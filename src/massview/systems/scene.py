@@ -193,7 +193,7 @@ class SceneSystem:
                     keys = list(zip(self.geometry[obj].tolist(), (self.levels[obj] - 1).tolist()))
                     for key in keys:  # (all of them: _request issues at most max_requests a frame)
                         self._want(key, 2e12)
-                    self._wait_for_keys(keys)
+                    self._wait_for_loads(keys, limit_s=10.0)
                     continue
             if self.loading != "complete" or not any_rank(comm, missing.any()):
                 return
@@ -255,18 +255,13 @@ class SceneSystem:
                 n += 1
         return n
 
-    def _wait_for_keys(self, keys: list, limit_s: float = 10.0) -> None:
-        """Wait until every mesh of ``keys`` (requested already) is in the cache, nothing is
-        loading any more (a budget too small to hold them all), or ``limit_s`` passed."""
+    def _wait_for_loads(self, keys: list = (), limit_s: float = 60.0) -> None:
+        """Wait until nothing is loading any more, every mesh of ``keys`` (requested already) is
+        in the cache if any are given, or ``limit_s`` passed."""
         t0 = time.monotonic()
         while time.monotonic() - t0 < limit_s:
-            if all(self.cache.contains(k) for k in keys) or self.cache.idle():
+            if self.cache.idle() or (keys and all(self.cache.contains(k) for k in keys)):
                 return
-            time.sleep(0.002)
-
-    def _wait_for_loads(self) -> None:
-        t0 = time.monotonic()
-        while not self.cache.idle() and time.monotonic() - t0 < 60:
             time.sleep(0.002)
 
     def _report(self, stats: FrameStats, cut: Cut, claim: np.ndarray) -> None:

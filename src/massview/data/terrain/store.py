@@ -564,7 +564,7 @@ class TerrainStore:
         key = (what, level)
         if key not in self._keys:
             try:
-                arr = self._heights[level] if what == "heights" else self._color[level] if what == "color" else self._shade_array(level)
+                arr = self._block_array(what, level)
                 self._keys[key] = arr.metadata.encode_chunk_key
             except Exception:  # noqa: BLE001 - no such array: name where zarr would look
                 self._keys[key] = lambda c: "c/" + "/".join(map(str, c))
@@ -575,9 +575,13 @@ class TerrainStore:
         (read through zarr)."""
         key = (what, level)
         if key not in self._codecs:
-            arr = self._heights[level] if what == "heights" else self._color[level] if what == "color" else self._shade_array(level)
+            arr = self._block_array(what, level)
             self._codecs[key] = block_blosc(arr) or False
         return self._codecs[key]
+
+    def _block_array(self, what: str, level: int):
+        """The array ``<what>/<level>`` (``heights``, ``color`` or ``shade``)."""
+        return self._heights[level] if what == "heights" else self._color[level] if what == "color" else self._shade_array(level)
 
     def _shade_array(self, level: int):
         """``shade/<level>``, opened once."""
