@@ -103,12 +103,13 @@ def read_stats(path) -> list[dict]:
         return [json.loads(line) for line in f if line.strip()]
 
 
-def _busy_summary(records: list[dict], frames: list, work_ranks, fi: dict) -> tuple[dict, float | None, dict]:
+def _busy_summary(records: list[dict], frames: list, work_ranks, fi: dict) -> tuple[dict, float | None, dict] | None:
     """Where ranks time only their own stages and no ``total`` (M1's clients; the server's
     period is the frame time): (the mean of each stage those ranks time, over their records,
     with ``busy``, a frame's sum of them; the max ÷ mean busy time a frame over them; the
-    summary's ``stage_ms_over`` and ``time_imbalance_of`` keys). The ranks are the work ranks
-    without a ``total`` (all ranks without one where no work ranks are given)."""
+    summary's ``stage_ms_over`` and ``time_imbalance_of`` keys), or None where there are none.
+    The ranks are the work ranks without a ``total`` (all ranks without one where no work
+    ranks are given)."""
     bare = {r["rank"] for r in records} - {r["rank"] for r in records if r["times_ms"].get("total", 0.0) > 0}
     own = sorted(bare & set(work_ranks)) if work_ranks else sorted(bare)
     mine = [r for r in records if r["rank"] in own]
@@ -116,7 +117,7 @@ def _busy_summary(records: list[dict], frames: list, work_ranks, fi: dict) -> tu
     keys += sorted({k for r in mine for k in r["times_ms"]} - set(STAGES) - set(PARTS))
     keys = [k for k in keys if "." not in k and any(r["times_ms"].get(k, 0.0) for r in mine)]
     if not mine or not keys:
-        return {s: float(np.mean([r["times_ms"].get(s, 0.0) for r in records])) for s in STAGES}, None, {}
+        return None
     busy = np.zeros((len(frames), len(own)))
     col = {r: j for j, r in enumerate(own)}
     for r in mine:
@@ -175,9 +176,8 @@ def summarize(records: list[dict], work_ranks=None, **extra) -> dict:
                                               for r in records]))
         mean_total = total[:, work].mean(axis=1)
         timb = round(float((total[:, work].max(axis=1) / mean_total).mean()), 4)
-    busy_of = {}
-    if timb is None:  # M1: its clients time only their own stages (walk8 M1: "1.0" and other > total before)
-        stage_means, timb, busy_of = _busy_summary(records, frames, work_ranks, fi)
+    busy = _busy_summary(records, frames, work_ranks, fi) if timb is None else None  # M1: its clients time only their
+    stage_means, timb, busy_of = busy or (stage_means, timb, {})                       # own stages (walk8 M1)
     mean_frame_ms = float(frame_ms.mean())
     return {
         "frames": len(frames),
