@@ -136,8 +136,9 @@ def test_unwritable_output_is_one_line_before_any_work(tmp_path, where, command)
     assert target in lines[0]
 
 
-def test_a_leading_nodata_region_repeats_the_first_valid_row_not_zero(tmp_path):
-    """The first strip wholly nodata (a clipped raster): filled from the data below, so no 0 m cliff."""
+def test_a_leading_nodata_region_is_filled_from_the_data_below_not_zero(tmp_path):
+    """The first strips wholly nodata (a clipped raster): filled from the data below (a smooth
+    surface within the data's range that meets its first row), so no 0 m cliff."""
     from massview.data.terrain import ArraySource, prepare_terrain
 
     a = np.tile(np.linspace(500, 900, 300, dtype=np.float32), (700, 1))
@@ -145,4 +146,7 @@ def test_a_leading_nodata_region_repeats_the_first_valid_row_not_zero(tmp_path):
     res = prepare_terrain(ArraySource(a, "top"), tmp_path / "s.zarr", block=129, color=None)
     st = TerrainStore(tmp_path / "s.zarr")
     assert res.filled == 400 * 300 and st.attrs["height_range"] == [500.0, 900.0]
-    assert np.array_equal(st.get_block(0, 0, 0)[0, :129], a[400, :129])  # row 0 is the first valid row
+    top = np.concatenate([st.get_block(0, i, 0)[:-1, :129] for i in range(4)])  # rows 0..511
+    assert np.isfinite(top).all() and top.min() >= 500.0 and top.max() <= 900.0
+    assert np.abs(np.diff(top, axis=0)).max() < 16.0  # (the ramp rises 1.34 m a column; 0 m would be a 500 m step)
+    assert np.abs(top[399] - a[400, :129]).max() < 16.0

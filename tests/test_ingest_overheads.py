@@ -57,9 +57,9 @@ def test_pyramid_pass_reuses_its_strip_buffers(tmp_path, monkeypatch):
     outs = []
     read = ingest._read_strip
 
-    def spy(src, lay, bi, prev_row, out=None):
+    def spy(src, lay, bi, prev_row, out=None, **kw):
         outs.append(out)
-        return read(src, lay, bi, prev_row, out)
+        return read(src, lay, bi, prev_row, out, **kw)
 
     monkeypatch.setattr(ingest, "_read_strip", spy)
     prepare_terrain(ArraySource(a, "dem"), tmp_path / "s.zarr", block=129, K=5, workers=2)

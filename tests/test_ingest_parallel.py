@@ -2,7 +2,8 @@
 
 * every array of a prepared store (decoded values, dtype, shape) and its attributes match the
   digests recorded with the previous, single-threaded ingest (tests/ingest_golden.py, recorded
-  before the change) on a real DEM and on synthetic non-2^n+1 ones;
+  before the change) on a real DEM and on synthetic non-2^n+1 ones (the case with nodata holes
+  recorded again when void filling changed, with 1 and with 2 workers alike);
 * 1 worker and several workers give identical stores, to the byte of every chunk file;
 * the direct chunk writer produces the very bytes zarr writes.
 """

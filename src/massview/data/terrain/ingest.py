@@ -5,10 +5,10 @@ is marked ``complete`` last, so an interrupted prepare re-run with the same argu
 continues where it stopped and a half-written store never opens as a good one):
 
 1. **the pyramid, in one pass over the input**: level 0 in strips of M rows (one block row):
-   windowed read, nodata/NaN filled from valid neighbours (iterative 4-neighbour averaging
-   inside the strip plus a margin; what is still empty takes the mean of the strip's valid
-   samples; a first strip with no valid sample repeats the first valid row below it, never a
-   made-up 0), padded by edge replication at the outer border only, cut into blocks. The
+   windowed read, nodata/NaN/±inf voids filled (:mod:`voidfill`: a coarse harmonic surface
+   made by one more pass over the input when the first void is met, plus the detail of the
+   data round the void; the same values whichever strip computes them, never a made-up 0),
+   padded by edge replication at the outer border only, cut into blocks. The
    shared row between strips is taken from the strip above, so borders are bit-identical in
    both blocks. Levels 1..L by vertex decimation, in memory, as soon as the two finer block
    rows exist. Every row, on a worker: compressed and written, its blocks' metadata
@@ -65,13 +65,13 @@ from .layout import TerrainLayout
 from .metadata import Metadata, MetadataBuilder, compute_metadata, write_colors, write_metadata
 from .sources import RasterSource, place_ortho
 from ..rebuild import is_complete_store, rebuild_beside
+from .voidfill import VoidFill, no_valid_sample
 from .store import FORMAT, ChunkWriter, TerrainStore, block_view, create_store, rows_done, wide_row
 from .workers import BufferPool, resolve_workers, run_ordered
 
-__all__ = ["prepare_terrain", "PrepareResult", "fill_nodata", "compute_metadata", "write_metadata", "Metadata"]
+__all__ = ["prepare_terrain", "PrepareResult", "compute_metadata", "write_metadata", "Metadata"]
 
 Progress = Callable[[str, int, int], None]  # (phase, advance, phase_total)
-_FILL_MARGIN = 32
 _FLAG_EVERY = 1.0  # seconds between writes of the pyramid pass's done flags (each a zarr round trip)
 _TABLE_BESIDE_SHADING = 128 << 20  # a Röttger table up to this size (16385²: 85 MiB) is written beside the shading pass
 
@@ -94,38 +94,10 @@ class PrepareResult:
         return self.filled / max(self.layout.rows * self.layout.cols, 1)
 
 
-def fill_nodata(a: np.ndarray, max_iter: int = 256) -> int:
-    """Fill NaNs in place from valid 4-neighbours (iterated); leftovers get the mean of the
-    valid samples (0 if none). Returns the number of samples filled."""
-    bad = np.isnan(a)
-    n = int(bad.sum())
-    if n == 0:
-        return 0
-    for _ in range(max_iter):
-        if not bad.any():
-            break
-        v = np.where(bad, 0.0, a)
-        w = (~bad).astype(np.float32)
-        s = np.zeros_like(v)
-        c = np.zeros_like(w)
-        s[1:] += v[:-1]; c[1:] += w[:-1]  # noqa: E702
-        s[:-1] += v[1:]; c[:-1] += w[1:]  # noqa: E702
-        s[:, 1:] += v[:, :-1]; c[:, 1:] += w[:, :-1]  # noqa: E702
-        s[:, :-1] += v[:, 1:]; c[:, :-1] += w[:, 1:]  # noqa: E702
-        take = bad & (c > 0)
-        if not take.any():
-            break
-        a[take] = (s[take] / c[take]).astype(a.dtype)
-        bad &= ~take
-    if bad.any():
-        valid = a[~bad]
-        a[bad] = float(valid.mean()) if valid.size else 0.0
-    return n
-
-
 def _read_strip(src: RasterSource, lay: TerrainLayout, bi: int, prev_row: np.ndarray | None,
-                out: np.ndarray | None = None) -> tuple[np.ndarray, int]:
-    """Rows bi·(M-1) .. +M of the padded grid, filled and padded (M × S float32, into ``out``
+                out: np.ndarray | None = None, voids: Callable[[], VoidFill] | None = None) -> tuple[np.ndarray, int]:
+    """Rows bi·(M-1) .. +M of the padded grid, voids filled (:mod:`voidfill`; ``voids`` gives
+    the input's :class:`VoidFill`, built on first use) and padded (M × S float32, into ``out``
     when given: C-contiguous, its contents overwritten), and how many nodata samples of the
     rows new to this strip were filled."""
     M, cols = lay.M, src.cols
@@ -135,17 +107,16 @@ def _read_strip(src: RasterSource, lay: TerrainLayout, bi: int, prev_row: np.nda
     if r0 < src.rows and _read_strip_finite(src, strip, r0, prev_row):
         pass
     elif r0 < src.rows:
-        data = src.read(r0, min(r0 + M + _FILL_MARGIN, src.rows), 0, cols)
+        nv = min(M, src.rows - r0)
+        data = src.read(r0, r0 + nv, 0, cols)
         first_new = 0
         if prev_row is not None:  # the shared row is final already: keep it bit-identical
             data[0] = prev_row[:cols]
             first_new = 1
-        nv = min(M, src.rows - r0)
-        filled = int(np.count_nonzero(np.isnan(data[first_new:nv])))
-        if prev_row is None and filled == nv * cols:  # a first strip with no valid sample: extend the first valid row up
-            data[:] = _first_valid_row(src, r0 + data.shape[0])
-        fill_nodata(data)
-        strip[:nv, :cols] = data[:nv]
+        filled = int(np.count_nonzero(np.isnan(data[first_new:])))
+        if filled:
+            (voids or (lambda: VoidFill(src)))().fill(r0, data)
+        strip[:nv, :cols] = data
         strip[nv:, :cols] = data[nv - 1]
     else:  # a strip wholly in the bottom padding repeats the last row
         strip[:, :cols] = prev_row[:cols]
@@ -176,22 +147,6 @@ def _read_strip_finite(src: RasterSource, strip: np.ndarray, r0: int, prev_row: 
         strip[0, :cols] = prev_row[:cols]
     strip[nv:, :cols] = strip[nv - 1, :cols]
     return True
-
-
-def _first_valid_row(src: RasterSource, r: int, step: int = 256) -> np.ndarray:
-    """The first input row at or below ``r`` holding a valid sample, its gaps filled; raises
-    IngestError naming the file when there is none (the whole input is nodata/NaN/±inf)."""
-    while r < src.rows:
-        win = src.read(r, min(r + step, src.rows), 0, src.cols)
-        ok = ~np.isnan(win).all(axis=1)
-        if ok.any():
-            row = win[int(np.argmax(ok))][None].copy()
-            fill_nodata(row)
-            return row[0]
-        r += step
-    what = "NaN or ±inf" if src.nodata is None else f"nodata ({src.nodata:g}), NaN or ±inf"
-    raise IngestError(f"{src.name}: every one of its {src.rows}x{src.cols} samples is {what}; there is no elevation to "
-                      "build a store from (check the file, or give the right --nodata)")
 
 
 def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17, vertical_scale: float = 1.0,
@@ -378,6 +333,13 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
         table.strip(lv, i * (M - 1), wide)
         return lv, i, keep, nfill
 
+    fills: list = []  # the input's VoidFill, made when the first void is met (one more pass over the input)
+
+    def voids() -> VoidFill:
+        if not fills:
+            fills.append(VoidFill(src, lambda adv, total: prog("nodata fill: coarse surface", adv, total)))
+        return fills[0]
+
     def tasks():
         prev_row, waiting = None, {}  # waiting: level → its even wide row, until the odd one comes
         for bi in range(lay.blocks(0)):
@@ -385,7 +347,7 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
                 strip = book(0, bi, wide_row(np.asarray(heights0[bi]), pool.take((M, lay.S), np.float32)))
                 yield lambda bi=bi, strip=strip: write(0, bi, strip, False, 0)
             else:
-                strip, nfill = _read_strip(src, lay, bi, prev_row, pool.take((M, lay.S), np.float32))
+                strip, nfill = _read_strip(src, lay, bi, prev_row, pool.take((M, lay.S), np.float32), voids=voids)
                 book(0, bi, strip)
                 yield lambda bi=bi, strip=strip, nfill=nfill: write(0, bi, strip, True, nfill)
             prev_row = strip[-1].copy()
@@ -425,7 +387,7 @@ def _level0(g, src: RasterSource, lay: TerrainLayout, block: int, resumed: bool,
     finally:  # (also when interrupted: every row handed to ``done`` is on disk)
         flush()
     if state["filled"] >= src.rows * src.cols:  # (a fresh run fails in the first strip already; this catches resumed ones)
-        _first_valid_row(src, src.rows)
+        raise no_valid_sample(src)
     return state["filled"]
 
 
