@@ -202,11 +202,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
                             "neighbours; check the nodata value (--nodata) and the extent")
     if src.bands > 1:
         res.warnings.append(f"{src.name} has {src.bands} bands; band 1 was used as the elevation")
-    dt = np.dtype(src.dtype)
-    if dt.kind == "i" and src.nodata is None and meta.zlo == float(np.iinfo(dt).min):
-        lo = int(np.iinfo(dt).min)
-        res.warnings.append(f"{src.name}: its lowest height is {lo}, the smallest {dt.name} and the usual void marker (SRTM's); "
-                            f"if those samples are voids, prepare again with --nodata {lo} (they are heights of {lo} now)")
+    res.warnings += _marker_hints(src, meta.zlo, meta.zhi)
     unit, factor = src.linear_unit()
     if factor != 1.0:
         res.warnings.append(f"{src.name}: its CRS measures in {unit} ({factor:.6g} m), so the sample spacing was converted to metres; "
@@ -214,7 +210,47 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     if src.transform is None:
         res.warnings.append(f"{src.name} has no georeference: assumed 1 m sample spacing; pass --spacing DX[,DY] (and --crs) "
                             "if the samples are further apart")
+    elif not src.crs and _looks_like_degrees(src):
+        res.warnings.append(f"{src.name} has no CRS, and its transform looks like degrees (a {abs(src.transform[1]):.6g} sample "
+                            f"spacing at {src.transform[0]:.4g}, {src.transform[3]:.4g}): it was taken as metres, so the terrain "
+                            "is a needle; prepare again with --crs EPSG:4326 (or the CRS it was made in: an ESRI grid's .prj "
+                            "beside it)")
     return res
+
+
+_FLOAT_MARKERS = (-9999.0, -99999.0, -32767.0, -32768.0)  # usual nodata values of float rasters written without a tag
+_NOT_A_HEIGHT = 1e15  # |z| beyond this is a fill value (float32's ±3.4e38, 1e30), not a height in any unit
+
+
+def _marker_hints(src: RasterSource, zlo: float, zhi: float) -> list[str]:
+    """Warnings for an input without a nodata value whose lowest or highest height is a usual
+    void marker: int16's smallest (SRTM's −32768), a float raster's −9999 and the like, or a
+    fill value no height can be (±3.4e38): with it the height range, the colours and the
+    default camera all follow the marker (a blank render)."""
+    if src.nodata is not None:
+        return []
+    out, dt = [], np.dtype(src.dtype)
+    if dt.kind == "i" and zlo == float(np.iinfo(dt).min):
+        lo = int(np.iinfo(dt).min)
+        out.append(f"{src.name}: its lowest height is {lo}, the smallest {dt.name} and the usual void marker (SRTM's); "
+                   f"if those samples are voids, prepare again with --nodata {lo} (they are heights of {lo} now)")
+    for z, which in ((zlo, "lowest"), (zhi, "highest")):
+        if abs(z) >= _NOT_A_HEIGHT:
+            out.append(f"{src.name}: its {which} height is {z:.9g}, a fill value rather than a height; the height range, the "
+                       f"colours and the camera follow it, so renders show only sky: if those samples are voids, prepare "
+                       f"again with --nodata {z:.9g}")
+    if dt.kind == "f" and zlo in _FLOAT_MARKERS:
+        out.append(f"{src.name}: its lowest height is {zlo:g}, a usual nodata value of float rasters; if those samples are "
+                   f"voids, prepare again with --nodata {zlo:g} (they are heights of {zlo:g} now)")
+    return out
+
+
+def _looks_like_degrees(src: RasterSource) -> bool:
+    """A transform whose samples are under 0.01 units apart and whose extent lies within
+    ±180 × ±90: longitude and latitude, almost surely."""
+    x0, dx, _, y0, _, dy = src.transform
+    x1, y1 = x0 + dx * src.cols, y0 + dy * src.rows
+    return 0 < max(abs(dx), abs(dy)) < 0.01 and max(abs(x0), abs(x1)) <= 180 and max(abs(y0), abs(y1)) <= 90
 
 
 @contextmanager

@@ -1,0 +1,50 @@
+"""walk9 H1, L1, M5: inputs that prepare fine but render wrong get a warning that names the fix:
+untagged float fill values (±3.4e38, 1e30, −9999) and a transform in degrees without a CRS."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import run_cli
+from massview.data.generators import synthetic_heights
+
+
+def _dem():
+    return (synthetic_heights(0, 200, 0, 240, 240, 5) * 0.5 + 400).astype(np.float32)
+
+
+@pytest.mark.parametrize("marker", [-3.4028235e38, 3.4028235e38, 1e30, -9999.0])
+def test_an_untagged_float_fill_value_gets_a_hint_and_the_option_fixes_it(tmp_path, marker):
+    a = _dem()
+    a[50:55, 60:65] = marker
+    np.save(tmp_path / "d.npy", a)
+    proc = run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", tmp_path / "a.zarr")
+    hint = [ln for ln in proc.stderr.splitlines() if "--nodata" in ln]
+    assert len(hint) == 1 and "d.npy" in hint[0], proc.stderr
+    value = hint[0].rsplit("--nodata ", 1)[1].split()[0]
+    proc = run_cli("prepare", "terrain", tmp_path / "d.npy", "--nodata", value, "-o", tmp_path / "b.zarr")
+    assert "25 nodata samples filled" in proc.stdout and "--nodata" not in proc.stderr, (value, proc.stdout, proc.stderr)
+
+
+def test_ordinary_heights_get_no_marker_hint(tmp_path):
+    a = _dem() - 11000.0  # bathymetry, below any marker but not one
+    np.save(tmp_path / "d.npy", a)
+    proc = run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", tmp_path / "a.zarr")
+    assert "--nodata" not in proc.stderr
+
+
+def test_a_transform_in_degrees_without_a_crs_gets_a_hint(tmp_path):
+    import rasterio
+    from rasterio.transform import from_origin
+
+    a = _dem()
+    for name, transform, crs in (("deg.tif", from_origin(7.7, 46.05, 0.000335, 0.000335), None),
+                                 ("utm.tif", from_origin(500000.0, 5100000.0, 30.0, 30.0), None),
+                                 ("wgs.tif", from_origin(7.7, 46.05, 0.000335, 0.000335), "EPSG:4326")):
+        with rasterio.open(tmp_path / name, "w", driver="GTiff", height=a.shape[0], width=a.shape[1], count=1,
+                           dtype="float32", transform=transform, crs=crs) as f:
+            f.write(a, 1)
+        proc = run_cli("prepare", "terrain", tmp_path / name, "-o", tmp_path / (name + ".zarr"))
+        said = "looks like degrees" in proc.stderr and "--crs EPSG:4326" in proc.stderr
+        assert said == (name == "deg.tif"), (name, proc.stderr)
