@@ -555,6 +555,30 @@ def test_an_interrupted_overwrite_keeps_the_complete_store(tmp_path, monkeypatch
     assert (tmp_path / "s.zarr.rebuild" / "mine.txt").exists()
 
 
+def test_overwrite_through_a_symlink_rebuilds_where_it_points(tmp_path):
+    """walk9 H3: a store kept on another disk behind a symlink. --overwrite replaced the link by
+    a new folder on the link's disk, left the old store and a dangling ``.replaced`` link, and
+    the next --overwrite failed on that link. Now the store is rebuilt at the link's target,
+    the link stays, and nothing is left beside either; a leftover link is unlinked, its target
+    kept."""
+    a = synthetic_heights(0, 300, 0, 260, 300, 4)
+    (tmp_path / "disk").mkdir()
+    (tmp_path / "here").mkdir()
+    target, link = tmp_path / "disk" / "data.zarr", tmp_path / "here" / "dem.zarr"
+    prepare_terrain(ArraySource(a, "dem"), target, block=129)
+    link.symlink_to(target)
+    for k in (2, 3):
+        prepare_terrain(ArraySource(a * k, "dem"), link, block=129, overwrite=True)
+        assert link.is_symlink() and np.allclose(finest(TerrainStore(target))[:300, :260], a * k)
+        assert sorted(p.name for p in (tmp_path / "disk").iterdir()) == ["data.zarr"]
+        assert sorted(p.name for p in (tmp_path / "here").iterdir()) == ["dem.zarr"]
+    keep = tmp_path / "disk" / "keep.zarr"
+    prepare_terrain(ArraySource(a, "dem"), keep, block=129)
+    (tmp_path / "disk" / "data.zarr.replaced").symlink_to(keep)  # what the old code left
+    prepare_terrain(ArraySource(a, "dem"), link, block=129, overwrite=True)
+    assert not (tmp_path / "disk" / "data.zarr.replaced").exists() and TerrainStore(keep).attrs["complete"]
+
+
 def test_flat_chunk_keys_read_as_the_nested_ones(tmp_path, monkeypatch):
     """A store written with zarr's nested chunk keys (``c/i/j/0/0``, what prepare writes) and one
     with flat keys (``c.i.j.0.0``, a "." separator: tried as prepare's default, see

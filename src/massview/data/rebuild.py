@@ -42,11 +42,17 @@ def rebuild_beside(out, fmt: str, build: Callable[[Path], T]) -> T:
     the complete store ``out``, then put it in ``out``'s place (the old store is removed after
     the swap). On any error or interrupt the staging folder is removed and ``out`` is left as
     it was. A leftover ``OUT.rebuild`` / ``OUT.replaced`` from an earlier stopped run is
-    removed first when it is a store of that format, else it is an error naming it."""
+    removed first when it is a store of that format, else it is an error naming it. An ``out``
+    that is a symbolic link (a store kept on another disk) is rebuilt where the link points, and
+    the link stays (a leftover link beside it is unlinked, never followed)."""
     out = Path(out)
+    if out.is_symlink():
+        out = out.resolve()
     staging, old = out.with_name(out.name + ".rebuild"), out.with_name(out.name + ".replaced")
     for p in (staging, old):
-        if p.exists():
+        if p.is_symlink():  # (left by an earlier version, which renamed the link itself)
+            p.unlink()
+        elif p.exists():
             if (store_attrs(p) or {}).get("format") != fmt:
                 raise StoreError(f"{p} is in the way: --overwrite builds the new store there, beside {out}, and moves it into "
                                  "place when it is complete; move or remove that folder")
