@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from ..core.config import COMPOSITOR_NAMES, RenderConfig, parse_size, parse_sun
-from ..core.errors import ConfigError, MassviewError, StoreError
+from ..core.errors import ConfigError, MassviewError, StoreError, disk_full, full_disk_line
 from ..core.paths import BUILTIN_PATHS
 from ..parallel.codec import CODEC_CHOICES
 from ..parallel.runtime import ignore_late_sigterm, in_mpi_job, interrupt_on_sigterm, reuse_freed_memory
@@ -503,6 +503,12 @@ def _main(argv: list[str]) -> int:
     except KeyboardInterrupt:
         print("massview: interrupted", file=sys.stderr)
         return 130
+    except Exception as e:  # a full disk, wherever it struck: one line, not a traceback (walk9 M1)
+        if disk_full(e) is None:
+            raise
+        print(f"massview: error: {full_disk_line(e, 'the output')}; free space (or choose another output) and run the "
+              "command again", file=sys.stderr)
+        return 1
 
 
 def _check_store_spec(store: str, command: str) -> None:

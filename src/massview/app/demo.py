@@ -14,6 +14,8 @@ import json
 import os
 from pathlib import Path
 
+from ..core.errors import OutputError
+
 __all__ = ["run_demo", "write_video"]
 
 
@@ -41,7 +43,36 @@ def write_video(frames_dir: Path, out: Path, fps: int = 30) -> Path:
             rgb = np.pad(rgb, ((0, size[1] - rgb.shape[0]), (0, size[0] - rgb.shape[1]), (0, 0)), mode="edge")
         w.send(np.ascontiguousarray(rgb))
     w.close()
+    if not _whole_mp4(out):  # ffmpeg's failure (a full disk at the trailer) does not reach us otherwise (walk9 M2)
+        out.unlink(missing_ok=True)
+        raise OutputError(f"could not write the video {out}: ffmpeg did not finish it (its message is above; a full disk?); "
+                          f"the frames are in {frames_dir}")
     return out
+
+
+def _whole_mp4(path: Path) -> bool:
+    """Whether ``path`` is an MP4 whose top-level boxes run exactly to its end and include the
+    index (``moov``, written last): a file cut short or never finished has not."""
+    try:
+        size, pos, kinds = path.stat().st_size, 0, set()
+        with open(path, "rb") as f:
+            while pos < size:
+                f.seek(pos)
+                head = f.read(16)
+                if len(head) < 8:
+                    return False
+                n = int.from_bytes(head[:4], "big")
+                if n == 1:
+                    n = int.from_bytes(head[8:16], "big")
+                elif n == 0:
+                    n = size - pos
+                if n < 8:
+                    return False
+                kinds.add(head[4:8])
+                pos += n
+        return pos == size and b"moov" in kinds
+    except OSError:
+        return False
 
 
 def run_demo(args) -> int:

@@ -8,7 +8,7 @@ import math
 import sys
 from pathlib import Path
 
-from ..core.errors import StoreError
+from ..core.errors import StoreError, disk_full, full_disk_line
 from ..data.scene.normals import CREASE_ANGLE  # (numpy only: cheap for the parser)
 from .terrain_cmds import _warn, progress_bar
 
@@ -69,6 +69,11 @@ def cmd_generate(args) -> int:
     except KeyboardInterrupt:
         print(f"massview: interrupted; {interrupted_note(out)}", file=sys.stderr)
         return 130
+    except Exception as e:  # a full disk: what is kept and how to go on, in one line (walk9 M1)
+        if disk_full(e) is None:
+            raise
+        print(f"massview: error: {full_disk_line(e, out)}; free space, then: {interrupted_note(out)}", file=sys.stderr)
+        return 1
     print(f"wrote scene store {out}: {a['objects']} objects, {a['triangles']:,} triangles, {a['groups']} groups, "
           f"{a['occluders']} occluders")
     return 0
@@ -111,6 +116,11 @@ def cmd_prepare(args) -> int:
     except KeyboardInterrupt:
         print(f"massview: interrupted; {interrupted_note(out)}", file=sys.stderr)
         return 130
+    except Exception as e:  # a full disk: what is kept and how to go on, in one line (walk9 M1)
+        if disk_full(e) is None:
+            raise
+        print(f"massview: error: {full_disk_line(e, out)}; free space, then: {interrupted_note(out)}", file=sys.stderr)
+        return 1
     _warn(a["warnings"])
     s = max(a["seconds"], 1e-9)
     print(f"{_how(a, out)}: {a['objects']} objects "

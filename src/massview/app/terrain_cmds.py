@@ -8,7 +8,7 @@ import sys
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..core.errors import ConfigError, OutputError, StoreError
+from ..core.errors import ConfigError, OutputError, StoreError, disk_full, full_disk_line
 
 __all__ = ["cmd_generate", "cmd_prepare", "cmd_info", "cmd_verify", "compile_note", "progress_bar"]
 
@@ -136,6 +136,12 @@ def cmd_prepare(args) -> int:
     except KeyboardInterrupt:
         print(f"massview: interrupted; {_interrupted_note(Path(args.output))}", file=sys.stderr)
         return 130
+    except Exception as e:  # a full disk: what is kept and how to go on, in one line (walk9 M1)
+        if disk_full(e) is None:
+            raise
+        print(f"massview: error: {full_disk_line(e, args.output)}; free space, then: {_interrupted_note(Path(args.output))}",
+              file=sys.stderr)
+        return 1
     mb = res.input_bytes / 1e6
     if not res.resumed:
         how = f"wrote {res.path}"

@@ -21,6 +21,8 @@ __all__ = [
     "RankJobError",
     "MassviewWarning",
     "describe",
+    "disk_full",
+    "full_disk_line",
 ]
 
 
@@ -90,3 +92,30 @@ def describe(e: BaseException) -> str:
     """``Type: message`` of an exception, or its type alone where the message is empty (a
     codec's ``MemoryError()``), for messages that name what failed."""
     return f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+
+
+def disk_full(e: BaseException | None) -> str | None:
+    """"no space left on the device" or "over the disk quota" where ``e``, or an exception it
+    was raised from or while handling, is that OSError (ENOSPC, EDQUOT: a writer's cleanup often
+    hits the full disk again, or a library wraps it); None otherwise."""
+    import errno
+
+    for x in _chain(e):
+        if isinstance(x, OSError) and x.errno in (errno.ENOSPC, errno.EDQUOT):
+            return "no space left on the device" if x.errno == errno.ENOSPC else "over the disk quota"
+    return None
+
+
+def full_disk_line(e: BaseException, fallback) -> str:
+    """One line for a write that ran out of room: what happened and where (the file the OSError
+    names, else ``fallback``), without a traceback."""
+    where = next((x.filename for x in _chain(e) if isinstance(x, OSError) and x.filename), None) or fallback
+    return f"{disk_full(e)} writing {where}"
+
+
+def _chain(e):
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        yield e
+        e = e.__cause__ or e.__context__

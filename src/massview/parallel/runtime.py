@@ -22,7 +22,7 @@ import sys
 import traceback
 from pathlib import Path
 
-from ..core.errors import MassviewError, ParallelError
+from ..core.errors import MassviewError, ParallelError, disk_full, full_disk_line
 from .launcher import run_job
 
 __all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env", "local_cores", "interrupt_on_sigterm", "ignore_late_sigterm"]
@@ -111,6 +111,8 @@ def guarded(comm, fn, *args, **kw):
         prefix = f"massview: error on rank {rank} of {size}: " if size > 1 else "massview: error: "
         if isinstance(e, MassviewError):
             msg = prefix + str(e)
+        elif disk_full(e):  # one line, as for the single-rank run (walk9 M1)
+            msg = prefix + full_disk_line(e, "the output") + "; free space (or choose another output) and run the command again"
         elif interrupted:
             msg = prefix + "interrupted"
         else:
