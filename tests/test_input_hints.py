@@ -48,3 +48,21 @@ def test_a_transform_in_degrees_without_a_crs_gets_a_hint(tmp_path):
         proc = run_cli("prepare", "terrain", tmp_path / name, "-o", tmp_path / (name + ".zarr"))
         said = "looks like degrees" in proc.stderr and "--crs EPSG:4326" in proc.stderr
         assert said == (name == "deg.tif"), (name, proc.stderr)
+
+
+@pytest.mark.parametrize("shape,refused", [((3, 8000), True), ((8000, 3), True), ((200, 8000), False), ((2, 1025), False)])
+def test_a_strip_padded_to_a_mostly_empty_square_is_refused_before_anything_is_written(tmp_path, shape, refused):
+    """walk9 H2: a 3 x 100000 strip grew towards a 131073² store of many GB. A shape whose
+    padded square holds more than 64x its samples (and is larger than 4097²) is refused naming
+    the square and the way out; thinner-than-square inputs within that, and small ones, work."""
+    from massview.core.errors import IngestError
+    from massview.data.terrain import ArraySource, prepare_terrain
+
+    a = (np.arange(shape[0] * shape[1], dtype=np.float32).reshape(shape) % 97) + 100
+    out = tmp_path / "s.zarr"
+    if refused:
+        with pytest.raises(IngestError, match=r"padded to a square of 8193² .* Crop it, or cut it into pieces"):
+            prepare_terrain(ArraySource(a, "strip"), out)
+        assert not out.exists()
+    else:
+        assert prepare_terrain(ArraySource(a, "strip"), out, color=None).layout.rows == shape[0]

@@ -158,6 +158,7 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
     if src.rows < 2 or src.cols < 2:
         raise IngestError(f"{src.name}: a terrain needs at least 2 × 2 samples, got {src.rows} × {src.cols}")
     lay = TerrainLayout(src.rows, src.cols, block, K)
+    _check_padding(src, lay)
     if not (math.isfinite(vertical_scale) and vertical_scale > 0):
         raise IngestError(f"--vertical-scale must be a positive number, got {vertical_scale}")
     dx, dy = src.spacing()
@@ -216,6 +217,23 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
                             "is a needle; prepare again with --crs EPSG:4326 (or the CRS it was made in: an ESRI grid's .prj "
                             "beside it)")
     return res
+
+
+_MAX_PADDING = 64  # the padded square may hold at most this many times the input's samples ...
+_SMALL_SQUARE = 4097  # ... unless its side is no more than this (a small input: whatever its shape, it is cheap)
+
+
+def _check_padding(src: RasterSource, lay: TerrainLayout) -> None:
+    """Refuse, before anything is written, an input so thin that its padded square would be
+    mostly padding (walk9 H2: a 3 × 100000 strip of 1.2 MB grew towards a 131073² store, many
+    GB on disk and in memory, and rendered as a line too thin to see)."""
+    pad, have = lay.S * lay.S, src.rows * src.cols
+    if lay.S > _SMALL_SQUARE and pad > _MAX_PADDING * have:
+        raise IngestError(f"{src.name}: {src.rows} x {src.cols} samples would be padded to a square of {lay.S}² "
+                          f"({pad / 1e6:,.0f} M samples, {pad / have:,.0f}x the input; about {pad * 9.0 / 1e9:,.1f} GB on disk): "
+                          "the terrain layout is square, so a strip this thin costs what a square DEM of its length does and "
+                          f"is mostly padding. Crop it, or cut it into pieces closer to square (at most {_MAX_PADDING}x padding, "
+                          "e.g. gdal_translate -srcwin) and prepare each")
 
 
 _FLOAT_MARKERS = (-9999.0, -99999.0, -32767.0, -32768.0)  # usual nodata values of float rasters written without a tag
