@@ -1,6 +1,7 @@
 """Terrain store: round trips, formats, georeference, nodata, resume, verify, pyramid invariants."""
 
 import json
+import os
 import shutil
 
 import numpy as np
@@ -617,3 +618,45 @@ def test_flat_chunk_keys_read_as_the_nested_ones(tmp_path, monkeypatch):
     f.unlink()
     ChunkWriter(zarr.open_group(str(tmp_path / "flat.zarr"), mode="r+"), "heights/0").write(1, 0, row[:1])
     assert f.read_bytes() == before
+
+
+def test_one_writer_at_a_time_and_readers_are_told_it_is_being_written(tmp_path):
+    """walk9 M3: two prepares into one output deleted each other's arrays, or the first reported
+    success for a store holding the second's input. A writer holds a lock beside the store
+    (here this test process holds it, as a running prepare would): a second prepare or generate
+    fails at once naming it, and info/verify/render of the half-written store say it is being
+    written rather than "interrupted: re-run" (which would start that race). Released, the
+    same command runs, and the lock file goes with it."""
+    from massview.data.rebuild import writing
+
+    a = synthetic_heights(0, 300, 0, 300, 300, 4)
+    np.save(tmp_path / "d.npy", a)
+    out = tmp_path / "s.zarr"
+    _interrupted_prepare_api = prepare_terrain(FlakySource(a, 10**9), out, block=129)  # a store to be "rewritten"
+    with writing(out):
+        proc = run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", out, "--overwrite", "-q", check=False)
+        assert proc.returncode == 1 and f"{out} is being written by another massview right now (pid {os.getpid()}" in proc.stderr
+        proc = run_cli("generate", "scene", "forest", "--size", "0.05", "-o", tmp_path / "f.zarr", "-q", check=False)
+        assert proc.returncode == 0  # (another output: not held)
+        with writing(tmp_path / "f2.zarr"):
+            proc = run_cli("generate", "scene", "forest", "--size", "0.05", "-o", tmp_path / "f2.zarr", "-q", check=False)
+            assert proc.returncode == 1 and "being written by another massview" in proc.stderr
+    assert _interrupted_prepare_api.layout.rows == 300 and not (tmp_path / ".s.zarr.lock").exists()
+    import zarr
+
+    zarr.open_group(str(out), mode="r+").attrs["complete"] = False  # as while a prepare writes it
+    with writing(out):
+        for cmd in (("info", out), ("render", out, "--frames", "1", "--size", "64x48", "--out", tmp_path / "r")):
+            proc = run_cli(*cmd, check=False)
+            assert proc.returncode == 1 and "being written by a prepare running now" in proc.stderr, proc.stderr
+    proc = run_cli("info", out, check=False)
+    assert "interrupted" in proc.stderr or "incomplete" in proc.stdout + proc.stderr
+    assert run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", out, "-q").returncode == 0
+
+
+def test_an_existing_empty_folder_takes_a_new_store(tmp_path):
+    """walk9 L2: terrain refused an empty folder made by hand (or a mount point), scenes took it."""
+    out = tmp_path / "empty.zarr"
+    out.mkdir()
+    assert run_cli("generate", "terrain", "-o", out, "--size", "300", "-q").returncode == 0
+    assert TerrainStore(out).attrs["complete"]

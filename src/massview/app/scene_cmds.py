@@ -181,7 +181,11 @@ def cmd_info(args) -> int:
             t.add_row(k, str(v))
         Console().print(t)
     if not info["complete"]:
-        print(f"massview: error: {args.store} is incomplete; re-run the prepare/generate command to finish it", file=sys.stderr)
+        from ..data.rebuild import being_written
+
+        why = ("is being written by a prepare running now; wait for it to finish" if being_written(args.store)
+               else "is incomplete; re-run the prepare/generate command to finish it")
+        print(f"massview: error: {args.store} {why}", file=sys.stderr)
         return 1
     return 0
 

@@ -35,7 +35,7 @@ from typing import Callable
 import numpy as np
 
 from ...core.errors import ConfigError
-from ..rebuild import is_complete_store, rebuild_beside
+from ..rebuild import is_complete_store, one_writer, rebuild_beside
 from ..scene.mesh import Mesh
 from ..scene.store import FORMAT
 from ..scene.simplify import build_levels, is_closed
@@ -388,6 +388,7 @@ def copy_offsets(copies: int, extent: tuple[float, float]) -> np.ndarray:
     return np.stack([(i % side) * extent[0] * 1.05, (i // side) * extent[1] * 1.05, np.zeros(copies)], 1)
 
 
+@one_writer
 def generate_scene(kind: str, out, copies: int = 1, size: float = 1.0, seed: int = 1, overwrite: bool = False,
                    progress=None, backend: str = "fast-simplification", detail: float = 1.0) -> dict:
     """Write scene ``kind`` with ``copies`` replicas to the store ``out``; resumes an

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ...core.errors import ConfigError, IngestError
-from ..rebuild import is_complete_store, rebuild_beside
+from ..rebuild import is_complete_store, one_writer, rebuild_beside
 from .mesh import Mesh
 from .normals import CREASE_ANGLE
 from .plystream import PlyLayout
@@ -360,6 +360,7 @@ def _distinct(paths: list[Path]) -> None:
                               "each input becomes its own objects, so the copies would lie exactly on top of each other — give it once")
 
 
+@one_writer
 def prepare_scene(inputs, out, prm: IngestParams = IngestParams(), overwrite: bool = False, progress=None,
                   checkpoint_bytes: int = CHECKPOINT_BYTES, fault_after: int | None = None) -> dict:
     """Build the scene store ``out`` from mesh files ``inputs``. Returns the store attributes

@@ -217,6 +217,10 @@ class SceneStore:
             raise StoreError(f"{self.path}: format version {self.attrs['format_version']} is newer than this massview "
                              f"({FORMAT_VERSION}); upgrade massview")
         if require_complete and not self.attrs.get("complete"):
+            from ..rebuild import being_written
+
+            if being_written(self.path):
+                raise StoreError(f"{self.path}: scene store is being written by a prepare or generate running now; wait for it to finish")
             raise StoreError(f"{self.path}: scene store is incomplete (its build was interrupted); re-run the same "
                              "`massview prepare scene` / `generate scene` command to finish it")
         try:

@@ -64,7 +64,7 @@ from .deviation import coarse_lattice
 from .layout import TerrainLayout
 from .metadata import Metadata, MetadataBuilder, compute_metadata, write_colors, write_metadata
 from .sources import RasterSource, place_ortho
-from ..rebuild import is_complete_store, rebuild_beside
+from ..rebuild import is_complete_store, rebuild_beside, writing
 from .voidfill import VoidFill, no_valid_sample
 from .store import FORMAT, ChunkWriter, TerrainStore, block_view, create_store, rows_done, wide_row
 from .workers import BufferPool, resolve_workers, run_ordered
@@ -153,7 +153,14 @@ def prepare_terrain(src: RasterSource, out: Path, block: int = 257, K: int = 17,
                     color: str | None = "computed", ortho: RasterSource | None = None, overwrite: bool = False,
                     progress: Progress | None = None, workers: int | None = None) -> PrepareResult:
     """Build the store at ``out`` from ``src`` (see the module docstring); ``workers`` threads
-    (None/0: every core this process may use) share the work, with identical output."""
+    (None/0: every core this process may use) share the work, with identical output. One
+    writer at a time: a second prepare into the same ``out`` fails at once (StoreError)."""
+    with writing(out):
+        return _prepare_terrain(src, out, block, K, vertical_scale, color, ortho, overwrite, progress, workers)
+
+
+def _prepare_terrain(src: RasterSource, out: Path, block: int, K: int, vertical_scale: float, color: str | None,
+                     ortho: RasterSource | None, overwrite: bool, progress: Progress | None, workers: int | None) -> PrepareResult:
     t0 = time.perf_counter()
     if src.rows < 2 or src.cols < 2:
         raise IngestError(f"{src.name}: a terrain needs at least 2 × 2 samples, got {src.rows} × {src.cols}")

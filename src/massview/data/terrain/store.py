@@ -99,7 +99,9 @@ def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, ov
     import zarr
 
     path = Path(path)
-    if path.exists():
+    if path.is_dir() and not any(path.iterdir()):  # an empty folder (made by hand, or a mount point): a new store goes in it
+        pass
+    elif path.exists():
         try:
             g = zarr.open_group(str(path), mode="r+")
             old = dict(g.attrs)
@@ -117,7 +119,7 @@ def create_store(path: Path, layout: TerrainLayout, attrs: dict, color: bool, ov
         if differ and not overwrite and restarted is not None:  # (a complete store without --overwrite raised above)
             restarted.extend(differ)
         shutil.rmtree(path)
-    g = zarr.open_group(str(path), mode="w", zarr_format=3)
+    g = zarr.open_group(str(path), mode="w-", zarr_format=3)  # (nothing there, or an empty folder: kept, as a mount point must be)
     g.attrs.update({"format": FORMAT, "format_version": FORMAT_VERSION, "complete": False, **layout.to_json(),
                     "levels": layout.levels, "padded": layout.S, **attrs})
     M, new = layout.M, _ArraysLike(g)
@@ -436,6 +438,10 @@ class TerrainStore:
                              f"run `massview upgrade {self.path}` to bring it to version {FORMAT_VERSION} in place, "
                              "or re-run `massview prepare terrain` with --overwrite")
         if require_complete and not self.attrs.get("complete"):
+            from ..rebuild import being_written
+
+            if being_written(self.path):
+                raise StoreError(f"{self.path}: store is being written by a prepare running now; wait for it to finish")
             raise StoreError(f"{self.path}: store is incomplete (prepare was interrupted); re-run the same `massview prepare terrain` command to finish it")
         try:
             self.layout = TerrainLayout(int(self.attrs["rows"]), int(self.attrs["cols"]), int(self.attrs["M"]), int(self.attrs["K"]))

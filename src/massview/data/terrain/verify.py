@@ -22,7 +22,10 @@ def verify_store(path, progress=None) -> list[str]:
     store = TerrainStore(path, require_complete=False)
     problems = []
     if not store.attrs.get("complete"):
-        problems.append("store is not marked complete (prepare was interrupted); re-run the same prepare command")
+        from ..rebuild import being_written
+
+        problems.append("store is not marked complete: a prepare is writing it now; wait for it to finish" if being_written(path)
+                        else "store is not marked complete (prepare was interrupted); re-run the same prepare command")
     lay = store.layout
     for lv in range(lay.levels):
         done = np.asarray(store.array(f"blocks/{lv}/done")[...])  # (StoreError naming it when missing or damaged)
