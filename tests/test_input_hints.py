@@ -66,3 +66,31 @@ def test_a_strip_padded_to_a_mostly_empty_square_is_refused_before_anything_is_w
         assert not out.exists()
     else:
         assert prepare_terrain(ArraySource(a, "strip"), out, color=None).layout.rows == shape[0]
+
+
+def test_any_raster_gdal_reads_is_an_input_and_the_rest_get_the_list(tmp_path):
+    """walk9 L3: .bil, NetCDF and the zipped SRTM tile a download comes as were refused as an
+    unknown format although rasterio reads them; the message left out .vrt/.asc/.img."""
+    import zipfile
+
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from massview.core.errors import IngestError
+    from massview.data.terrain import open_source
+
+    a = (np.random.default_rng(0).random((120, 130)) * 500 + 100).astype(np.float32)
+    with rasterio.open(tmp_path / "d.bil", "w", driver="EHdr", height=120, width=130, count=1, dtype="float32",
+                       transform=from_origin(500000, 5100000, 30, 30), crs="EPSG:32632") as f:
+        f.write(a, 1)
+    src = open_source(tmp_path / "d.bil")
+    assert src.spacing() == (30.0, 30.0) and np.array_equal(src.read(0, 120, 0, 130), a)
+    (np.arange(1201 * 1201) % 3000).astype(">i2").reshape(1201, 1201).tofile(tmp_path / "N45E006.hgt")
+    with zipfile.ZipFile(tmp_path / "N45E006.SRTMGL3.hgt.zip", "w") as z:
+        z.write(tmp_path / "N45E006.hgt", "N45E006.hgt")
+    src = open_source(tmp_path / "N45E006.SRTMGL3.hgt.zip")
+    assert (src.rows, src.cols) == (1201, 1201) and 60 < src.spacing()[0] < 70 and 90 < src.spacing()[1] < 95
+    (tmp_path / "junk.xyz").write_text("hello")
+    with pytest.raises(IngestError, match=r"junk.xyz: unknown input format .xyz; use a raster GDAL reads \(.*\.vrt.*\.asc.*"
+                                          r"gdal_translate"):
+        open_source(tmp_path / "junk.xyz")

@@ -632,7 +632,7 @@ def test_one_writer_at_a_time_and_readers_are_told_it_is_being_written(tmp_path)
     a = synthetic_heights(0, 300, 0, 300, 300, 4)
     np.save(tmp_path / "d.npy", a)
     out = tmp_path / "s.zarr"
-    _interrupted_prepare_api = prepare_terrain(FlakySource(a, 10**9), out, block=129)  # a store to be "rewritten"
+    first = prepare_terrain(ArraySource(a, "dem"), out, block=129)  # a complete store, to be rebuilt
     with writing(out):
         proc = run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", out, "--overwrite", "-q", check=False)
         assert proc.returncode == 1 and f"{out} is being written by another massview right now (pid {os.getpid()}" in proc.stderr
@@ -641,7 +641,7 @@ def test_one_writer_at_a_time_and_readers_are_told_it_is_being_written(tmp_path)
         with writing(tmp_path / "f2.zarr"):
             proc = run_cli("generate", "scene", "forest", "--size", "0.05", "-o", tmp_path / "f2.zarr", "-q", check=False)
             assert proc.returncode == 1 and "being written by another massview" in proc.stderr
-    assert _interrupted_prepare_api.layout.rows == 300 and not (tmp_path / ".s.zarr.lock").exists()
+    assert first.layout.rows == 300 and not (tmp_path / ".s.zarr.lock").exists()
     import zarr
 
     zarr.open_group(str(out), mode="r+").attrs["complete"] = False  # as while a prepare writes it

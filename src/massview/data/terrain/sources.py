@@ -5,7 +5,8 @@ Every source exposes ``rows``, ``cols``, ``dtype``, ``nodata``, ``crs`` (WKT or 
 ``read(r0, r1, c0, c1) -> float32 (r1-r0, c1-c0)`` with nodata samples as NaN. Integer inputs
 are converted to float32 (exact for 16-bit and for 32-bit values below 2^24).
 
-Formats: GeoTIFF / Cloud-Optimized GeoTIFF (rasterio, windowed), ``.npy`` (row reads),
+Formats: GeoTIFF / Cloud-Optimized GeoTIFF and any other raster GDAL reads (rasterio, windowed:
+``.vrt``, ``.img``, ``.asc``, ``.bil``, NetCDF, a zipped SRTM tile), ``.npy`` (row reads),
 SRTM ``.hgt`` (big-endian int16, 1201² or 3601², georeferenced from the file name),
 ``.npz`` (a named array), raw binary (explicit shape and dtype), and the synthetic generator.
 
@@ -365,8 +366,14 @@ def open_source(path, *, nodata=None, array: str | None = None, shape: tuple[int
         if p.stat().st_size != want:
             raise IngestError(f"{p}: is {p.stat().st_size} bytes, but --shape {shape[0]}x{shape[1]} --dtype {dtype} needs {want}")
         src = BinaryFileSource(p, shape, dtype, 0, p.name)
-    else:
-        raise IngestError(f"{p}: unknown input format {suffix or '(no extension)'}; use .tif/.tiff, .npy, .npz, .hgt or raw (.raw/.bin with --shape and --dtype)")
+    else:  # any other raster GDAL reads (ESRI .bil/.flt, NetCDF, a zipped SRTM tile, ...), else a list of what works
+        try:
+            src = GeoTiffSource(p)
+        except IngestError:
+            raise IngestError(f"{p}: unknown input format {suffix or '(no extension)'}; use a raster GDAL reads (.tif/.tiff, "
+                              ".vrt, .img, .asc, .bil, .flt, .nc, .hgt or .hgt.zip named like N45E006), .npy, .npz (--array), or "
+                              "raw (.raw/.bin/.r32/.f32/.r16/.dat with --shape and --dtype); or convert it: gdal_translate -of "
+                              "GTiff IN OUT.tif") from None
     if nodata is not None:
         src.nodata = nodata
     _georeference(src, p, spacing, crs)
