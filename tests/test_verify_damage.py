@@ -55,6 +55,17 @@ def test_terrain_missing_shading_chunk(terrain, tmp_path):
     _fails(st, "shading block (level 0, 3, 3) is missing", "shade/0/c/3/3/0/0/0", "--overwrite")
 
 
+@pytest.mark.parametrize("level,dst,src", [(0, "3/3", "1/2"), (1, "1/1", "0/0")])
+def test_terrain_shading_chunk_of_another_block(terrain, tmp_path, level, dst, src):
+    """walk9 M4: a shading chunk replaced by another block's decodes fine, so verify said OK
+    while the render showed a wrongly lit square; the shading is now computed again from the
+    heights and compared bit for bit."""
+    st = _copy(terrain, tmp_path)
+    shutil.copy(st / f"shade/{level}/c/{src}/0/0/0", st / f"shade/{level}/c/{dst}/0/0/0")
+    i, j = dst.split("/")
+    _fails(st, f"shading block (level {level}, {i}, {j}) is not what its heights give", f"shade/{level}/c/{dst}/0/0/0", "--overwrite")
+
+
 def test_terrain_truncated_roettger_chunk_in_verify_and_render(terrain, tmp_path):
     st = _copy(terrain, tmp_path)
     f = st / "roettger/d2/3/c/0/0"

@@ -265,5 +265,5 @@ def cmd_verify(args) -> int:
 
     what = "heights, shading, colour" if TerrainStore(Path(args.store)).has_color else "heights, shading"
     print(f"{args.store}: OK — every array has its layout's shape, every block ({what}) and the Röttger table "
-          "decode, metadata and the table match the data, errors are saturated")
+          "decode, metadata, the shading and the table match the data, errors are saturated")
     return 0

@@ -152,7 +152,8 @@ def _tent_row(rows: dict, i: int, dst, out=None) -> np.ndarray:
 
 
 def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int, int], None], workers: int | None = None,
-                  row_hook: Callable[[int, np.ndarray], None] | None = None, edges: dict | None = None) -> None:
+                  row_hook: Callable[[int, np.ndarray], None] | None = None, edges: dict | None = None,
+                  writers: list | None = None) -> None:
     """Compute ``shade/<l>`` for every level of ``store`` into the zarr group ``g``.
 
     Level 0 block rows are computed by worker threads, in order; each finished row (float16, as
@@ -164,10 +165,12 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
     (``prepare`` computes the exact errors that need the whole level 0 there). ``edges``, when
     given ({i: (grid row 1, grid row M-2) of level-0 block row i}, what ``prepare`` keeps from
     its pyramid pass: 2 grid rows a block row), lets each worker read and decode its own row;
-    without it the rows are read here, in order, and each task gets its neighbours' edge rows."""
+    without it the rows are read here, in order, and each task gets its neighbours' edge rows.
+    ``writers`` (one a level, with ``write(i, j0, blocks)``) take the finished blocks instead
+    of ``g``'s arrays (``verify`` compares them with the stored ones)."""
     from .workers import resolve_workers, run_ready
 
-    sp = _ShadingPass(store, g, zlo, zhi, row_hook, edges)
+    sp = _ShadingPass(store, g, zlo, zhi, row_hook, edges, writers=writers)
     total = sum(sp.lay.blocks(lv) for lv in range(sp.lay.levels))
     run_ready(resolve_workers(workers), sp.first(), sp.then, lambda res: progress("shading", 1, total),
               depth=1 if edges is not None else 2)  # bounded: a float16 row is 50 MB at 32769²
@@ -179,14 +182,15 @@ class _ShadingPass:
     wide-row buffers, reused through a :class:`workers.BufferPool`: a row's buffer goes back
     once every coarser row that reads it is finished, a level-0 task's height rows once it is."""
 
-    def __init__(self, store, g, zlo: float, zhi: float, row_hook, edges: dict | None, keep_rows: float = 3.0):
+    def __init__(self, store, g, zlo: float, zhi: float, row_hook, edges: dict | None, keep_rows: float = 3.0,
+                 writers: list | None = None):
         from .store import ChunkWriter
         from .workers import BufferPool
 
         self.store, self.lay, self.hook, self.edges = store, store.layout, row_hook, edges
         self.shade = store.spacing + (zlo, max(zhi - zlo, 1e-6))  # dx, dy, zlo, rng
         nlev = self.lay.levels
-        self.writers = [ChunkWriter(g, f"shade/{lv}") for lv in range(nlev)]
+        self.writers = writers or [ChunkWriter(g, f"shade/{lv}") for lv in range(nlev)]
         self.rows: list[dict] = [{} for _ in range(nlev)]  # level → {row: float16 wide row}, until its readers are submitted
         self.held: list[dict] = [{} for _ in range(nlev)]  # level → {row: [its buffer, readers not yet finished]}
         self.made = [0] * nlev  # block rows submitted per level (in order)

@@ -64,7 +64,7 @@ def verify_store(path, progress=None) -> list[str]:
     for j in range(lay.J + 1):
         if not (np.array_equal(stored_zmin[j], meta.zmin[j]) and np.array_equal(stored_zmax[j], meta.zmax[j])):
             problems.append(f"patch level {j}: stored height ranges differ from the data")
-    problems += _check_pyramid_chunks(store, "shade", prog)
+    problems += _check_shading(store, prog)
     if store.has_color:
         problems += _check_pyramid_chunks(store, "color", prog)
     problems += _check_roettger(store, prog)
@@ -124,6 +124,45 @@ def _check_pyramid_chunks(store: TerrainStore, what: str, prog) -> list[str]:
             prog(f"verify {what}", nb, total)
         out += _capped(bad, f"{what}/{lv}")
     return out
+
+
+class _ShadingCheck:
+    """A level's shading writer for :func:`colors.write_shading` that compares each block it is
+    given with the stored one instead (missing, undecodable or different: a problem each)."""
+
+    def __init__(self, store: TerrainStore, level: int):
+        self.store, self.level, self.bad = store, level, []
+
+    def write(self, i: int, j0: int, blocks: np.ndarray) -> None:
+        lv = self.level
+        for k in range(blocks.shape[0]):
+            j = j0 + k
+            f = self.store.chunk_path(lv, i, j, "shade")
+            if not f.is_file():
+                self.bad.append(f"shading block (level {lv}, {i}, {j}) is missing ({f}); re-run prepare with --overwrite")
+                continue
+            try:
+                got = self.store.get_shade(lv, i, j)
+            except Exception as e:  # noqa: BLE001 - codec errors come in many types
+                self.bad.append(f"shading block (level {lv}, {i}, {j}) does not decode ({describe(e)}); the file {f} is "
+                                "damaged — re-run prepare with --overwrite")
+                continue
+            if got.tobytes() != np.ascontiguousarray(blocks[k]).tobytes():
+                self.bad.append(f"shading block (level {lv}, {i}, {j}) is not what its heights give (the file {f} holds other "
+                                "or damaged shading) — re-run prepare with --overwrite")
+
+
+def _check_shading(store: TerrainStore, prog) -> list[str]:
+    """Every block of ``shade/<l>`` is there, decodes, and is bit for bit the shading its
+    heights give (computed again, as prepare does; walk9 M4: a chunk replaced by another
+    block's decoded fine and rendered as a wrongly lit square)."""
+    from .colors import write_shading
+
+    lay = store.layout
+    zlo, zhi = (float(v) for v in store.attrs["height_range"])
+    checks = [_ShadingCheck(store, lv) for lv in range(lay.levels)]
+    write_shading(store, None, zlo, zhi, lambda phase, adv, total: prog("verify shade", adv, total), writers=checks)
+    return [p for c in checks for p in _capped(sorted(c.bad), f"shade/{c.level}")]
 
 
 def _check_roettger(store: TerrainStore, prog) -> list[str]:
