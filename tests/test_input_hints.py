@@ -90,6 +90,9 @@ def test_any_raster_gdal_reads_is_an_input_and_the_rest_get_the_list(tmp_path):
         z.write(tmp_path / "N45E006.hgt", "N45E006.hgt")
     src = open_source(tmp_path / "N45E006.SRTMGL3.hgt.zip")
     assert (src.rows, src.cols) == (1201, 1201) and 60 < src.spacing()[0] < 70 and 90 < src.spacing()[1] < 95
+    (tmp_path / "N45E006.hgt").rename(tmp_path / "mydem.hgt")  # misnamed: its place is lost, and the warning says why
+    proc = run_cli("prepare", "terrain", tmp_path / "mydem.hgt", "-o", tmp_path / "my.zarr", "-q")
+    assert "placed by its file name, such as N45E006.hgt" in proc.stderr
     (tmp_path / "junk.xyz").write_text("hello")
     with pytest.raises(IngestError, match=r"junk.xyz: unknown input format .xyz; use a raster GDAL reads \(.*\.vrt.*\.asc.*"
                                           r"gdal_translate"):

@@ -216,8 +216,10 @@ def _prepare_terrain(src: RasterSource, out: Path, block: int, K: int, vertical_
         res.warnings.append(f"{src.name}: its CRS measures in {unit} ({factor:.6g} m), so the sample spacing was converted to metres; "
                             f"heights are taken as they are — if they are in {unit} too, prepare again with --vertical-scale {factor:.6g}")
     if src.transform is None:
+        tile = (" (an SRTM tile is placed by its file name, such as N45E006.hgt: give it its own name back, or pass "
+                "--spacing and --crs)") if src.name.lower().endswith(".hgt") else ""
         res.warnings.append(f"{src.name} has no georeference: assumed 1 m sample spacing; pass --spacing DX[,DY] (and --crs) "
-                            "if the samples are further apart")
+                            f"if the samples are further apart{tile}")
     elif not src.crs and _looks_like_degrees(src):
         res.warnings.append(f"{src.name} has no CRS, and its transform looks like degrees (a {abs(src.transform[1]):.6g} sample "
                             f"spacing at {src.transform[0]:.4g}, {src.transform[3]:.4g}): it was taken as metres, so the terrain "
