@@ -91,8 +91,8 @@ def writing(out):
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o666)
         except OSError:
-            yield
-            return
+            fd = None
+            break
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -106,6 +106,9 @@ def writing(out):
         except FileNotFoundError:
             pass
         os.close(fd)
+    if fd is None:
+        yield
+        return
     try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()} on {os.uname().nodename}\n".encode(), 0)

@@ -159,6 +159,8 @@ def _check_shading(store: TerrainStore, prog) -> list[str]:
     from .colors import write_shading
 
     lay = store.layout
+    if not store.attrs.get("complete") or not store.attrs.get("height_range"):  # (a prepare stopped before its shading pass)
+        return _check_pyramid_chunks(store, "shade", prog)
     zlo, zhi = (float(v) for v in store.attrs["height_range"])
     checks = [_ShadingCheck(store, lv) for lv in range(lay.levels)]
     write_shading(store, None, zlo, zhi, lambda phase, adv, total: prog("verify shade", adv, total), writers=checks)
