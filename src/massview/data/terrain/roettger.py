@@ -317,10 +317,14 @@ def _create_depth(g, t: int, shape: tuple):
 
 
 def prepare_roettger(path, C_min: float = DEFAULT_C_MIN, progress=None) -> dict:
-    """Compute and write the table of an existing complete store; returns its attribute."""
-    store = TerrainStore(path)
-    write_table(path, compute_table(store, C_min, progress), C_min)
-    return dict(TerrainStore(path).attrs["roettger"])
+    """Compute and write the table of an existing complete store; returns its attribute. Holds
+    the store's writer lock (:func:`rebuild.writing`) meanwhile."""
+    from ..rebuild import writing
+
+    with writing(path):
+        store = TerrainStore(path)
+        write_table(path, compute_table(store, C_min, progress), C_min)
+        return dict(TerrainStore(path).attrs["roettger"])
 
 
 def has_table(store: TerrainStore) -> bool:

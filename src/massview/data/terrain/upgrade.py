@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Callable
 
 from ...core.errors import StoreError
+from ..rebuild import writing
 from .colors import write_shading
 from .ingest import compute_metadata, write_metadata
 from .store import FORMAT_VERSION, TerrainStore, create_shade_arrays
@@ -21,7 +22,13 @@ __all__ = ["upgrade_store"]
 
 
 def upgrade_store(path, progress: Callable[[str, int, int], None] | None = None) -> bool:
-    """Upgrade the store at ``path``; False when it is current already."""
+    """Upgrade the store at ``path``; False when it is current already. Holds the store's
+    writer lock (:func:`rebuild.writing`) meanwhile."""
+    with writing(path):
+        return _upgrade(path, progress)
+
+
+def _upgrade(path, progress) -> bool:
     import zarr
 
     prog = progress or (lambda phase, adv, total: None)
