@@ -117,3 +117,20 @@ def test_tiny_and_thin_inputs(shape):
     got = a.copy()
     VoidFill(ArraySource(a.copy(), "thin")).fill(0, got)
     assert np.isfinite(got).all() and np.nanmin(a) <= got.min() and got.max() <= np.nanmax(a)
+
+
+def test_a_void_on_the_cell_grid_has_no_walls():
+    """walk10 H1: a void whose rim lies on the push-pull's cell borders (a missing 256² mosaic
+    tile) was filled as a tray with walls: with aligned 2 x 2 sums no cell spanned the rim, and
+    the data's detail did not carry over it (rim steps up to 3x the data's steepest). The push's
+    tent kernel reaches one finer cell past each cell's square."""
+    truth = SyntheticSource(700, seed=11).read(0, 700, 0, 600)
+    a = truth.copy()
+    a[256:512, 128:384] = np.nan
+    hole = np.isnan(a)
+    got = a.copy()
+    VoidFill(ArraySource(a.copy(), "tile")).fill(0, got)
+    rim = np.concatenate([np.abs(np.diff(got, axis=0))[hole[1:] ^ hole[:-1]], np.abs(np.diff(got, axis=1))[hole[:, 1:] ^ hole[:, :-1]]])
+    true_rim = np.concatenate([np.abs(np.diff(truth, axis=0))[hole[1:] ^ hole[:-1]],
+                               np.abs(np.diff(truth, axis=1))[hole[:, 1:] ^ hole[:, :-1]]])
+    assert rim.max() <= true_rim.max() and rim.mean() <= 2 * true_rim.mean(), (rim.max(), true_rim.max(), rim.mean(), true_rim.mean())

@@ -12,7 +12,8 @@ that crosses strips has no seam, and a void of any size has no plateau or cliff:
    boundary), solved exactly with a sparse factorization. Between cell centres the surface is
    the cubic B-spline of those values (C², so no creases in the shading).
 2. **Local detail**: at every valid sample its difference to that surface. The differences are
-   averaged over aligned cells of 2, 4, … F/2 samples (push), then each void sample takes the
+   averaged over cells of 2, 4, … F/2 samples, each cell from its four finer cells and the one
+   beyond each side with weights 1, 3, 3, 1 (push), then each void sample takes the
    bilinear blend of the finest level that holds data around it, levels being blended down one
    at a time (pull); where no level up to F/2 holds data the detail is 0. So next to its rim a
    void continues the data around it, and deep inside it follows the coarse surface.
@@ -142,9 +143,9 @@ class VoidFill:
         detail = np.zeros((h, w))
         np.subtract(raw, surf, out=detail[:nr, :nc], where=valid[:nr, :nc])
         sums, weights = [detail], [valid.astype(np.float64)]
-        for _ in range(self.levels):  # push: cells of 2, 4, .. F/2
-            sums.append(_pool(sums[-1]))
-            weights.append(_pool(weights[-1]))
+        for _ in range(self.levels):  # push: cells of 2, 4, .. F/2, each from its finer cells and one beyond (tent)
+            sums.append(_tent(sums[-1]))
+            weights.append(_tent(weights[-1]))
         val = np.divide(sums[-1], weights[-1], out=np.zeros_like(sums[-1]), where=weights[-1] > 0)
         for s, c in zip(reversed(sums[:-1]), reversed(weights[:-1])):  # pull
             val = np.divide(s, c, out=_upsample(val), where=c > 0)
@@ -167,6 +168,20 @@ def _bspline(x: np.ndarray, F: int, n: int):
 def _pool(a: np.ndarray) -> np.ndarray:
     """Sums of the 2 × 2 cells of ``a`` (even shape), as four element-wise additions."""
     return (a[0::2, 0::2] + a[1::2, 0::2]) + (a[0::2, 1::2] + a[1::2, 1::2])
+
+
+def _tent(a: np.ndarray) -> np.ndarray:
+    """Cells of twice the size from ``a`` (even shape): weights 1, 3, 3, 1 over the finer cells
+    2I-1 .. 2I+2 along each axis (nothing beyond the edge), element-wise in a fixed order. The
+    overlap lets a coarse cell see data one finer cell past its own square, so a void whose rim
+    lies on a cell border still takes the data beside it (with aligned 2 × 2 sums such a rim was
+    a cliff: walk10 H1, a missing 256² tile filled as a tray with 168 m walls)."""
+    def axis0(x):
+        z = np.zeros((1,) + x.shape[1:])
+        before = np.concatenate([z, x[1:-1:2]])  # cell 2I-1
+        after = np.concatenate([x[2::2], z])  # cell 2I+2
+        return (before + 3.0 * x[0::2]) + (3.0 * x[1::2] + after)
+    return axis0(axis0(a).T).T
 
 
 def _upsample(v: np.ndarray) -> np.ndarray:
