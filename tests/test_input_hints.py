@@ -14,17 +14,19 @@ def _dem():
     return (synthetic_heights(0, 200, 0, 240, 240, 5) * 0.5 + 400).astype(np.float32)
 
 
-@pytest.mark.parametrize("marker", [-3.4028235e38, 3.4028235e38, 1e30, -9999.0])
-def test_an_untagged_float_fill_value_gets_a_hint_and_the_option_fixes_it(tmp_path, marker):
-    a = _dem()
+@pytest.mark.parametrize("marker,dtype", [(-3.4028235e38, "f4"), (3.4028235e38, "f4"), (1e30, "f4"), (-9999.0, "f4"),
+                                          (-9999, "i2")])
+def test_an_untagged_fill_value_gets_a_hint_and_the_command_it_gives_works(tmp_path, marker, dtype):
+    a = _dem().astype(dtype)
     a[50:55, 60:65] = marker
     np.save(tmp_path / "d.npy", a)
-    proc = run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", tmp_path / "a.zarr")
+    out = tmp_path / "a.zarr"
+    proc = run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", out)
     hint = [ln for ln in proc.stderr.splitlines() if "--nodata" in ln]
     assert len(hint) == 1 and "d.npy" in hint[0], proc.stderr
-    value = hint[0].rsplit("--nodata ", 1)[1].split()[0]
-    proc = run_cli("prepare", "terrain", tmp_path / "d.npy", "--nodata", value, "-o", tmp_path / "b.zarr")
-    assert "25 nodata samples filled" in proc.stdout and "--nodata" not in proc.stderr, (value, proc.stdout, proc.stderr)
+    given = hint[0].split("prepare again with ", 1)[1].split(" (")[0].split()  # pasted as printed (walk10 L2)
+    proc = run_cli("prepare", "terrain", tmp_path / "d.npy", *given, "-o", out)
+    assert "25 nodata samples filled" in proc.stdout and "--nodata" not in proc.stderr, (given, proc.stdout, proc.stderr)
 
 
 def test_ordinary_heights_get_no_marker_hint(tmp_path):
@@ -39,9 +41,12 @@ def test_a_transform_in_degrees_without_a_crs_gets_a_hint(tmp_path):
     from rasterio.transform import from_origin
 
     a = _dem()
+    scan = (a - a.min()) / (a.max() - a.min()) * 0.3  # a close-range scan in metres: 0.5 mm spacing, 0.3 m of relief
     for name, transform, crs in (("deg.tif", from_origin(7.7, 46.05, 0.000335, 0.000335), None),
                                  ("utm.tif", from_origin(500000.0, 5100000.0, 30.0, 30.0), None),
-                                 ("wgs.tif", from_origin(7.7, 46.05, 0.000335, 0.000335), "EPSG:4326")):
+                                 ("wgs.tif", from_origin(7.7, 46.05, 0.000335, 0.000335), "EPSG:4326"),
+                                 ("scan.tif", from_origin(0.0, 0.12, 0.0005, 0.0005), None)):
+        a = scan if name == "scan.tif" else _dem()
         with rasterio.open(tmp_path / name, "w", driver="GTiff", height=a.shape[0], width=a.shape[1], count=1,
                            dtype="float32", transform=transform, crs=crs) as f:
             f.write(a, 1)

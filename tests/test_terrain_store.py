@@ -649,6 +649,8 @@ def test_one_writer_at_a_time_and_readers_are_told_it_is_being_written(tmp_path)
         for cmd in (("info", out), ("render", out, "--frames", "1", "--size", "64x48", "--out", tmp_path / "r")):
             proc = run_cli(*cmd, check=False)
             assert proc.returncode == 1 and "being written by a prepare running now" in proc.stderr, proc.stderr
+        proc = run_cli("verify", out, "-q", check=False)  # (one line for it, not its unfinished rows as problems: walk10 L5)
+        assert proc.returncode == 1 and proc.stderr.count("massview: verify:") == 1 and "a prepare is writing it now" in proc.stderr
     proc = run_cli("info", out, check=False)
     assert "interrupted" in proc.stderr or "incomplete" in proc.stdout + proc.stderr
     assert run_cli("prepare", "terrain", tmp_path / "d.npy", "-o", out, "-q").returncode == 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -69,7 +70,13 @@ def cmd_generate(args) -> int:
         else:
             if out.exists() and not args.overwrite:
                 raise ConfigError(f"{out} exists; pass --overwrite to replace it")
-            write_synthetic(out, args.size, args.seed, fmt, lambda a, t: prog("generate", a, t))
+            try:
+                write_synthetic(out, args.size, args.seed, fmt, lambda a, t: prog("generate", a, t))
+            except Exception as e:  # GDAL's write error names no cause (its "No space left" went to its log)
+                if disk_full(e) is None and shutil.disk_usage(out.parent).free >= 1 << 20:
+                    raise
+                raise OutputError(f"{out}: no space left on the device; free space (or choose another output) and run the "
+                                  "command again") from None
             msg = f"wrote {out} ({args.size}x{args.size} float32, {SYNTHETIC_SPACING:g} m sample spacing)"
             if fmt == "npy":  # .npy has no georeference: record it beside the file, and say what to pass
                 side = write_sidecar(out, (SYNTHETIC_SPACING, SYNTHETIC_SPACING))

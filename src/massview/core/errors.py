@@ -103,6 +103,11 @@ def disk_full(e: BaseException | None) -> str | None:
     for x in _chain(e):
         if isinstance(x, OSError) and x.errno in (errno.ENOSPC, errno.EDQUOT):
             return "no space left on the device" if x.errno == errno.ENOSPC else "over the disk quota"
+        text = str(x)  # (GDAL's errors through rasterio carry no errno, only its words)
+        if "No space left on device" in text:
+            return "no space left on the device"
+        if "Disk quota exceeded" in text:
+            return "over the disk quota"
     return None
 
 

@@ -216,15 +216,15 @@ def _prepare_terrain(src: RasterSource, out: Path, block: int, K: int, vertical_
         res.warnings.append(f"{src.name}: its CRS measures in {unit} ({factor:.6g} m), so the sample spacing was converted to metres; "
                             f"heights are taken as they are — if they are in {unit} too, prepare again with --vertical-scale {factor:.6g}")
     if src.transform is None:
-        tile = (" (an SRTM tile is placed by its file name, such as N45E006.hgt: give it its own name back, or pass "
-                "--spacing and --crs)") if src.name.lower().endswith(".hgt") else ""
+        tile = (" (an SRTM tile is placed by its file name, such as N45E006.hgt: give it its own name back)"
+                if src.name.lower().endswith(".hgt") else "")
         res.warnings.append(f"{src.name} has no georeference: assumed 1 m sample spacing; pass --spacing DX[,DY] (and --crs) "
                             f"if the samples are further apart{tile}")
-    elif not src.crs and _looks_like_degrees(src):
+    elif not src.crs and _looks_like_degrees(src, meta.zhi - meta.zlo):
         res.warnings.append(f"{src.name} has no CRS, and its transform looks like degrees (a {abs(src.transform[1]):.6g} sample "
-                            f"spacing at {src.transform[0]:.4g}, {src.transform[3]:.4g}): it was taken as metres, so the terrain "
-                            "is a needle; prepare again with --crs EPSG:4326 (or the CRS it was made in: an ESRI grid's .prj "
-                            "beside it)")
+                            f"spacing at {src.transform[0]:.4g}, {src.transform[3]:.4g}, heights spanning {meta.zhi - meta.zlo:.4g}): "
+                            "it was taken as metres, so the terrain is a needle; prepare again with --crs EPSG:4326 --overwrite "
+                            "(or the CRS it was made in: an ESRI grid's .prj beside it)")
     return res
 
 
@@ -245,7 +245,7 @@ def _check_padding(src: RasterSource, lay: TerrainLayout) -> None:
                           "e.g. gdal_translate -srcwin) and prepare each")
 
 
-_FLOAT_MARKERS = (-9999.0, -99999.0, -32767.0, -32768.0)  # usual nodata values of float rasters written without a tag
+_MARKERS = (-9999.0, -99999.0, -32767.0, -32768.0)  # usual nodata values of rasters written without a tag
 _NOT_A_HEIGHT = 1e15  # |z| beyond this is a fill value (float32's ±3.4e38, 1e30), not a height in any unit
 
 
@@ -260,24 +260,28 @@ def _marker_hints(src: RasterSource, zlo: float, zhi: float) -> list[str]:
     if dt.kind == "i" and zlo == float(np.iinfo(dt).min):
         lo = int(np.iinfo(dt).min)
         out.append(f"{src.name}: its lowest height is {lo}, the smallest {dt.name} and the usual void marker (SRTM's); "
-                   f"if those samples are voids, prepare again with --nodata {lo} (they are heights of {lo} now)")
+                   f"if those samples are voids, prepare again with --nodata {lo} --overwrite (they are heights of {lo} now)")
     for z, which in ((zlo, "lowest"), (zhi, "highest")):
         if abs(z) >= _NOT_A_HEIGHT:
             out.append(f"{src.name}: its {which} height is {z:.9g}, a fill value rather than a height; the height range, the "
                        f"colours and the camera follow it, so renders show only sky: if those samples are voids, prepare "
-                       f"again with --nodata {z:.9g}")
-    if dt.kind == "f" and zlo in _FLOAT_MARKERS:
-        out.append(f"{src.name}: its lowest height is {zlo:g}, a usual nodata value of float rasters; if those samples are "
-                   f"voids, prepare again with --nodata {zlo:g} (they are heights of {zlo:g} now)")
+                       f"again with --nodata {z:.9g} --overwrite")
+    if zlo in _MARKERS and not (dt.kind == "i" and zlo == float(np.iinfo(dt).min)):
+        out.append(f"{src.name}: its lowest height is {zlo:g}, a usual nodata value; if those samples are voids, prepare "
+                   f"again with --nodata {zlo:g} --overwrite (they are heights of {zlo:g} now)")
     return out
 
 
-def _looks_like_degrees(src: RasterSource) -> bool:
-    """A transform whose samples are under 0.01 units apart and whose extent lies within
-    ±180 × ±90: longitude and latitude, almost surely."""
+def _looks_like_degrees(src: RasterSource, relief: float) -> bool:
+    """A transform whose samples are under 0.01 units apart, whose extent lies within ±180 × ±90
+    and whose heights span more than 5 times that extent: longitude and latitude under heights
+    in metres, almost surely (a close-range scan in metres has spacing, extent and relief alike:
+    walk10 M1)."""
     x0, dx, _, y0, _, dy = src.transform
     x1, y1 = x0 + dx * src.cols, y0 + dy * src.rows
-    return 0 < max(abs(dx), abs(dy)) < 0.01 and max(abs(x0), abs(x1)) <= 180 and max(abs(y0), abs(y1)) <= 90
+    extent = max(abs(x1 - x0), abs(y1 - y0))
+    return (0 < max(abs(dx), abs(dy)) < 0.01 and max(abs(x0), abs(x1)) <= 180 and max(abs(y0), abs(y1)) <= 90
+            and relief > 5 * extent)
 
 
 @contextmanager

@@ -40,6 +40,15 @@ def write_synthetic(path: Path, size: int, seed: int, fmt: str, progress: Callab
     prog = progress or (lambda a, t: None)
     strips = range(0, size, _TILE)
     tmp = path.with_name(path.name + ".partial")
+    try:
+        _write(tmp, src, size, fmt, strips, prog)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # (a full disk, Ctrl-C: no half-written file left)
+        raise
+    tmp.replace(path)
+
+
+def _write(tmp: Path, src, size: int, fmt: str, strips, prog) -> None:
     if fmt == "npy":
         from .workers import resolve_workers, run_ordered
 
@@ -70,4 +79,3 @@ def write_synthetic(path: Path, size: int, seed: int, fmt: str, progress: Callab
                 prog(r1 - r0, size)
     else:
         raise ConfigError(f"--format {fmt!r}: use store, tif or npy")
-    tmp.replace(path)

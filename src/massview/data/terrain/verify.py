@@ -24,8 +24,9 @@ def verify_store(path, progress=None) -> list[str]:
     if not store.attrs.get("complete"):
         from ..rebuild import being_written
 
-        problems.append("store is not marked complete: a prepare is writing it now; wait for it to finish" if being_written(path)
-                        else "store is not marked complete (prepare was interrupted); re-run the same prepare command")
+        if being_written(path):  # (its unfinished rows are no problem: nothing else to say yet, walk10 L5)
+            return ["store is not marked complete: a prepare is writing it now; wait for it to finish, then verify"]
+        problems.append("store is not marked complete (prepare was interrupted); re-run the same prepare command")
     lay = store.layout
     for lv in range(lay.levels):
         done = np.asarray(store.array(f"blocks/{lv}/done")[...])  # (StoreError naming it when missing or damaged)
