@@ -506,7 +506,8 @@ def _main(argv: list[str]) -> int:
     except Exception as e:  # a full disk, wherever it struck: one line, not a traceback (walk9 M1)
         if disk_full(e) is None:
             raise
-        print(f"massview: error: {full_disk_line(e, 'the output')}; free space (or choose another output) and run the "
+        where = getattr(args, "out", None) or getattr(args, "output", None) or "the output"
+        print(f"massview: error: {full_disk_line(e, where)}; free space (or choose another output) and run the "
               "command again", file=sys.stderr)
         return 1
 
