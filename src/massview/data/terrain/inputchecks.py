@@ -42,7 +42,8 @@ def marker_hints(src: RasterSource, zlo: float, zhi: float) -> list[str]:
     if src.nodata is not None:
         return []
     out, dt = [], np.dtype(src.dtype)
-    if dt.kind == "i" and zlo == float(np.iinfo(dt).min):
+    int_min = dt.kind == "i" and zlo == float(np.iinfo(dt).min)
+    if int_min:
         lo = int(np.iinfo(dt).min)
         out.append(f"{src.name}: its lowest height is {lo}, the smallest {dt.name} and the usual void marker (SRTM's); "
                    f"if those samples are voids, prepare again with --nodata {lo} --overwrite (they are heights of {lo} now)")
@@ -51,7 +52,7 @@ def marker_hints(src: RasterSource, zlo: float, zhi: float) -> list[str]:
             out.append(f"{src.name}: its {which} height is {z:.9g}, a fill value rather than a height; the height range, the "
                        f"colours and the camera follow it, so renders show only sky: if those samples are voids, prepare "
                        f"again with --nodata {z:.9g} --overwrite")
-    if zlo in _MARKERS and not (dt.kind == "i" and zlo == float(np.iinfo(dt).min)):
+    if zlo in _MARKERS and not int_min:  # (the smallest integer has its own line above)
         out.append(f"{src.name}: its lowest height is {zlo:g}, a usual nodata value; if those samples are voids, prepare "
                    f"again with --nodata {zlo:g} --overwrite (they are heights of {zlo:g} now)")
     return out

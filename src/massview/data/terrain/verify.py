@@ -107,21 +107,14 @@ def _check_pyramid_chunks(store: TerrainStore, what: str, prog) -> list[str]:
     """Every chunk (one block each) of ``shade/<l>`` or ``color/<l>`` is there and decodes to
     a block, read one at a time (a missing chunk file would render as the fill value)."""
     lay, out = store.layout, []
-    label = {"shade": "shading", "color": "colour"}[what]
     total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
     for lv in range(lay.levels):
         arr, nb, bad = store.array(f"{what}/{lv}"), lay.blocks(lv), []
         for i in range(nb):
             for j in range(nb):
-                f = store.chunk_path(lv, i, j, what)
-                if not f.is_file():
-                    bad.append(f"{label} block (level {lv}, {i}, {j}) is missing ({f}); re-run prepare with --overwrite")
-                    continue
-                try:
-                    np.asarray(arr[i, j])
-                except Exception as e:  # noqa: BLE001 - codec errors come in many types
-                    bad.append(f"{label} block (level {lv}, {i}, {j}) does not decode ({describe(e)}); the file {f} is damaged — "
-                               "re-run prepare with --overwrite")
+                _, problem = _stored_block(store, what, lv, i, j, lambda: np.asarray(arr[i, j]))
+                if problem:
+                    bad.append(problem)
             prog(f"verify {what}", nb, total)
         out += _capped(bad, f"{what}/{lv}")
     return out
@@ -138,19 +131,27 @@ class _ShadingCheck:
         lv = self.level
         for k in range(blocks.shape[0]):
             j = j0 + k
-            f = self.store.chunk_path(lv, i, j, "shade")
-            if not f.is_file():
-                self.bad.append(f"shading block (level {lv}, {i}, {j}) is missing ({f}); re-run prepare with --overwrite")
-                continue
-            try:
-                got = self.store.get_shade(lv, i, j)
-            except Exception as e:  # noqa: BLE001 - codec errors come in many types
-                self.bad.append(f"shading block (level {lv}, {i}, {j}) does not decode ({describe(e)}); the file {f} is "
-                                "damaged — re-run prepare with --overwrite")
-                continue
-            if got.tobytes() != np.ascontiguousarray(blocks[k]).tobytes():
-                self.bad.append(f"shading block (level {lv}, {i}, {j}) is not what its heights give (the file {f} holds other "
-                                "or damaged shading) — re-run prepare with --overwrite")
+            got, problem = _stored_block(self.store, "shade", lv, i, j, lambda: self.store.get_shade(lv, i, j))
+            if problem:
+                self.bad.append(problem)
+            elif got.tobytes() != np.ascontiguousarray(blocks[k]).tobytes():
+                self.bad.append(f"shading block (level {lv}, {i}, {j}) is not what its heights give (the file "
+                                f"{self.store.chunk_path(lv, i, j, 'shade')} holds other or damaged shading) — re-run prepare "
+                                "with --overwrite")
+
+
+def _stored_block(store: TerrainStore, what: str, lv: int, i: int, j: int, read):
+    """(the block ``read()`` decodes, None), or (None, the problem) where the chunk file of
+    ``<what>/<lv>`` block (i, j) is missing or does not decode."""
+    label = {"shade": "shading", "color": "colour"}[what]
+    f = store.chunk_path(lv, i, j, what)
+    if not f.is_file():
+        return None, f"{label} block (level {lv}, {i}, {j}) is missing ({f}); re-run prepare with --overwrite"
+    try:
+        return read(), None
+    except Exception as e:  # noqa: BLE001 - codec errors come in many types
+        return None, (f"{label} block (level {lv}, {i}, {j}) does not decode ({describe(e)}); the file {f} is damaged — "
+                      "re-run prepare with --overwrite")
 
 
 def _check_shading(store: TerrainStore, prog) -> list[str]:
