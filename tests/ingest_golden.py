@@ -12,6 +12,11 @@ detail, instead of iterated neighbour averages inside each strip) — a delibera
 filled samples and all that derives from them; its input became host-independent then, so it
 has one recording and no variants.
 
+The recordings were made with format-version-2 stores (``"_format_version": 2``); version 3
+(issue 20, 2026-11-29) computes level 0's shading on reading from ``halo/0`` instead of storing
+it, and its digest (:func:`store_digest`) is the shading it gives, so the same recordings check
+that it gives exactly the stored version-2 shading, and the attributes apart from the version.
+
 Run as a script (``python tests/ingest_golden.py``) to (re)record ``tests/data/ingest_golden.json``
 — only ever with the reference ingest; the test compares against the recorded file.
 
@@ -84,18 +89,46 @@ def prepare_case(name: str, path: Path, **extra):
     return prepare_terrain(make(), path, **kw, **extra)
 
 
-def store_digest(path: Path) -> dict[str, str]:
+def store_digest(path: Path, as_version: int | None = None) -> dict[str, str]:
     """{array path: sha256 of dtype, shape and decoded bytes} and {"attrs": sha256 of the
-    run-independent attributes} of a store."""
+    run-independent attributes} of a store.
+
+    A version-3 store keeps ``halo/0`` instead of ``shade/0``: its ``"shade/0"`` is the digest
+    of the level-0 shading it gives (``get_shade`` of every block, assembled as the version-2
+    array was), which every halo sample enters, so ``halo/0`` is not listed. ``as_version``:
+    hash the attributes with that ``format_version`` (the recordings' own, :func:`recorded_version`),
+    so the digest says whether everything else is as recorded."""
     import zarr
 
     g = zarr.open_group(str(path), mode="r")
     out = {}
     for name, arr in sorted(_walk(g), key=lambda t: t[0]):
-        out[name] = _array_digest(arr)
+        if name != "halo/0":
+            out[name] = _array_digest(arr)
+    if "halo/0" in g:
+        out["shade/0"] = _computed_shade0_digest(path)
     attrs = {k: v for k, v in dict(g.attrs).items() if k not in _RUN_ATTRS}
+    if as_version is not None:
+        attrs["format_version"] = as_version
     out["attrs"] = hashlib.sha256(json.dumps(attrs, sort_keys=True).encode()).hexdigest()
     return out
+
+
+def _computed_shade0_digest(path: Path) -> str:
+    from massview.data.terrain import TerrainStore
+
+    st = TerrainStore(path)
+    nb, M = st.layout.blocks(0), st.layout.M
+    a = np.empty((nb, nb, M, M, 3), np.float16)
+    for i in range(nb):
+        for j in range(nb):
+            st.get_shade(0, i, j, out=a[i, j])
+    return _array_digest(a)
+
+
+def recorded_version() -> int:
+    """The store format version the recordings were made with (``"_format_version"``)."""
+    return int(json.loads(GOLDEN.read_text()).get("_format_version", 2))
 
 
 def input_digest(path: Path) -> str:
@@ -132,12 +165,13 @@ def _walk(g, prefix=""):
 if __name__ == "__main__":
     import tempfile
 
-    rec = {"_variants": json.loads(GOLDEN.read_text()).get("_variants", {})} if GOLDEN.exists() else {}
+    old = json.loads(GOLDEN.read_text()) if GOLDEN.exists() else {}
+    rec = {k: old[k] for k in ("_variants", "_format_version") if k in old}
     with tempfile.TemporaryDirectory() as d:
         for name in CASES:
             p = Path(d) / f"{name}.zarr"
             prepare_case(name, p)
-            rec[name] = store_digest(p)
+            rec[name] = store_digest(p, rec.get("_format_version"))
             print(name, len(rec[name]), "arrays")
     GOLDEN.write_text(json.dumps(rec, indent=1, sort_keys=True) + "\n")
     print("wrote", GOLDEN)

@@ -184,7 +184,7 @@ def test_store_arrays_are_the_ones_zarr_creates(tmp_path, monkeypatch, color):
         st.create_shade_arrays(g, lay)
         trees.append(tree(tmp_path / way))
     assert trees[0] == trees[1]
-    assert sum(k.endswith("zarr.json") for k in trees[1]) == 1 + 3 + color + lay.levels * (4 + color)  # groups: root, heights, shade, blocks (color); per level: heights, shade, blocks/<l>, its done (color)
+    assert sum(k.endswith("zarr.json") for k in trees[1]) == 1 + 4 + color + lay.levels * (4 + color)  # groups: root, heights, shade, halo, blocks (color); per level: heights, shade (halo at level 0), blocks/<l>, its done (color)
     assert not any("/c/" in k or "/c." in k for k in trees[1])
 
 

@@ -110,6 +110,33 @@ def test_horn_blocks_matches_numpy(edges, nb):
     assert got.dtype == np.float16 and np.array_equal(got.view(np.uint16), want.view(np.uint16))
 
 
+@pytest.mark.parametrize("edges", [(False, False), (True, True), (True, False), (False, True)])
+@pytest.mark.parametrize("nb", [1, 3])
+def test_level0_shading_from_halos_matches_the_wide_rows(edges, nb):
+    """Store format 3: each block's level-0 shading computed on reading from its heights and
+    its halo (block_halos → shade0_block) is, bit for bit, the block's part of what the
+    shading pass computes over the whole row with its neighbours (and what the numpy code
+    gives), at the grid's edges (clamped) and inside it."""
+    from massview.data.terrain.store import block_view
+
+    rng = np.random.default_rng(17 + nb)
+    M, W = 33, nb * 32 + 1
+    rows = [_terrain(rng, (M, W), scale=4000.0) for _ in range(3)]
+    prev, cur, nxt = rows[0] if edges[0] else None, rows[1], rows[2] if edges[1] else None
+    dx, dy, zlo, zhi = 30.0, 27.5, float(cur.min()) - 3.1, float(cur.max()) + 7.3
+    want = _numpy_shade0(prev, cur, nxt, dx, dy, zlo, max(zhi - zlo, 1e-6))
+    blocks = np.ascontiguousarray(block_view(cur, nb, M))
+    above, below = prev[M - 2] if prev is not None else None, nxt[1] if nxt is not None else None
+    halos = colors.block_halos(above, blocks, below)
+    assert halos.shape == (nb, 4, M + 2) and halos.dtype == np.float32
+    for j in range(nb):
+        got = colors.shade0_block(halos[j], blocks[j], dx, dy, zlo, max(zhi - zlo, 1e-6))
+        assert got.dtype == np.float16 and np.array_equal(got.view(np.uint16), want[:, j * (M - 1): j * (M - 1) + M].view(np.uint16))
+        out = np.empty((M, M, 3), np.float16)
+        assert colors.shade0_block(halos[j], blocks[j], dx, dy, zlo, max(zhi - zlo, 1e-6), out=out) is out
+        assert np.array_equal(out.view(np.uint16), got.view(np.uint16))
+
+
 @pytest.mark.parametrize("i,last", [(1, False), (1, True), (0, False), (0, True)])
 def test_tent_row_matches_numpy(i, last):
     rng = np.random.default_rng(4)

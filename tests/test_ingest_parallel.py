@@ -1,6 +1,7 @@
 """Issue 20: the parallel ingest writes exactly what the serial ingest wrote before it.
 
-* every array of a prepared store (decoded values, dtype, shape) and its attributes match the
+* every array of a prepared store (decoded values, dtype, shape; level 0's shading as computed
+  from ``halo/0`` since format version 3) and its attributes (but the version) match the
   digests recorded with the previous, single-threaded ingest (tests/ingest_golden.py, recorded
   before the change) on a real DEM and on synthetic non-2^n+1 ones (the case with nodata holes
   recorded again when void filling changed, with 1 and with 2 workers alike);
@@ -15,14 +16,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ingest_golden import CASES, prepare_case, recorded_for, store_digest
+from ingest_golden import CASES, prepare_case, recorded_for, recorded_version, store_digest
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_prepare_reproduces_the_recorded_stores(tmp_path, name):
+    from massview.data.terrain import FORMAT_VERSION, TerrainStore
+
     prepare_case(name, tmp_path / "s.zarr")
-    got = store_digest(tmp_path / "s.zarr")
+    got = store_digest(tmp_path / "s.zarr", as_version=recorded_version())
     want = recorded_for(name, got)  # the recording of this host's input (see ingest_golden)
+    assert TerrainStore(tmp_path / "s.zarr").attrs["format_version"] == FORMAT_VERSION
     assert sorted(got) == sorted(want)
     assert [k for k in want if got[k] != want[k]] == [], f"input heights/0 {got['heights/0'][:16]}"
 

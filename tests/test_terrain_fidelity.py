@@ -251,6 +251,7 @@ def test_old_store_is_refused_with_a_clear_message_and_upgrades(tmp_path, real):
     g = zarr.open_group(str(tmp_path / "old.zarr"), mode="r+")
     g.attrs["format_version"] = 1
     del g["shade"]
+    del g["halo"]
     with pytest.raises(StoreError, match="massview upgrade"):
         TerrainStore(tmp_path / "old.zarr")
     proc = run_cli("render", tmp_path / "old.zarr", "--frames", 1, "--size", "64x48", "--out", tmp_path / "o", check=False)
@@ -261,6 +262,42 @@ def test_old_store_is_refused_with_a_clear_message_and_upgrades(tmp_path, real):
     for a, b in zip(up.lod_arrays(), real.lod_arrays()):
         assert all(np.array_equal(x, y) for x, y in zip(a, b))
     assert np.array_equal(up.get_shade(0, 1, 1), real.get_shade(0, 1, 1))
+
+
+def test_version_2_store_reads_its_stored_shading_and_upgrades_to_halos(tmp_path, real):
+    """A format-2 store (level 0's shading stored in shade/0) opens without an upgrade and reads
+    its stored level 0; ``massview upgrade`` writes halo/0, sets version 3 and then deletes
+    shade/0: the same shading at every level, bit for bit, verify OK, a smaller store."""
+    import zarr
+
+    from conftest import run_cli
+    from massview.data.terrain import FORMAT_VERSION, TerrainStore, dir_size
+    from massview.data.terrain.store import _compressor
+
+    lay = real.layout
+    nb, M = lay.blocks(0), lay.M
+    shade0 = np.stack([np.stack([real.get_shade(0, i, j) for j in range(nb)]) for i in range(nb)])
+    shutil.copytree(real.path, tmp_path / "v2.zarr")
+    g = zarr.open_group(str(tmp_path / "v2.zarr"), mode="r+")
+    g.create_array("shade/0", shape=shade0.shape, chunks=(1, 1, M, M, 3), dtype="float16", compressors=_compressor(2),
+                   fill_value=0)[...] = shade0
+    del g["halo"]
+    g.attrs["format_version"] = 2
+    v2 = TerrainStore(tmp_path / "v2.zarr")
+    assert not v2.shade0_computed and v2.shade_file(0, 1, 1) == tmp_path / "v2.zarr/shade/0/c/1/1/0/0/0"
+    assert all(np.array_equal(v2.get_shade(0, i, j), shade0[i, j]) for i in range(nb) for j in range(nb))
+    assert "OK" in run_cli("verify", tmp_path / "v2.zarr", "-q").stdout
+    before = dir_size(tmp_path / "v2.zarr")
+    run_cli("upgrade", tmp_path / "v2.zarr", "-q")
+    up = TerrainStore(tmp_path / "v2.zarr")
+    assert up.attrs["format_version"] == FORMAT_VERSION and up.shade0_computed
+    assert not (tmp_path / "v2.zarr/shade/0").exists() and (tmp_path / "v2.zarr/halo/0").is_dir()
+    for lv in range(lay.levels):
+        for i in range(lay.blocks(lv)):
+            for j in range(lay.blocks(lv)):
+                assert up.get_shade(lv, i, j).tobytes() == real.get_shade(lv, i, j).tobytes()
+    assert "OK" in run_cli("verify", tmp_path / "v2.zarr", "-q").stdout
+    assert dir_size(tmp_path / "v2.zarr") < 0.75 * before
 
 
 def test_view_time_controls_are_validated():

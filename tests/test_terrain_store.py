@@ -500,11 +500,15 @@ def test_single_block_reads_are_zarrs_values_and_fall_back_on_damage(tmp_path):
     for lv in range(s.layout.levels):
         for i in range(s.layout.blocks(lv)):
             for j in range(s.layout.blocks(lv)):
-                direct = [s._direct_block("heights", lv, i, j, "<f4"), s._direct_block("shade", lv, i, j, "<f2", (3,)),
-                          s._direct_block("color", lv, i, j, "u1", (3,))]
+                if lv == 0:  # (level 0's shading is computed from the heights and the halo, read directly)
+                    halo = (s.get_halo(i, j), np.asarray(s.group["halo/0"][i, j]))
+                    assert halo[0].dtype == halo[1].dtype and halo[0].tobytes() == halo[1].tobytes()
+                shade = (s._direct_block("shade", lv, i, j, "<f2", (3,)), np.asarray(s.group[f"shade/{lv}"][i, j])) if lv else (
+                    s.get_shade(0, i, j),) * 2
+                direct = [s._direct_block("heights", lv, i, j, "<f4"), shade[0], s._direct_block("color", lv, i, j, "u1", (3,))]
                 assert all(d is not None for d in direct)  # (the fast path is taken)
                 got = [s.get_block(lv, i, j), s.get_shade(lv, i, j), s.get_color(lv, i, j)]
-                want = [np.asarray(s.group[f"{w}/{lv}"][i, j]) for w in ("heights", "shade", "color")]
+                want = [np.asarray(s.group[f"heights/{lv}"][i, j]), shade[1], np.asarray(s.group[f"color/{lv}"][i, j])]
                 for g, d, w in zip(got, direct, want):
                     assert g.dtype == w.dtype and g.shape == w.shape and g.tobytes() == w.tobytes() == d.tobytes()
                 n += 1
@@ -516,6 +520,14 @@ def test_single_block_reads_are_zarrs_values_and_fall_back_on_damage(tmp_path):
     chunk.unlink()
     with pytest.raises(BlockNotFoundError, match=r"block \(level 0, 1, 2\) is missing"):
         TerrainStore(tmp_path / "s.zarr").get_block(0, 1, 2)
+    halo = s.chunk_path(0, 2, 0, "halo")  # level-0 shading needs its block row's halo file: damage is named
+    assert halo == tmp_path / "s.zarr/halo/0/c/2/0/0/0"
+    halo.write_bytes(halo.read_bytes()[:100])
+    with pytest.raises(CorruptBlockError, match=r"halo of block \(level 0, 2, 1\) does not decode.*" + str(halo)):
+        TerrainStore(tmp_path / "s.zarr").get_shade(0, 2, 1)
+    halo.unlink()
+    with pytest.raises(BlockNotFoundError, match=r"halo of block \(level 0, 2, 1\) is missing.*" + str(halo)):
+        TerrainStore(tmp_path / "s.zarr").get_shade(0, 2, 1)
 
 
 def test_int16_voids_without_nodata_get_a_hint(tmp_path):
@@ -596,7 +608,8 @@ def test_flat_chunk_keys_read_as_the_nested_ones(tmp_path, monkeypatch):
     monkeypatch.setitem(CHUNK_KEYS, "separator", ".")
     flat = prepare(h, tmp_path, "flat.zarr", workers=2)
     monkeypatch.undo()
-    assert (tmp_path / "nested.zarr/heights/0/c/1/2/0/0").is_file() and (tmp_path / "nested.zarr/shade/0/c/1/2/0/0/0").is_file()
+    assert (tmp_path / "nested.zarr/heights/0/c/1/2/0/0").is_file() and (tmp_path / "nested.zarr/shade/1/c/1/0/0/0/0").is_file()
+    assert (tmp_path / "nested.zarr/halo/0/c/1/0/0/0").is_file() and (tmp_path / "flat.zarr/halo/0/c.1.0.0.0").is_file()
     assert (tmp_path / "flat.zarr/heights/0/c.1.2.0.0").is_file() and not (tmp_path / "flat.zarr/heights/0/c").exists()
     assert not [p for p in (tmp_path / "flat.zarr").rglob("c") if p.is_dir()]  # no chunk folders at all
     lay = flat.layout
@@ -605,7 +618,7 @@ def test_flat_chunk_keys_read_as_the_nested_ones(tmp_path, monkeypatch):
             np.testing.assert_array_equal(flat.get_block_row(lv, i), nested.get_block_row(lv, i))
             for j in range(lay.blocks(lv)):
                 for s in (flat, nested):
-                    assert s.chunk_path(lv, i, j).is_file() and s.chunk_path(lv, i, j, "shade").is_file()
+                    assert s.chunk_path(lv, i, j).is_file() and s.shade_file(lv, i, j).is_file()
                     assert s._direct_block("heights", lv, i, j, "<f4") is not None  # read directly, not through zarr
                 np.testing.assert_array_equal(flat.get_block(lv, i, j), nested.get_block(lv, i, j))
                 np.testing.assert_array_equal(flat.get_shade(lv, i, j), nested.get_shade(lv, i, j))

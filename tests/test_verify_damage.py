@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pytest
 from conftest import run_cli
 
@@ -49,21 +50,36 @@ def test_undamaged_stores_verify_ok(terrain, scene):
     assert "OK" in run_cli("verify", scene, "-q").stdout
 
 
-def test_terrain_missing_shading_chunk(terrain, tmp_path):
+@pytest.mark.parametrize("level,f", [(0, "halo/0/c/3/0/0/0"), (1, "shade/1/c/1/1/0/0/0")])
+def test_terrain_missing_shading_chunk(terrain, tmp_path, level, f):
+    """A missing shading chunk, or (level 0, format 3) a missing halo file of a block row."""
     st = _copy(terrain, tmp_path)
-    (st / "shade/0/c/3/3/0/0/0").unlink()
-    _fails(st, "shading block (level 0, 3, 3) is missing", "shade/0/c/3/3/0/0/0", "--overwrite")
+    (st / f).unlink()
+    _fails(st, f"shading block (level {level}, {3 - 2 * level}, {0 if level == 0 else 1}) is missing", f, "--overwrite")
 
 
-@pytest.mark.parametrize("level,dst,src", [(0, "3/3", "1/2"), (1, "1/1", "0/0")])
-def test_terrain_shading_chunk_of_another_block(terrain, tmp_path, level, dst, src):
+@pytest.mark.parametrize("dst,src", [("halo/0/c/3/0/0/0", "halo/0/c/1/0/0/0"), ("shade/1/c/1/1/0/0/0", "shade/1/c/0/0/0/0/0")])
+def test_terrain_shading_chunk_of_another_block(terrain, tmp_path, dst, src):
     """walk9 M4: a shading chunk replaced by another block's decodes fine, so verify said OK
     while the render showed a wrongly lit square; the shading is now computed again from the
-    heights and compared bit for bit."""
+    heights and compared bit for bit (at level 0 that of the block row's halo file: another
+    row's halos give another row's border shading)."""
     st = _copy(terrain, tmp_path)
-    shutil.copy(st / f"shade/{level}/c/{src}/0/0/0", st / f"shade/{level}/c/{dst}/0/0/0")
-    i, j = dst.split("/")
-    _fails(st, f"shading block (level {level}, {i}, {j}) is not what its heights give", f"shade/{level}/c/{dst}/0/0/0", "--overwrite")
+    shutil.copy(st / src, st / dst)
+    level, i, j = (0, 3, 0) if dst.startswith("halo") else (1, 1, 1)
+    _fails(st, f"shading block (level {level}, {i}, {j}) is not what its heights give", dst, "--overwrite")
+
+
+def test_terrain_one_changed_halo_sample(terrain, tmp_path):
+    """One sample of one halo changed (a float32 in the raw file): the block's border shading
+    differs, verify names the block and the file."""
+    st = _copy(terrain, tmp_path)
+    f = st / "halo/0/c/2/0/0/0"
+    a = np.frombuffer(f.read_bytes(), "<f4").copy()
+    M2 = a.size // (4 * 4)  # (nb = 4 blocks a row: 4 halos of M + 2 samples each)
+    a[1 * 4 * M2 + 2 * M2 + 7] += 1.0  # block (2, 1), its left column, row 6 of the block
+    f.write_bytes(a.tobytes())
+    _fails(st, "shading block (level 0, 2, 1) is not what its heights give", "halo/0/c/2/0/0/0", "halo")
 
 
 def test_terrain_truncated_roettger_chunk_in_verify_and_render(terrain, tmp_path):

@@ -124,7 +124,7 @@ class TerrainSystem:
         out = _mapping(payload_bytes(self.lay.M, self.store.has_color))
         h, shade, color = payload_parts(out, self.lay.M, self.store.has_color)
         self.store.get_block(lv, i, j, out=h)
-        self.store.get_shade(lv, i, j, out=shade)
+        self.store.get_shade(lv, i, j, out=shade, heights=h)
         if color is not None:
             self.store.get_color(lv, i, j, out=color)
         return out

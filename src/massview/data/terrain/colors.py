@@ -18,6 +18,12 @@ vertex-centred box filter of a mip chain), again across block borders. Every val
 once on a strip of the global grid and cut into blocks, so the two copies of a shared border
 sample are bit-identical. At the outer border the grid is extended by edge replication.
 
+Since store version 3, level 0 is not stored: ``halo/0`` keeps the samples around each
+level-0 block (:func:`block_halos`), and :func:`shade0_block` computes the block's level-0
+shading from them and its heights on reading — the same compiled expressions on the same
+values as the pass below, so bit for bit what version 2 stored. The pass still computes level 0
+(the coarser levels are filtered from it) but neither encodes nor writes it.
+
 ``shade_block`` is the per-block hypsometric tint kept for stores without a pyramid.
 """
 
@@ -27,9 +33,9 @@ from typing import Callable
 
 import numpy as np
 
-from .store import block_view, wide_row
+from .store import block_view, shading_params, wide_row
 
-__all__ = ["shade_block", "write_shading", "horn_slopes", "tent_decimate", "shade0_blocks"]
+__all__ = ["shade_block", "write_shading", "horn_slopes", "tent_decimate", "shade0_blocks", "shade0_block", "block_halos"]
 
 # elevation fraction → RGB (lowland green, upland ochre, rock grey, snow)
 _STOPS = np.array([0.0, 0.18, 0.42, 0.7, 0.88, 1.0])
@@ -107,6 +113,49 @@ def shade0_blocks(above: np.ndarray | None, blocks: np.ndarray, below: np.ndarra
     return out
 
 
+def block_halos(above: np.ndarray | None, blocks: np.ndarray, below: np.ndarray | None) -> np.ndarray:
+    """``halo/0``'s block row (nb, 4, M+2) float32 (the layout in :mod:`.store`) of the level-0
+    block row ``blocks`` (nb, M, M), from the grid rows just above and below it (wide, (W,);
+    None beyond the border, where the block row's own first or last row stands in, as the
+    shading pass replicates it). Columns beyond the grid's ends are clamped to them."""
+    nb, M = blocks.shape[0], blocks.shape[1]
+    W = nb * (M - 1) + 1
+
+    def wide(r: int) -> np.ndarray:  # grid row r of the block row
+        w = np.empty(W, np.float32)
+        w[:-1], w[-1] = blocks[:, r, :-1].reshape(-1), blocks[-1, r, -1]
+        return w
+
+    top = np.asarray(above, np.float32) if above is not None else wide(0)
+    bot = np.asarray(below, np.float32) if below is not None else wide(M - 1)
+    c0 = np.arange(nb) * (M - 1)
+    out = np.empty((nb, 4, M + 2), np.float32)
+    cols = np.clip(c0[:, None] + np.arange(-1, M + 1), 0, W - 1)
+    out[:, 0], out[:, 1] = top[cols], bot[cols]
+    for k, c in ((2, np.clip(c0 - 1, 0, W - 1)), (3, np.clip(c0 + M, 0, W - 1))):
+        out[:, k, 0], out[:, k, M + 1] = top[c], bot[c]
+    out[1:, 2, 1:M + 1], out[0, 2, 1:M + 1] = blocks[:-1, :, M - 2], blocks[0, :, 0]  # column c0-1: block j-1's column M-2
+    out[:-1, 3, 1:M + 1], out[-1, 3, 1:M + 1] = blocks[1:, :, 1], blocks[-1, :, M - 1]  # column c0+M: block j+1's column 1
+    return out
+
+
+def shade0_block(halo: np.ndarray, h: np.ndarray, dx: float, dy: float, zlo: float, rng: float,
+                 out: np.ndarray | None = None) -> np.ndarray:
+    """Level-0 shading (M, M, 3) float16 of one block from its heights ``h`` (M, M) and its
+    halo (4, M+2) (:func:`block_halos`): Horn's operator on the padded block
+    (:func:`rowkernels.horn_padded`), into ``out`` (C-contiguous) when given."""
+    from .rowkernels import horn_padded
+
+    M = h.shape[0]
+    p = np.empty((M + 2, M + 2), np.float32)
+    p[1:M + 1, 1:M + 1] = h
+    p[0], p[M + 1] = halo[0], halo[1]
+    p[1:M + 1, 0], p[1:M + 1, M + 1] = halo[2, 1:M + 1], halo[3, 1:M + 1]
+    out = np.empty((M, M, 3), np.float16) if out is None else out
+    horn_padded(p, np.float32(8 * dx), np.float32(8 * dy), np.float32(zlo), np.float32(rng), out.view(np.uint16))
+    return out
+
+
 def tent_wide(rows: dict, i: int, out: np.ndarray | None = None) -> np.ndarray:
     """Block row i of level l (M, (W-1)/2+1, 3) float16 from the float16 wide rows 2i-1 .. 2i+2
     of level l-1 (``rows``: a dict, entries beyond the border absent): :func:`tent_decimate`
@@ -176,6 +225,14 @@ def write_shading(store, g, zlo: float, zhi: float, progress: Callable[[str, int
               depth=1 if edges is not None else 2)  # bounded: a float16 row is 50 MB at 32769²
 
 
+class _NoWrites:
+    """The level-0 "writer" of a store's own pass: level 0 is computed for the coarser levels
+    and, on reading, from ``halo/0`` (written beside it), not stored."""
+
+    def write(self, i: int, j0: int, blocks: np.ndarray) -> None:
+        pass
+
+
 class _ShadingPass:
     """The tasks of :func:`write_shading` (``first``: level 0, in order; ``then``: the coarser
     rows a finished row completes the inputs of; both called on the submitting thread) and the
@@ -184,13 +241,15 @@ class _ShadingPass:
 
     def __init__(self, store, g, zlo: float, zhi: float, row_hook, edges: dict | None, keep_rows: float = 3.0,
                  writers: list | None = None):
-        from .store import ChunkWriter
+        from .store import ChunkWriter, HaloWriter
         from .workers import BufferPool
 
         self.store, self.lay, self.hook, self.edges = store, store.layout, row_hook, edges
-        self.shade = store.spacing + (zlo, max(zhi - zlo, 1e-6))  # dx, dy, zlo, rng
+        self.shade = shading_params(store.spacing, zlo, zhi)  # dx, dy, zlo, rng
         nlev = self.lay.levels
-        self.writers = writers or [ChunkWriter(g, f"shade/{lv}") for lv in range(nlev)]
+        # level 0 is not stored: its halos are (the level-0 writer only sees the rows ``verify`` compares)
+        self.halos = HaloWriter(g) if writers is None else None
+        self.writers = writers or [_NoWrites()] + [ChunkWriter(g, f"shade/{lv}") for lv in range(1, nlev)]
         self.rows: list[dict] = [{} for _ in range(nlev)]  # level → {row: float16 wide row}, until its readers are submitted
         self.held: list[dict] = [{} for _ in range(nlev)]  # level → {row: [its buffer, readers not yet finished]}
         self.made = [0] * nlev  # block rows submitted per level (in order)
@@ -208,6 +267,8 @@ class _ShadingPass:
         if self.hook is not None:
             self.hook(k, block_view(cur, self.lay.blocks(0), M))
         out = self.pool.take((M, self._wide(0), 3), np.float16)
+        if self.halos is not None:
+            self.halos.write(k, block_halos(above, block_view(cur, self.lay.blocks(0), M), below))
         return 0, k, _shade0_row(above, cur, below, *self.shade, self.writers[0], k, out)
 
     def level0_own(self, k: int):  # reads its own row (``edges``)
@@ -218,6 +279,8 @@ class _ShadingPass:
             self.hook(k, blocks)
         above, below = edges[k - 1][1] if k > 0 else None, edges[k + 1][0] if k + 1 < nb0 else None
         out = self.pool.take((M, self._wide(0), 3), np.float16)
+        if self.halos is not None:
+            self.halos.write(k, block_halos(above, blocks, below))
         res = _shade0_blocks_row(above, blocks, below, *self.shade, self.writers[0], k, out)
         self.pool.give(buf)
         return 0, k, res

@@ -32,7 +32,7 @@ from numba.extending import intrinsic
 
 from .kernels import _jit
 
-__all__ = ["block_stats", "row_stats", "horn_row", "horn_blocks", "tent_row", "all_finite", "local_d2", "propagate_max", "half_lut", "to_half", "from_half", "h2f"]
+__all__ = ["block_stats", "row_stats", "horn_row", "horn_blocks", "horn_padded", "tent_row", "all_finite", "local_d2", "propagate_max", "half_lut", "to_half", "from_half", "h2f"]
 
 _HALF = np.float32(0.5)
 _QUART = np.float32(0.25)
@@ -280,6 +280,18 @@ def horn_row(above, cur, below, dx8, dy8, zlo, rng, out):
         up = above if r == 0 else cur[r - 1]
         dn = below if r == M - 1 else cur[r + 1]
         _horn_line(up, cur[r], dn, W, dx8, dy8, zlo, rng, out[r], planes)
+
+
+@_jit
+def horn_padded(p, dx8, dy8, zlo, rng, out):
+    """:func:`horn_row` of one block given padded with the samples around it, ``p`` (M+2, M+2)
+    float32, into ``out`` (M, M, 3) uint16: every sample through :func:`_horn_inner`, the
+    expressions :func:`_horn_px` computes at a clamped border too, so a replicated pad gives
+    what the wide row gives there."""
+    M = p.shape[0] - 2
+    planes = np.empty((3, M), np.uint16)
+    for r in range(M):
+        _horn_inner(p[r], p[r + 1], p[r + 2], dx8, dy8, zlo, rng, out[r], planes)
 
 
 @_jit

@@ -11,7 +11,7 @@ from ...core.errors import StoreError, describe
 from .ingest import compute_metadata
 from .meta import reduce_max
 from .roettger import has_table, iter_table
-from .store import TerrainStore
+from .store import TerrainStore, shade_arrays
 
 __all__ = ["verify_store"]
 
@@ -75,7 +75,8 @@ def verify_store(path, progress=None) -> list[str]:
 def _names(store: TerrainStore) -> list[str]:
     """Every array the store should hold."""
     lay = store.layout
-    out = [f"{a}/{lv}" for lv in range(lay.levels) for a in ("heights", "shade", *(("color",) if store.has_color else ()))]
+    out = [f"{a}/{lv}" for lv in range(lay.levels) for a in ("heights", *(("color",) if store.has_color else ()))]
+    out += shade_arrays(lay) if store.shade0_computed else [f"shade/{lv}" for lv in range(lay.levels)]
     out += [f"blocks/{lv}/{k}" for lv in range(lay.levels) for k in ("minmax", "error", "done")]
     out += [f"lod/{k}/{j}" for j in range(lay.J) for k in ("square_error", "edge_error")]
     out += [f"lod/{k}/{j}" for j in range(lay.J + 1) for k in ("zmin", "zmax")]
@@ -109,10 +110,12 @@ def _check_pyramid_chunks(store: TerrainStore, what: str, prog) -> list[str]:
     lay, out = store.layout, []
     total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
     for lv in range(lay.levels):
-        arr, nb, bad = store.array(f"{what}/{lv}"), lay.blocks(lv), []
+        computed = what == "shade" and lv == 0 and store.shade0_computed  # (its halos: one read of each)
+        arr, nb, bad = store.array("halo/0" if computed else f"{what}/{lv}"), lay.blocks(lv), []
         for i in range(nb):
             for j in range(nb):
-                _, problem = _stored_block(store, what, lv, i, j, lambda: np.asarray(arr[i, j]))
+                read = (lambda: store.get_halo(i, j)) if computed else (lambda: np.asarray(arr[i, j]))
+                _, problem = _stored_block(store, what, lv, i, j, read)
                 if problem:
                     bad.append(problem)
             prog(f"verify {what}", nb, total)
@@ -135,8 +138,9 @@ class _ShadingCheck:
             if problem:
                 self.bad.append(problem)
             elif got.tobytes() != np.ascontiguousarray(blocks[k]).tobytes():
+                held = "samples around the block (its halo)" if lv == 0 and self.store.shade0_computed else "shading"
                 self.bad.append(f"shading block (level {lv}, {i}, {j}) is not what its heights give (the file "
-                                f"{self.store.chunk_path(lv, i, j, 'shade')} holds other or damaged shading) — re-run prepare "
+                                f"{self.store.shade_file(lv, i, j)} holds other or damaged {held}) — re-run prepare "
                                 "with --overwrite")
 
 
@@ -144,7 +148,7 @@ def _stored_block(store: TerrainStore, what: str, lv: int, i: int, j: int, read)
     """(the block ``read()`` decodes, None), or (None, the problem) where the chunk file of
     ``<what>/<lv>`` block (i, j) is missing or does not decode."""
     label = {"shade": "shading", "color": "colour"}[what]
-    f = store.chunk_path(lv, i, j, what)
+    f = store.shade_file(lv, i, j) if what == "shade" else store.chunk_path(lv, i, j, what)
     if not f.is_file():
         return None, f"{label} block (level {lv}, {i}, {j}) is missing ({f}); re-run prepare with --overwrite"
     try:
