@@ -500,6 +500,8 @@ class TerrainStore:
         self.has_color = "color" in self.group and self.attrs.get("color") == "orthophoto"
         self.has_shade = "shade" in self.group and not upgrading
         self.shade0_computed = self.attrs.get("format_version", 0) >= 3  # level-0 shading from heights + halo/0
+        if self.shade0_computed:  # its kernel's module (numba) imported now, on this thread: two loader threads importing
+            from . import rowkernels  # noqa: F401 - numba at once for their first get_shade fail (a partly initialised module)
         self._shade0_params = None  # (dx8, dy8, zlo, rng) float32, once (_computed_shade0)
         self._color = [self.group[f"color/{lv}"] for lv in range(self.layout.levels)] if self.has_color else None
 
