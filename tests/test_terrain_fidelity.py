@@ -298,6 +298,13 @@ def test_version_2_store_reads_its_stored_shading_and_upgrades_to_halos(tmp_path
                 assert up.get_shade(lv, i, j).tobytes() == real.get_shade(lv, i, j).tobytes()
     assert "OK" in run_cli("verify", tmp_path / "v2.zarr", "-q").stdout
     assert dir_size(tmp_path / "v2.zarr") < 0.75 * before
+    assert "is current already" in run_cli("upgrade", tmp_path / "v2.zarr").stderr
+    # an upgrade stopped after setting the version but before deleting shade/0: the next run deletes it
+    g = zarr.open_group(str(tmp_path / "v2.zarr"), mode="r+")
+    g.create_array("shade/0", shape=shade0.shape, chunks=(1, 1, M, M, 3), dtype="float16", compressors=_compressor(2),
+                   fill_value=0)[...] = shade0
+    assert "upgraded" in run_cli("upgrade", tmp_path / "v2.zarr").stderr
+    assert not (tmp_path / "v2.zarr/shade/0").exists() and "OK" in run_cli("verify", tmp_path / "v2.zarr", "-q").stdout
 
 
 def test_view_time_controls_are_validated():

@@ -17,7 +17,7 @@ Layout (readable with plain zarr; ``M`` = block size, ``nb_l = 2^(L-l)``)::
                     clamped to the grid): [0] row r0-1 and [1] row r0+M, columns c0-1 .. c0+M;
                     [2] column c0-1 and [3] column c0+M, rows r0-1 .. r0+M. With the block's
                     heights they give its level-0 shading (:meth:`TerrainStore.get_shade`), bit for
-                    bit what version 2 stored, in 1/46 of the bytes
+                    bit what version 2 stored, in ~1/70 of the bytes
     color/<l>       uint8 (nb_l, nb_l, M, M, 3), chunk (1, 1, M, M, 3)     [orthophoto only]
     blocks/<l>/minmax   float32 (nb_l, nb_l, 2)   min and max height of the block
     blocks/<l>/error    float32 (nb_l, nb_l)      saturated geometric error (height units)
@@ -37,7 +37,8 @@ only opened when ``complete`` is true, which ``prepare`` sets after everything i
 Version 2 made the K-patch errors exact bounds and added ``shade/``; a version-1 store is
 refused with a message naming ``massview upgrade STORE``, which rewrites both in place.
 Version 3 (this one) stores ``halo/0`` instead of ``shade/0`` (issue 20: level 0's shading
-was half of a store's bytes and a fifth of prepare's time, and is ~0.2 ms a block to compute);
+was half of a store's bytes and a sixth of prepare's CPU time, and costs ~0.35 ms a block to
+compute, what decoding it cost);
 version-2 stores are read as they are (their ``shade/0``), and ``massview upgrade`` converts one.
 """
 
@@ -502,7 +503,7 @@ class TerrainStore:
         self.shade0_computed = self.attrs.get("format_version", 0) >= 3  # level-0 shading from heights + halo/0
         if self.shade0_computed:  # its kernel's module (numba) imported now, on this thread: two loader threads importing
             from . import rowkernels  # noqa: F401 - numba at once for their first get_shade fail (a partly initialised module)
-        self._shade0_params = None  # (dx8, dy8, zlo, rng) float32, once (_computed_shade0)
+        self._shade0_params = None  # (dx, dy, zlo, rng) of shading_params, once (_computed_shade0)
         self._color = [self.group[f"color/{lv}"] for lv in range(self.layout.levels)] if self.has_color else None
 
     def _check_attrs_against_arrays(self) -> None:

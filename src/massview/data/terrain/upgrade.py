@@ -9,6 +9,8 @@ leaves a version-1 store that the same command finishes.
 Version 2 → 3: ``halo/0`` (the samples around each level-0 block) is written from the heights,
 the version attribute set, and then ``shade/0`` deleted (level 0's shading is computed on
 reading, bit for bit what was stored: :meth:`TerrainStore.get_shade`); nothing else changes.
+Stopped before the version is set, the store is still a readable version-2 one and the same
+command starts again; stopped after it, before ``shade/0`` is gone, the command deletes it.
 A version-2 store reads as it is, so this only saves its space (about half of it).
 """
 
@@ -40,6 +42,9 @@ def _upgrade(path, progress) -> bool:
     store = TerrainStore(path, require_complete=False, upgrading=True)
     version = int(store.attrs.get("format_version", 0))
     if version >= FORMAT_VERSION:
+        if version == 3 and "shade" in store.group and "0" in store.group["shade"]:  # a 2 → 3 upgrade stopped just before
+            del zarr.open_group(str(Path(path)), mode="r+")["shade/0"]  # its last step: the old level 0, no longer read
+            return True
         return False
     if not store.attrs.get("complete"):
         raise StoreError(f"{path}: the store is incomplete; finish it with the same `massview prepare terrain` command first")
