@@ -382,6 +382,15 @@ def test_a_resumed_prepare_starts_again_when_the_input_or_options_changed(tmp_pa
     s = TerrainStore(out)
     assert s.spacing == (10.0, 10.0) and s.vertical_scale == 3.0
 
+    shutil.rmtree(out)  # one interrupted by an older massview (format 2, walk11 L4): started again, and said why
+    _interrupted_prepare(monkeypatch, dem, out)
+    import zarr
+
+    zarr.open_group(str(out), mode="r+").attrs["format_version"] = 2
+    res = prepare_terrain(open_source(dem), out, block=129)
+    assert not res.resumed and any("store format (version 2" in w and "started again" in w for w in res.warnings)
+    assert TerrainStore(out).attrs["format_version"] == 3
+
 
 def test_bad_dtype_and_workers_are_one_line_errors_before_any_store(tmp_path):
     raw = tmp_path / "d.raw"

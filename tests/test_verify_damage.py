@@ -50,12 +50,19 @@ def test_undamaged_stores_verify_ok(terrain, scene):
     assert "OK" in run_cli("verify", scene, "-q").stdout
 
 
-@pytest.mark.parametrize("level,f", [(0, "halo/0/c/3/0/0/0"), (1, "shade/1/c/1/1/0/0/0")])
-def test_terrain_missing_shading_chunk(terrain, tmp_path, level, f):
-    """A missing shading chunk, or (level 0, format 3) a missing halo file of a block row."""
+@pytest.mark.parametrize("f,said", [("halo/0/c/3/0/0/0", "the halo file of level-0 block row 3 is missing"),
+                                    ("shade/1/c/1/1/0/0/0", "shading block (level 1, 1, 1) is missing")])
+def test_terrain_missing_shading_chunk(terrain, tmp_path, f, said):
+    """A missing shading chunk, or (level 0, format 3) a missing halo file of a block row: named
+    once (not once per block of its row), with ``upgrade``, which writes it again."""
     st = _copy(terrain, tmp_path)
     (st / f).unlink()
-    _fails(st, f"shading block (level {level}, {3 - 2 * level}, {0 if level == 0 else 1}) is missing", f, "--overwrite")
+    err = _fails(st, said, f, "--overwrite")
+    if f.startswith("halo"):
+        assert err.count(f) == 1 and "massview upgrade" in err
+        proc = run_cli("upgrade", st)
+        assert "wrote the halos of 1 level-0 block row(s) again from the heights" in proc.stderr
+        assert "OK" in run_cli("verify", st, "-q").stdout
 
 
 @pytest.mark.parametrize("dst,src", [("halo/0/c/3/0/0/0", "halo/0/c/1/0/0/0"), ("shade/1/c/1/1/0/0/0", "shade/1/c/0/0/0/0/0")])
@@ -68,6 +75,9 @@ def test_terrain_shading_chunk_of_another_block(terrain, tmp_path, dst, src):
     shutil.copy(st / src, st / dst)
     level, i, j = (0, 3, 0) if dst.startswith("halo") else (1, 1, 1)
     _fails(st, f"shading block (level {level}, {i}, {j}) is not what its heights give", dst, "--overwrite")
+    if level == 0:  # upgrade writes the halo row again from the heights
+        assert "wrote the halos of 1 level-0 block row(s)" in run_cli("upgrade", st).stderr
+        assert "OK" in run_cli("verify", st, "-q").stdout
 
 
 def test_terrain_one_changed_halo_sample(terrain, tmp_path):
@@ -79,7 +89,24 @@ def test_terrain_one_changed_halo_sample(terrain, tmp_path):
     M2 = a.size // (4 * 4)  # (nb = 4 blocks a row: 4 halos of M + 2 samples each)
     a[1 * 4 * M2 + 2 * M2 + 7] += 1.0  # block (2, 1), its left column, row 6 of the block
     f.write_bytes(a.tobytes())
-    _fails(st, "shading block (level 0, 2, 1) is not what its heights give", "halo/0/c/2/0/0/0", "halo")
+    _fails(st, "shading block (level 0, 2, 1) is not what its heights give", "halo/0/c/2/0/0/0", "halo", "massview upgrade")
+
+
+def test_terrain_truncated_halo_file_and_leftover_shade0(terrain, tmp_path):
+    """A truncated halo file is named once, with its size; a ``shade/0`` folder in a format-3
+    store (an upgrade stopped while deleting it: chunk files without their zarr.json) is
+    reported, and ``upgrade`` removes it."""
+    st = _copy(terrain, tmp_path)
+    f = st / "halo/0/c/1/0/0/0"
+    f.write_bytes(f.read_bytes()[:100])
+    (st / "shade/0/c/0/0/0/0").mkdir(parents=True)
+    (st / "shade/0/c/0/0/0/0/0").write_bytes(b"old level-0 chunk")
+    err = _fails(st, "the halo file of level-0 block row 1", "has 100 bytes", "halo/0/c/1/0/0/0", "massview upgrade")
+    assert err.count("halo/0/c/1/0/0/0") == 1 and "left from an interrupted `massview upgrade`" in err
+    said = run_cli("upgrade", st).stderr
+    assert "wrote the halos of 1 level-0 block row(s)" in said and "removed shade/0" in said
+    assert not (st / "shade/0").exists() and "OK" in run_cli("verify", st, "-q").stdout
+    assert "is current already" in run_cli("upgrade", st).stderr
 
 
 def test_terrain_truncated_roettger_chunk_in_verify_and_render(terrain, tmp_path):

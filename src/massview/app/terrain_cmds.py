@@ -193,7 +193,8 @@ def store_info(path: Path) -> dict:
     raw = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels)) * lay.M * lay.M * 4
     a = st.attrs
     return {
-        "path": str(path), "complete": bool(a.get("complete")), "samples": [lay.rows, lay.cols], "padded": lay.S,
+        "path": str(path), "complete": bool(a.get("complete")), "format_version": a.get("format_version"),
+        "samples": [lay.rows, lay.cols], "padded": lay.S,
         "block": lay.M, "K": lay.K, "levels": lay.levels,
         "blocks_per_level": [lay.blocks(lv) ** 2 for lv in range(lay.levels)],
         "spacing_m": a.get("spacing"), "vertical_scale": a.get("vertical_scale"), "height_range": a.get("height_range"),
@@ -247,6 +248,8 @@ def cmd_info(args) -> int:
                      + " (world metres: keyframe files and mv.camera use these)")
             elif k in ("compression_ratio", "world_box") and v is None:
                 v = "— (the store is incomplete)" if not info["complete"] else "—"
+            elif k == "format_version" and v == 2:
+                v = "2 (stores level 0's shading; `massview upgrade` converts it to 3, about half the size)"
             t.add_row(k, str(v))
         Console().print(t)
     if not info["complete"]:

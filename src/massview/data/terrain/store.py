@@ -97,6 +97,8 @@ def _resume_differences(old: dict, attrs: dict, layout: TerrainLayout) -> list[s
     layout, the input (name, file size and modification time, data type, nodata value) and
     the options that shape the store (spacing, vertical scale, CRS, georeference)."""
     out = ["layout (size, --block or K)"] if any(old.get(k) != v for k, v in layout.to_json().items()) else []
+    if old.get("format_version") != FORMAT_VERSION:
+        out.append(f"store format (version {old.get('format_version')}, from another massview; this one writes {FORMAT_VERSION})")
     out += [what for k, what in _RESUME_KEYS.items() if old.get(k) != attrs.get(k)]
     if (old.get("nodata") or {}).get("value") != (attrs.get("nodata") or {}).get("value"):
         out.append("nodata value")
@@ -499,7 +501,7 @@ class TerrainStore:
         self._codecs: dict = {}  # (what, level) → block_blosc of that array, or False (_block_codec)
         self._keys: dict = {}  # (what, level) → that array's chunk key function (_chunk_key)
         self.has_color = "color" in self.group and self.attrs.get("color") == "orthophoto"
-        self.has_shade = "shade" in self.group and not upgrading
+        self.has_shade = ("shade" in self.group or "halo" in self.group) and not upgrading
         self.shade0_computed = self.attrs.get("format_version", 0) >= 3  # level-0 shading from heights + halo/0
         if self.shade0_computed:  # its kernel's module (numba) imported now, on this thread: two loader threads importing
             from . import rowkernels  # noqa: F401 - numba at once for their first get_shade fail (a partly initialised module)
@@ -819,11 +821,15 @@ class TerrainStore:
             got = np.asarray(self.group["halo/0"][i, j], np.float32)
         except Exception as e:  # noqa: BLE001 - codec and shape errors come in many types
             raise CorruptBlockError(f"{self.path}: the halo of block (level 0, {i}, {j}) does not decode ({type(e).__name__}: {e}); "
-                                    f"the file {f} is damaged — re-run prepare with --overwrite") from None
+                                    f"the file {f} is damaged — {self._halo_fix}") from None
         if got.shape != out.shape or np.isnan(got).any():
             raise BlockNotFoundError(f"{self.path}: the halo of block (level 0, {i}, {j}) is missing or damaged ({f}); "
-                                     "re-run prepare with --overwrite")
+                                     f"{self._halo_fix}")
         return got
+
+    @property
+    def _halo_fix(self) -> str:
+        return f"run `massview upgrade {self.path}` to write it again from the heights (or prepare with --overwrite)"
 
     def block_minmax(self, level: int) -> np.ndarray:
         return np.asarray(self.array(f"blocks/{level}/minmax")[...])

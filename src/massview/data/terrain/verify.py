@@ -93,15 +93,36 @@ def _check_shapes(store: TerrainStore) -> list[str]:
         try:
             arr = store.array(name)
         except StoreError as e:
-            out.append(str(e))
+            out.append(str(e) if name != "halo/0" else f"{store.path}: the array halo/0 does not open; {halo_fix(store)}")
             continue
         p = store.check_array(name, arr)
         if p:
-            out.append(p)
+            out.append(p if name != "halo/0" else f"{p.split(' — ')[0]}; {halo_fix(store)}")
     return out
 
 
 MAX_PER_ARRAY = 5  # problems named per array (then a count)
+
+
+def halo_fix(store: TerrainStore) -> str:
+    """What to do about a damaged ``halo/0``: ``upgrade`` writes it again from the heights."""
+    return f"run `massview upgrade {store.path}` to write it again from the heights (or prepare with --overwrite)"
+
+
+def _halo_row_problem(store: TerrainStore, i: int) -> str | None:
+    """The problem of level-0 block row i's halo file (missing, not the row's size, or holding
+    unset samples), naming the file once for its whole row; None when it reads."""
+    lay = store.layout
+    f, size = store.chunk_path(0, i, 0, "halo"), lay.blocks(0) * 4 * (lay.M + 2) * 4
+    try:
+        data = f.read_bytes()
+    except OSError:
+        return f"the halo file of level-0 block row {i} is missing ({f}); {halo_fix(store)}"
+    if len(data) != size:
+        return f"the halo file of level-0 block row {i} ({f}) has {len(data)} bytes, not {size}; {halo_fix(store)}"
+    if np.isnan(np.frombuffer(data, "<f4")).any():
+        return f"the halo file of level-0 block row {i} ({f}) holds unset (NaN) samples; {halo_fix(store)}"
+    return None
 
 
 def _check_pyramid_chunks(store: TerrainStore, what: str, prog) -> list[str]:
@@ -110,12 +131,17 @@ def _check_pyramid_chunks(store: TerrainStore, what: str, prog) -> list[str]:
     lay, out = store.layout, []
     total = sum(lay.blocks(lv) ** 2 for lv in range(lay.levels))
     for lv in range(lay.levels):
-        computed = what == "shade" and lv == 0 and store.shade0_computed  # (its halos: one read of each)
-        arr, nb, bad = store.array("halo/0" if computed else f"{what}/{lv}"), lay.blocks(lv), []
+        nb, bad = lay.blocks(lv), []
+        if what == "shade" and lv == 0 and store.shade0_computed:  # its halo files, one a block row
+            for i in range(nb):
+                bad += [p for p in [_halo_row_problem(store, i)] if p]
+                prog(f"verify {what}", nb, total)
+            out += _capped(bad, "halo/0")
+            continue
+        arr = store.array(f"{what}/{lv}")
         for i in range(nb):
             for j in range(nb):
-                read = (lambda: store.get_halo(i, j)) if computed else (lambda: np.asarray(arr[i, j]))
-                _, problem = _stored_block(store, what, lv, i, j, read)
+                _, problem = _stored_block(store, what, lv, i, j, lambda: np.asarray(arr[i, j]))
                 if problem:
                     bad.append(problem)
             prog(f"verify {what}", nb, total)
@@ -129,19 +155,25 @@ class _ShadingCheck:
 
     def __init__(self, store: TerrainStore, level: int):
         self.store, self.level, self.bad = store, level, []
+        self.halos = level == 0 and store.shade0_computed  # level 0 computed from the heights and halo/0
 
     def write(self, i: int, j0: int, blocks: np.ndarray) -> None:
         lv = self.level
+        if self.halos:  # a halo file that does not read: named once for its row
+            problem = _halo_row_problem(self.store, i)
+            if problem:
+                self.bad.append(problem)
+                return
         for k in range(blocks.shape[0]):
             j = j0 + k
             got, problem = _stored_block(self.store, "shade", lv, i, j, lambda: self.store.get_shade(lv, i, j))
             if problem:
                 self.bad.append(problem)
             elif got.tobytes() != np.ascontiguousarray(blocks[k]).tobytes():
-                held = "samples around the block (its halo)" if lv == 0 and self.store.shade0_computed else "shading"
+                held, fix = (("samples around the block (its halo)", halo_fix(self.store)) if self.halos
+                             else ("shading", "re-run prepare with --overwrite"))
                 self.bad.append(f"shading block (level {lv}, {i}, {j}) is not what its heights give (the file "
-                                f"{self.store.shade_file(lv, i, j)} holds other or damaged {held}) — re-run prepare "
-                                "with --overwrite")
+                                f"{self.store.shade_file(lv, i, j)} holds other or damaged {held}) — {fix}")
 
 
 def _stored_block(store: TerrainStore, what: str, lv: int, i: int, j: int, read):
@@ -170,7 +202,12 @@ def _check_shading(store: TerrainStore, prog) -> list[str]:
     zlo, zhi = (float(v) for v in store.attrs["height_range"])
     checks = [_ShadingCheck(store, lv) for lv in range(lay.levels)]
     write_shading(store, None, zlo, zhi, lambda phase, adv, total: prog("verify shade", adv, total), writers=checks)
-    return [p for c in checks for p in _capped(sorted(c.bad), f"shade/{c.level}")]
+    out = [p for c in checks for p in _capped(sorted(c.bad), "halo/0" if c.halos else f"shade/{c.level}")]
+    old = store.path / "shade" / "0"
+    if store.shade0_computed and old.exists():
+        out.append(f"{old} is left from an interrupted `massview upgrade` (format 3 computes level 0's shading and never "
+                   f"reads it); run `massview upgrade {store.path}` to remove it")
+    return out
 
 
 def _check_roettger(store: TerrainStore, prog) -> list[str]:
