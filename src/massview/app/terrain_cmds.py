@@ -163,7 +163,7 @@ def cmd_prepare(args) -> int:
           f"{res.seconds:.1f} s ({mb / max(res.seconds, 1e-9):.1f} MB/s)")
     print("stages (wall, CPU of all threads, of it system): " + "; ".join(f"{k} {v[0]:.1f} s, {v[1]:.1f} s, {v[2]:.1f} s" for k, v in res.stages.items()))
     if os.environ.get("MASSVIEW_STAGES_FILE"):  # for `massview bench ingest`
-        Path(os.environ["MASSVIEW_STAGES_FILE"]).write_text(json.dumps(res.stages))
+        Path(os.environ["MASSVIEW_STAGES_FILE"]).write_text(json.dumps({"stages": res.stages, "seconds": res.seconds}))
     return 0
 
 
