@@ -271,6 +271,11 @@ def test_terrain_store_api_prepares_describes_and_verifies(tmp_path):
     for k in ("samples", "padded", "levels", "spacing_m", "height_range", "world_box", "compression_ratio"):
         assert api_info[k] == cli_info[k], k
     assert mv.verify_terrain(tmp_path / "api.zarr") == []
+    assert api_info["format_version"] == 3 and mv.upgrade_terrain(tmp_path / "api.zarr") is None  # current and sound
+    (tmp_path / "api.zarr/halo/0/c/0/0/0/0").unlink()
+    assert "halo" in mv.verify_terrain(tmp_path / "api.zarr")[0]
+    assert "wrote the halos of 1 level-0 block row(s)" in mv.upgrade_terrain(tmp_path / "api.zarr")
+    assert mv.verify_terrain(tmp_path / "api.zarr") == []
 
     from massview.api import flag_names
 

@@ -14,7 +14,7 @@ Layers (imports point down only): app → systems → parallel → render → lo
 __version__ = "0.1.0"
 
 from .api import (Frame, RankJobError, RenderResult, Scene, camera, open_scene, path, prepare_scene, prepare_terrain, render,
-                  render_config, render_frame, scene_info, show, terrain_info, verify_scene, verify_terrain)
+                  render_config, render_frame, scene_info, show, terrain_info, upgrade_terrain, verify_scene, verify_terrain)
 from .core.camera import Camera, Viewport
 from .core.config import RenderConfig
 from .core.errors import MassviewError, MassviewWarning
@@ -22,7 +22,7 @@ from .core.errors import MassviewError, MassviewWarning
 __all__ = [
     "__version__",
     "open_scene", "camera", "path", "render", "render_frame", "show", "render_config",
-    "prepare_terrain", "terrain_info", "verify_terrain", "prepare_scene", "scene_info", "verify_scene",
+    "prepare_terrain", "terrain_info", "verify_terrain", "upgrade_terrain", "prepare_scene", "scene_info", "verify_scene",
     "Scene", "RenderResult", "Frame", "Camera", "Viewport", "RenderConfig",
     "MassviewError", "MassviewWarning", "RankJobError",
 ]

@@ -52,8 +52,8 @@ from .core.errors import ConfigError, MassviewWarning, RankJobError
 from .core.paths import BUILTIN_PATHS, load_path, scene_clip
 
 __all__ = ["Scene", "RenderResult", "Frame", "RankJobError", "MassviewWarning", "open_scene", "camera", "path", "render",
-           "render_frame", "show", "render_config", "prepare_terrain", "terrain_info", "verify_terrain", "prepare_scene",
-           "scene_info", "verify_scene"]
+           "render_frame", "show", "render_config", "prepare_terrain", "terrain_info", "verify_terrain", "upgrade_terrain",
+           "prepare_scene", "scene_info", "verify_scene"]
 
 # -- how messages name options: API keywords (tau=) for Python callers, flags (--tau) for the CLI --
 _FLAG_NAMES = contextvars.ContextVar("massview_flag_names", default=False)
@@ -768,6 +768,17 @@ def verify_terrain(store: str | Path, progress: bool = False) -> list[str]:
 
     with progress_bar(not progress) as prog:
         return verify_store(Path(store), prog)
+
+
+def upgrade_terrain(store: str | Path, progress: bool = False) -> str | None:
+    """What ``massview upgrade STORE`` does: bring a store of an older format to the current one
+    in place, or on a current store write again any halo row the heights do not give and remove
+    a leftover ``shade/0``; returns what was done (a sentence), None when nothing was to do."""
+    from .app.terrain_cmds import progress_bar
+    from .data.terrain.upgrade import upgrade_store
+
+    with progress_bar(not progress) as prog:
+        return upgrade_store(Path(store), prog)
 
 
 def prepare_scene(inputs, out: str | Path, *, object_triangles: int = 16384, object_size: float | None = None,
