@@ -2,7 +2,7 @@
 
 Layout (readable with plain zarr; ``M`` = block size, ``nb_l = 2^(L-l)``)::
 
-    attrs: format "massview-terrain", format_version 2, complete (bool), M, K, levels,
+    attrs: format "massview-terrain", format_version 3, complete (bool), M, K, levels,
            rows, cols (input samples), padded (S), spacing [dx, dy] (metres), vertical_scale,
            crs (WKT or null), transform (GDAL 6-tuple or null), nodata {value, filled},
            source, height_range [min, max], color ("computed" | "orthophoto" | null)
