@@ -113,6 +113,12 @@ def shade0_blocks(above: np.ndarray | None, blocks: np.ndarray, below: np.ndarra
     return out
 
 
+def grid_row(blocks: np.ndarray, r: int) -> np.ndarray:
+    """Grid row ``r`` of a block row ``blocks`` (nb, M, M), any strides, as one wide float32 row
+    (nb·(M-1)+1,) (blocks share their border column; numpy's :func:`rowkernels._gather_row`)."""
+    return np.concatenate([blocks[:, r, :-1].reshape(-1), blocks[-1, r, -1:]]).astype(np.float32, copy=False)
+
+
 def block_halos(above: np.ndarray | None, blocks: np.ndarray, below: np.ndarray | None) -> np.ndarray:
     """``halo/0``'s block row (nb, 4, M+2) float32 (the layout in :mod:`.store`) of the level-0
     block row ``blocks`` (nb, M, M), from the grid rows just above and below it (wide, (W,);
@@ -120,14 +126,8 @@ def block_halos(above: np.ndarray | None, blocks: np.ndarray, below: np.ndarray 
     shading pass replicates it). Columns beyond the grid's ends are clamped to them."""
     nb, M = blocks.shape[0], blocks.shape[1]
     W = nb * (M - 1) + 1
-
-    def wide(r: int) -> np.ndarray:  # grid row r of the block row
-        w = np.empty(W, np.float32)
-        w[:-1], w[-1] = blocks[:, r, :-1].reshape(-1), blocks[-1, r, -1]
-        return w
-
-    top = np.asarray(above, np.float32) if above is not None else wide(0)
-    bot = np.asarray(below, np.float32) if below is not None else wide(M - 1)
+    top = np.asarray(above, np.float32) if above is not None else grid_row(blocks, 0)
+    bot = np.asarray(below, np.float32) if below is not None else grid_row(blocks, M - 1)
     c0 = np.arange(nb) * (M - 1)
     out = np.empty((nb, 4, M + 2), np.float32)
     cols = np.clip(c0[:, None] + np.arange(-1, M + 1), 0, W - 1)
@@ -264,11 +264,12 @@ class _ShadingPass:
 
     def level0(self, k: int, above, cur, below):
         M = self.lay.M
+        blocks = block_view(cur, self.lay.blocks(0), M)
         if self.hook is not None:
-            self.hook(k, block_view(cur, self.lay.blocks(0), M))
+            self.hook(k, blocks)
         out = self.pool.take((M, self._wide(0), 3), np.float16)
         if self.halos is not None:
-            self.halos.write(k, block_halos(above, block_view(cur, self.lay.blocks(0), M), below))
+            self.halos.write(k, block_halos(above, blocks, below))
         return 0, k, _shade0_row(above, cur, below, *self.shade, self.writers[0], k, out)
 
     def level0_own(self, k: int):  # reads its own row (``edges``)

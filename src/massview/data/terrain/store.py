@@ -578,8 +578,7 @@ class TerrainStore:
         if not bad:
             return None
         msg = (f"the array {name} has {' and '.join(bad)} (what the store's attributes, M {self.layout.M} and "
-               f"{self.layout.levels} levels, give); its {self.path / name / 'zarr.json'} is damaged — "
-               "re-run `massview prepare terrain` with --overwrite")
+               f"{self.layout.levels} levels, give); its {self.path / name / 'zarr.json'} is damaged — {self._fix(name)}")
         if raise_:
             raise StoreError(f"{self.path}: {msg}")
         return msg
@@ -591,7 +590,11 @@ class TerrainStore:
             return self.group[name]
         except Exception as e:  # noqa: BLE001 - KeyError, JSONDecodeError, zarr's own errors
             raise StoreError(f"{self.path}: the array {name} does not open ({type(e).__name__}: {e}); the store is damaged — "
-                             "re-run `massview prepare terrain` with --overwrite") from None
+                             f"{self._fix(name)}") from None
+
+    def _fix(self, name: str) -> str:
+        """What to do about the damaged array ``name``: ``halo/0`` is written again from the heights."""
+        return self.halo_fix if name == "halo/0" else "re-run `massview prepare terrain` with --overwrite"
 
     @property
     def spacing(self) -> tuple[float, float]:
@@ -821,14 +824,15 @@ class TerrainStore:
             got = np.asarray(self.group["halo/0"][i, j], np.float32)
         except Exception as e:  # noqa: BLE001 - codec and shape errors come in many types
             raise CorruptBlockError(f"{self.path}: the halo of block (level 0, {i}, {j}) does not decode ({type(e).__name__}: {e}); "
-                                    f"the file {f} is damaged — {self._halo_fix}") from None
+                                    f"the file {f} is damaged — {self.halo_fix}") from None
         if got.shape != out.shape or np.isnan(got).any():
             raise BlockNotFoundError(f"{self.path}: the halo of block (level 0, {i}, {j}) is missing or damaged ({f}); "
-                                     f"{self._halo_fix}")
+                                     f"{self.halo_fix}")
         return got
 
     @property
-    def _halo_fix(self) -> str:
+    def halo_fix(self) -> str:
+        """What to do about a damaged ``halo/0``: ``massview upgrade`` writes it again from the heights."""
         return f"run `massview upgrade {self.path}` to write it again from the heights (or prepare with --overwrite)"
 
     def block_minmax(self, level: int) -> np.ndarray:

@@ -89,9 +89,7 @@ def _halos_from_heights(store: TerrainStore, g, prog, only_wrong: bool = False) 
     """``halo/0`` of every level-0 block row, from the heights (each block row read once);
     ``only_wrong``: only the rows whose file is missing or holds other bytes (the array is
     made anew where its ``zarr.json`` is missing or not the layout's). The rows written."""
-    import numpy as np
-
-    from .colors import block_halos
+    from .colors import block_halos, grid_row
 
     lay = store.layout
     nb, M = lay.blocks(0), lay.M
@@ -103,10 +101,6 @@ def _halos_from_heights(store: TerrainStore, g, prog, only_wrong: bool = False) 
         create_halo_array(g, lay)
         only_wrong = False
     out = HaloWriter(g)
-
-    def grid_row(blocks, r):
-        return np.concatenate([blocks[:, r, :-1].reshape(-1), blocks[-1, r, -1:]])
-
     written = 0
     prev, cur = None, store.get_block_row(0, 0).copy()
     for i in range(nb):

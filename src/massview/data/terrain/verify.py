@@ -93,20 +93,15 @@ def _check_shapes(store: TerrainStore) -> list[str]:
         try:
             arr = store.array(name)
         except StoreError as e:
-            out.append(str(e) if name != "halo/0" else f"{store.path}: the array halo/0 does not open; {halo_fix(store)}")
+            out.append(str(e))
             continue
         p = store.check_array(name, arr)
         if p:
-            out.append(p if name != "halo/0" else f"{p.split(' — ')[0]}; {halo_fix(store)}")
+            out.append(p)
     return out
 
 
 MAX_PER_ARRAY = 5  # problems named per array (then a count)
-
-
-def halo_fix(store: TerrainStore) -> str:
-    """What to do about a damaged ``halo/0``: ``upgrade`` writes it again from the heights."""
-    return f"run `massview upgrade {store.path}` to write it again from the heights (or prepare with --overwrite)"
 
 
 def _halo_row_problem(store: TerrainStore, i: int) -> str | None:
@@ -117,11 +112,11 @@ def _halo_row_problem(store: TerrainStore, i: int) -> str | None:
     try:
         data = f.read_bytes()
     except OSError:
-        return f"the halo file of level-0 block row {i} is missing ({f}); {halo_fix(store)}"
+        return f"the halo file of level-0 block row {i} is missing ({f}); {store.halo_fix}"
     if len(data) != size:
-        return f"the halo file of level-0 block row {i} ({f}) has {len(data)} bytes, not {size}; {halo_fix(store)}"
+        return f"the halo file of level-0 block row {i} ({f}) has {len(data)} bytes, not {size}; {store.halo_fix}"
     if np.isnan(np.frombuffer(data, "<f4")).any():
-        return f"the halo file of level-0 block row {i} ({f}) holds unset (NaN) samples; {halo_fix(store)}"
+        return f"the halo file of level-0 block row {i} ({f}) holds unset (NaN) samples; {store.halo_fix}"
     return None
 
 
@@ -134,7 +129,9 @@ def _check_pyramid_chunks(store: TerrainStore, what: str, prog) -> list[str]:
         nb, bad = lay.blocks(lv), []
         if what == "shade" and lv == 0 and store.shade0_computed:  # its halo files, one a block row
             for i in range(nb):
-                bad += [p for p in [_halo_row_problem(store, i)] if p]
+                problem = _halo_row_problem(store, i)
+                if problem:
+                    bad.append(problem)
                 prog(f"verify {what}", nb, total)
             out += _capped(bad, "halo/0")
             continue
@@ -170,7 +167,7 @@ class _ShadingCheck:
             if problem:
                 self.bad.append(problem)
             elif got.tobytes() != np.ascontiguousarray(blocks[k]).tobytes():
-                held, fix = (("samples around the block (its halo)", halo_fix(self.store)) if self.halos
+                held, fix = (("samples around the block (its halo)", self.store.halo_fix) if self.halos
                              else ("shading", "re-run prepare with --overwrite"))
                 self.bad.append(f"shading block (level {lv}, {i}, {j}) is not what its heights give (the file "
                                 f"{self.store.shade_file(lv, i, j)} holds other or damaged {held}) — {fix}")
