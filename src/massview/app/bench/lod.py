@@ -17,7 +17,8 @@ slowest rank's ratio to the whole frame, and the patches each rank's cut holds.
 
 Part 3, with ``--against SRC`` (another checkout's ``src/``, e.g. the commit before a change,
 unpacked with ``git archive``): that checkout's whole LOD stage is imported under another
-package name and timed beside this one's on the same cameras, alternating, best of ``--repeat``;
+package name and timed beside this one's on the same cameras, alternating, best of ``--repeat``
+(its compiled LOD kernels, where it has them, loaded first as this checkout's are);
 printed per target: ms and CPU ms of each, their ratio, and whether the two fronts and task
 shares are identical.
 
@@ -145,8 +146,16 @@ def _against(src: str):
     tmp = Path(tempfile.mkdtemp(prefix="massview_against_"))
     shutil.copytree(pkg, tmp / "massview_against", ignore=shutil.ignore_patterns("__pycache__"))
     sys.path.insert(0, str(tmp))
-    return importlib.import_module("massview_against.systems.terrain"), importlib.import_module("massview_against.core.config"), \
-        importlib.import_module("massview_against.core.stats")
+    mods = (importlib.import_module("massview_against.systems.terrain"), importlib.import_module("massview_against.core.config"),
+            importlib.import_module("massview_against.core.stats"))
+    try:  # its compiled LOD kernels, where it has them: loaded before any timed frame, as ours are (a copy compiles them afresh)
+        kernels = importlib.import_module("massview_against.lod.kernels")
+    except ImportError:  # a checkout from before the compiled stage
+        kernels = None
+    if kernels is not None and os.environ.get(kernels.LOD_KERNEL_ENV, "auto") == "auto" and kernels.lod_kernels() is None:
+        print(f"--against {src}: loading (compiling) its LOD kernels before timing ...", flush=True)
+        kernels.load_lod_kernels(wait=True)
+    return mods
 
 
 def _same_stage(a, b, cam, cfg, ocfg) -> bool:
