@@ -152,7 +152,8 @@ def _against(src: str):
         kernels = importlib.import_module("massview_against.lod.kernels")
     except ImportError:  # a checkout from before the compiled stage
         kernels = None
-    if kernels is not None and os.environ.get(kernels.LOD_KERNEL_ENV, "auto") == "auto" and kernels.lod_kernels() is None:
+    env = getattr(kernels, "LOD_KERNEL_ENV", None)
+    if env and hasattr(kernels, "load_lod_kernels") and os.environ.get(env, "auto") == "auto" and kernels.lod_kernels() is None:
         print(f"--against {src}: loading (compiling) its LOD kernels before timing ...", flush=True)
         kernels.load_lod_kernels(wait=True)
     return mods
