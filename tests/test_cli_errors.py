@@ -270,3 +270,46 @@ def test_bench_options_show_their_defaults():
                        ("--loading {async,complete}", "(default, as the viewer)")):
         block = out.split(flag, 1)[1].split("\n  --", 1)[0]
         assert says in " ".join(block.split()), (flag, block)
+
+
+@pytest.mark.parametrize("args,needle", [
+    # walk12: each was a traceback, some after a whole run or after an MPI job started
+    (["bench", "composite", "--ranks", "2,x"], "argument --ranks: 'x' is not an integer"),
+    (["bench", "composite", "--ranks", "1"], "argument --ranks: 1 is below 2"),
+    (["bench", "composite", "--size", "0x0"], "argument --size: 0x0: width and height must be between 1"),
+    (["bench", "composite", "--repeat", "0"], "argument --repeat: 0 is below 1"),
+    (["bench", "composite", "--scene", os.path.dirname(__file__)], "is a folder without a store's zarr.json"),
+    (["bench", "frame", "--ranks", "2,x"], "argument --ranks: 'x' is not an integer"),
+    (["bench", "frame", "--lp-threads", "many"], "argument --lp-threads: 'many' is not an integer"),
+    (["bench", "lod", "--targets", "5x"], "argument --targets: '5x' is not an integer"),
+    (["bench", "lod", "--targets", "-5"], "argument --targets: -5 is below 1"),
+    (["bench", "lod", "--tiles", "0"], "argument --tiles: 0 is below 1"),
+    (["bench", "lod", "--store", os.path.dirname(__file__)], "is a folder without a store's zarr.json"),
+    (["bench", "paraview", "--steps", "nonsense"], "argument --steps: 'nonsense' is not an integer"),
+    (["bench", "terrain", "builtin:objects", "--draw"], "is the built-in objects scene, not a terrain store"),
+    (["bench", "terrain", "x.zarr", "--draw-reps", "0"], "argument --draw-reps: 0 is below 1"),
+    (["bench", "memory", "--ranks", "0"], "argument --ranks: 0 is below 1"),
+    (["bench", "memory", "--sections", "everything"], "use comma-separated words out of baseline, fly, account"),
+    (["bench", "memory", "--paths", "nowhere"], "--paths nowhere: nowhere is neither a built-in path"),
+])
+def test_bench_options_are_checked_before_anything_runs(args, needle):
+    proc = run_cli(*args, check=False, timeout=120)
+    assert proc.returncode != 0 and needle in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+
+
+def test_bench_composite_json_folder_is_checked_before_the_jobs(tmp_path):
+    """walk12: --json into a file's 'folder' failed with FileNotFoundError after the whole run;
+    now before any job, and a missing folder is created."""
+    (tmp_path / "f").write_text("x")
+    proc = run_cli("bench", "composite", "--ranks", "2", "--json", tmp_path / "f" / "out.json", check=False, timeout=120)
+    assert proc.returncode != 0 and "is a file, not a folder" in proc.stderr and "running 2 ranks" not in proc.stdout
+
+
+def test_bench_help_describes_what_is_measured():
+    """walk12: `massview bench NAME --help` said nothing of what the bench runs; it now gives
+    the module docstring's first two paragraphs, as paragraphs, without reST markup."""
+    out = run_cli("bench", "composite", "--help").stdout
+    head = out.split("options:", 1)[0]
+    flat = " ".join(head.split())
+    assert "network + memory floor" in flat and "For each rank count" in flat and ":data:" not in flat and "``" not in flat
+    assert "\n\n" in head.split("[--json JSON]", 1)[1].strip()

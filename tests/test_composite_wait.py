@@ -98,3 +98,17 @@ def test_bench_rejects_an_unknown_codec():
     assert parse_codecs("auto, blosc2") == ["auto", "blosc2"]
     with pytest.raises(ConfigError, match="--codec"):
         parse_codecs("auto,zip")
+
+
+def test_bench_composite_marks_the_default_wait_and_says_what_the_floor_is(tmp_path):
+    """walk12: the table could not be read without the README — which wait mode render uses,
+    what the floor is, what the target is. One small real run (2 ranks, both modes)."""
+    from conftest import run_cli
+
+    from massview.app.bench.composite import default_wait
+
+    out = run_cli("bench", "composite", "--ranks", "2", "--size", "96x64", "--repeat", "1", "--json", tmp_path / "r.json").stdout
+    flat = " ".join(out.split())
+    assert "floor = the bytes a rank receives ÷ the point-to-point bandwidth" in flat and "within 3×" in flat
+    assert f"{default_wait(2)} *" in out and "* = the wait mode render uses" in flat
+    assert (tmp_path / "r.json").exists()

@@ -19,6 +19,7 @@ import json
 import os
 import re
 import sys
+import textwrap
 from pathlib import Path
 
 from ..core.config import COMPOSITOR_NAMES, RenderConfig, parse_size, parse_sun
@@ -194,7 +195,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         from .bench import BENCHES
 
         for name, mod in BENCHES.items():
-            mod.add_arguments(bsub.add_parser(name, help=_doc_summary(mod.__doc__, name), formatter_class=DefaultsHelpFormatter))
+            mod.add_arguments(bsub.add_parser(name, help=_doc_summary(mod.__doc__, name), description=_doc_text(mod.__doc__, name),
+                                              formatter_class=DefaultsHelpFormatter))
     upgrade_cmds.add_parsers(sub)
     return ap
 
@@ -204,6 +206,10 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
     X)" is added (a bench's --size, --frames, --tau... showed none). Options whose default is
     None or False, and hidden ones, are left as they are (their help says what "not given" means)."""
 
+    def _fill_text(self, text, width, indent):  # a description's paragraphs stay paragraphs
+        return "\n\n".join(textwrap.fill(" ".join(p.split()), width, initial_indent=indent, subsequent_indent=indent)
+                           for p in text.split("\n\n"))
+
     def add_argument(self, action) -> None:
         if action.option_strings and action.help != argparse.SUPPRESS and action.default not in (None, False, argparse.SUPPRESS) \
                 and "default" not in (action.help or ""):
@@ -211,10 +217,18 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
         super().add_argument(action)
 
 
+def _doc_text(doc: str | None, name: str, paragraphs: int = 2) -> str:
+    """A bench module's ``--help`` description: the first ``paragraphs`` paragraphs of its
+    docstring without reST markup (what it runs, what it prints, what the figures mean)."""
+    parts = [re.sub(r":[a-z]+:|~", "", " ".join(p.split())).replace("``", "").replace("`", "") for p in (doc or name).strip().split("\n\n")]
+    parts = [p for p in parts if p and not re.fullmatch(r"massview bench [^.]*:", p)]  # (a bare usage line heading the text)
+    return "\n\n".join(parts[:paragraphs])
+
+
 def _doc_summary(doc: str | None, name: str) -> str:
     """A bench module's help: its docstring's first paragraph, without reST markup, up to its
     first full stop (the first line alone stopped mid-sentence)."""
-    text = " ".join((doc or name).strip().split("\n\n")[0].split()).replace("``", "").replace("`", "")
+    text = _doc_text(doc, name, 1)
     m = re.search(r"(?<! al)(?<! e\.g)\.(\s|$)", text)
     return text[: m.start() + 1] if m else text
 

@@ -43,6 +43,7 @@ voluntary / involuntary context switches. Nothing here asserts a time.
 from __future__ import annotations
 
 import json
+import os
 import resource
 import tempfile
 import time
@@ -57,9 +58,10 @@ from ...core.task import Task
 from ...parallel.codec import resolve_codec
 from ...parallel.composite import COMPOSITORS, PIECES, composite, deliver, final_regions
 from ...parallel.decompose import sort_last_ranges
-from ...parallel.exchange import (WAIT_MODES, Outbox, barrier, max_over_ranks, measure_bandwidth, measure_memory_bandwidth,
+from ...parallel.exchange import (WAIT_ENV_VAR, WAIT_MODES, Outbox, barrier, max_over_ranks, measure_bandwidth, measure_memory_bandwidth,
                                   set_wait_mode)
 from ...parallel.runtime import local_cores, relaunch, world
+from .args import int_list, positive, size
 
 __all__ = ["add_arguments", "run", "worker"]
 
@@ -69,9 +71,9 @@ def add_arguments(p) -> None:
 
     from ...parallel.codec import CODEC_CHOICES
 
-    p.add_argument("--ranks", default="2,3,4", help="rank counts, comma-separated (default 2,3,4)")
-    p.add_argument("--size", default="1280x1024", help="image WIDTHxHEIGHT composited (default 1280x1024)")
-    p.add_argument("--repeat", type=int, default=5, help="timed repetitions per case (default 5)")
+    p.add_argument("--ranks", type=int_list(2), default="2,3,4", help="rank counts, comma-separated, each at least 2 (default 2,3,4)")
+    p.add_argument("--size", type=size, default="1280x1024", help="image WIDTHxHEIGHT composited (default 1280x1024)")
+    p.add_argument("--repeat", type=positive, default=5, help="timed repetitions per case (default 5)")
     p.add_argument("--codec", default="auto", help=f"sub-image codecs compared in each job, comma-separated: {', '.join(CODEC_CHOICES)} "
                    "(default auto, as render uses)")
     p.add_argument("--scene", default="builtin:objects", help="scene or terrain store rendered into the partial images")
@@ -210,8 +212,14 @@ def run(args) -> int:
         return worker(args)
     from rich.console import Console
 
+    from ...systems import scene_kind
+    from ..outputs import check_output_file
+
     counts = [int(v) for v in args.ranks.split(",") if v.strip()]
     modes, codecs = parse_modes(args.wait), parse_codecs(args.codec)
+    if args.json is not None:  # before the jobs run, not after (walk12)
+        check_output_file(args.json, "--json")
+    scene_kind(args.scene)  # a missing or wrong scene: one message here, not one per rank inside the job
     console = Console(width=None if Console().is_terminal else 400)  # (a log or file: no column cut; walk7 L5)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -241,11 +249,25 @@ def _print(console, results: list[dict], args) -> None:
                 "shared-core floor ms", "ratio to it", "CPU ms"):
         table.add_column(col, justify="right", overflow="fold")
     for r in results:
-        table.add_row(r["algorithm"], str(r["ranks"]), r["codec"], r["wait"], f"{r['ms']:.2f}", f"{r['bytes'] / 1e6:.2f}", f"{r['bandwidth_MBps']:.0f}",
+        wait = f"{r['wait']} *" if r["wait"] == default_wait(r["ranks"]) else r["wait"]
+        table.add_row(r["algorithm"], str(r["ranks"]), r["codec"], wait, f"{r['ms']:.2f}", f"{r['bytes'] / 1e6:.2f}", f"{r['bandwidth_MBps']:.0f}",
                       f"{r['mem_frame_MBps']:.0f} / {r['mem_64MiB_MBps']:.0f}", f"{r['floor_ms']:.2f}", f"{r['ratio']:.2f}",
                       f"{r['shared_floor_ms']:.2f}", f"{r['shared_ratio']:.2f}", f"{r['cpu_ms']:.1f}")
     console.print(table)
+    console.print("floor = the bytes a rank receives ÷ the point-to-point bandwidth + the bytes it must read and write ÷ the memory "
+                  "bandwidth, both measured in this job with every rank working; a case's floor is its slowest rank's. ratio to floor = "
+                  "ms/frame ÷ floor (issue 20's target: within 3×). shared-core floor: at least the sum of the ranks' floors ÷ the "
+                  f"cores ({local_cores()}). * = the wait mode render uses at that rank count here (sleep when ranks outnumber the "
+                  f"cores, else poll; {WAIT_ENV_VAR} overrides).")
     _print_ranks(console, results)
+
+
+def default_wait(ranks: int) -> str:
+    """The wait mode a ``render --ranks N`` job on this machine uses (the launcher's
+    :func:`~massview.parallel.runtime.launch_env`, unless the environment sets one)."""
+    from ...parallel.runtime import WAIT_ENV
+
+    return os.environ.get(WAIT_ENV_VAR) or (WAIT_ENV[WAIT_ENV_VAR] if ranks > local_cores() else "poll")
 
 
 def _print_ranks(console, results: list[dict]) -> None:

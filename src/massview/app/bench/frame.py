@@ -51,6 +51,7 @@ from ...core.paths import load_path
 from ...core.stats import FrameStats
 from ...parallel.exchange import max_over_ranks, measure_bandwidth, measure_memory_bandwidth
 from ...parallel.runtime import local_cores, raster_threads, relaunch, world
+from .args import int_list, positive, size, terrain_store
 
 __all__ = ["add_arguments", "run", "worker", "STAGES"]
 
@@ -63,13 +64,13 @@ def add_arguments(p) -> None:
     import argparse
 
     p.add_argument("store", nargs="?", default=None, help="terrain store (default: the demo's 4097² terrain)")
-    p.add_argument("--ranks", default="1,2,3,4", help="rank counts, comma-separated (default 1,2,3,4)")
-    p.add_argument("--size", default="1280x1024")
-    p.add_argument("--frames", type=int, default=8, help="timed frames per loop (default 8)")
+    p.add_argument("--ranks", type=int_list(1), default="1,2,3,4", help="rank counts, comma-separated (default 1,2,3,4)")
+    p.add_argument("--size", type=size, default="1280x1024")
+    p.add_argument("--frames", type=positive, default=8, help="timed frames per loop (default 8)")
     p.add_argument("--decomposition", default="sort-last:kpatch")
     p.add_argument("--compositor", default="binary-swap")
     p.add_argument("--codec", default="auto", help="sub-image codec, as render's --codec (default auto)")
-    p.add_argument("--lp-threads", default="auto", help="LP_NUM_THREADS per case, comma-separated: auto, default or a number")
+    p.add_argument("--lp-threads", type=int_list(0, extra=("auto", "default"), example="auto,2"), default="auto", help="LP_NUM_THREADS per case, comma-separated: auto, default or a number")
     p.add_argument("--workdir", default="out/bench", help="where the demo terrain is generated when it is not cached")
     p.add_argument("--png", type=Path, default=None, help="write the stage breakdown plot here")
     p.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
@@ -268,7 +269,7 @@ def run(args) -> int:
     from rich.console import Console
 
     console = Console(width=None if Console().is_terminal else 400)  # (a log or file: no column cut; walk7 L5)
-    store = Path(args.store) if args.store else demo_store(args.workdir)
+    store = terrain_store(args.store) if args.store else demo_store(args.workdir)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for i, (n, lp) in enumerate(_cases(args)):

@@ -36,21 +36,23 @@ from pathlib import Path
 import numpy as np
 
 from ...core.config import RenderConfig, parse_size
+from ...core.errors import ConfigError
 from ...core.paths import load_path
 from ...core.stats import FrameStats
 from ...core.task import Task
+from .args import int_list, positive, size, terrain_store
 
 __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(p) -> None:
     p.add_argument("--store", default=None, help="terrain store (default: the demo terrain, generated when missing)")
-    p.add_argument("--size", default="1280x720")
-    p.add_argument("--frames", type=int, default=8, help="timed frames per target")
-    p.add_argument("--targets", default="5000,20000,80000", help="front sizes (patches) to reach")
-    p.add_argument("--tiles", type=int, default=4, help="sort-first ranks for part 2")
+    p.add_argument("--size", type=size, default="1280x720")
+    p.add_argument("--frames", type=positive, default=8, help="timed frames per target")
+    p.add_argument("--targets", type=int_list(1, example="5000,20000"), default="5000,20000,80000", help="front sizes (patches) to reach")
+    p.add_argument("--tiles", type=positive, default=4, help="sort-first ranks for part 2")
     p.add_argument("--layout", default="horizontal", choices=("horizontal", "vertical", "grid"))
-    p.add_argument("--repeat", type=int, default=3, help="timings per frame (the best is kept)")
+    p.add_argument("--repeat", type=positive, default=3, help="timings per frame (the best is kept)")
     p.add_argument("--against", default=None, metavar="SRC",
                    help="another checkout's src/ directory (e.g. `git archive 8e7be8a src | tar -x -C /tmp/b` gives "
                         "/tmp/b/src): its LOD stage is timed beside this one, alternating frame by frame in this process, "
@@ -59,7 +61,7 @@ def add_arguments(p) -> None:
 
 def _store(arg) -> Path:
     if arg:
-        return Path(arg)
+        return terrain_store(arg, "--store")
     store = Path(os.path.expanduser(os.environ.get("MASSVIEW_CACHE", "~/.cache/massview"))) / "demo_terrain_4097.zarr"
     if not (store / "zarr.json").exists():
         from ...data.terrain import prepare_terrain
@@ -132,9 +134,10 @@ def _old_stage(old, comm, cam, cfg):
     return go
 
 
-def _against(src: str):
+def _against(src: str, store: Path):
     """``src``'s massview package imported under another name (a copy of it named
     ``massview_against``: its imports are relative), for timing two versions in one process."""
+    import atexit
     import importlib
     import shutil
     import sys
@@ -144,10 +147,16 @@ def _against(src: str):
     if not (pkg / "systems" / "terrain.py").exists():
         raise SystemExit(f"--against {src}: no massview package there (give a checkout's src/ directory)")
     tmp = Path(tempfile.mkdtemp(prefix="massview_against_"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)  # (its modules stay imported until the process ends)
     shutil.copytree(pkg, tmp / "massview_against", ignore=shutil.ignore_patterns("__pycache__"))
     sys.path.insert(0, str(tmp))
     mods = (importlib.import_module("massview_against.systems.terrain"), importlib.import_module("massview_against.core.config"),
             importlib.import_module("massview_against.core.stats"))
+    try:  # before anything is compiled or timed: a store of a newer format than that checkout reads is a clear error
+        importlib.import_module("massview_against.data.terrain").TerrainStore(store)
+    except Exception as e:  # that checkout's own StoreError (another class than ours)
+        raise ConfigError(f"--against {src}: that checkout cannot read {store} ({e}); prepare a store with it "
+                          f"(PYTHONPATH={src} python -m massview prepare terrain DEM -o STORE) and pass it with --store") from None
     try:  # its compiled LOD kernels, where it has them: loaded before any timed frame, as ours are (a copy compiles them afresh)
         kernels = importlib.import_module("massview_against.lod.kernels")
     except ImportError:  # a checkout from before the compiled stage
@@ -180,14 +189,14 @@ def run(args) -> int:
     from ...systems.terrain import TerrainSystem
     from .lod_baseline import BaselineStage
 
+    t_start = time.perf_counter()
     if lod_kernels() is None and os.environ.get(LOD_KERNEL_ENV, "auto") == "auto":
         load_lod_kernels(wait=True)  # no timed frame walks with numpy while the compiled kernels load
 
     console = Console(width=None if Console().is_terminal else 160)
-    other = _against(args.against) if args.against else None
     w, hh = parse_size(args.size)
     store = _store(args.store)
-    t_start = time.perf_counter()
+    other = _against(args.against, store) if args.against else None
     sysm = TerrainSystem(store, cache_bytes=1 << 30, gpu_bytes=1 << 30, loading="complete")
     old = BaselineStage(sysm)
     before = other[0].TerrainSystem(store, cache_bytes=1 << 30, gpu_bytes=1 << 30, loading="complete") if other else None

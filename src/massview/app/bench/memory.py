@@ -26,12 +26,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from ...core.errors import ConfigError
+from ...core.paths import BUILTIN_PATHS
+from .args import choices_list, positive, size, terrain_store
 from .child import run_measured
 
 __all__ = ["add_arguments", "run", "worker", "status_mib", "held_bytes"]
@@ -41,13 +45,13 @@ GIB = 1024
 
 def add_arguments(p) -> None:
     p.add_argument("store", nargs="?", default=None, help="terrain store (default: the demo's 4097² terrain)")
-    p.add_argument("--ranks", type=int, default=4, help="local ranks (default 4)")
+    p.add_argument("--ranks", type=positive, default=4, help="local ranks (default 4)")
     p.add_argument("--paths", default="zoom,flyover", help="camera paths, comma-separated (default zoom,flyover)")
-    p.add_argument("--frames", type=int, default=8, help="frames per path (default 8)")
-    p.add_argument("--size", default="1280x1024")
+    p.add_argument("--frames", type=positive, default=8, help="frames per path (default 8)")
+    p.add_argument("--size", type=size, default="1280x1024")
     p.add_argument("--cache-mb", type=int, default=None, help="RAM cache budget per rank (default: render's default)")
     p.add_argument("--gpu-mb", type=int, default=None, help="GL pool budget per rank (default: render's default)")
-    p.add_argument("--sections", default="baseline,fly,account", help="baseline, fly, account (comma-separated)")
+    p.add_argument("--sections", type=choices_list(("baseline", "fly", "account")), default="baseline,fly,account", help="baseline, fly, account (comma-separated)")
     p.add_argument("--workdir", default="out/bench", help="where the demo terrain is generated when it is not cached")
     p.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
     p.add_argument("--probe", default=None, help=argparse.SUPPRESS)
@@ -154,7 +158,7 @@ def worker(args) -> int:
 def _probe(args, store: Path, probe: str, tmp: Path) -> list[dict] | None:
     from ...parallel.runtime import relaunch
 
-    out = tmp / f"{probe.replace(':', '_')}.json"
+    out = tmp / f"{_slug(probe)}.json"
     argv = ["bench", "memory", str(store), "--worker", str(out), "--probe", probe, "--size", args.size,
             "--frames", str(args.frames)]
     for flag, v in (("--cache-mb", args.cache_mb), ("--gpu-mb", args.gpu_mb)):
@@ -165,11 +169,16 @@ def _probe(args, store: Path, probe: str, tmp: Path) -> list[dict] | None:
 
 def _fly(args, store: Path, path: str, tmp: Path):
     cmd = [sys.executable, "-m", "massview", "render", str(store), "--ranks", str(args.ranks), "--path", path,
-           "--frames", str(args.frames), "--size", args.size, "--out", str(tmp / f"fly_{path}"), "--quiet"]
+           "--frames", str(args.frames), "--size", args.size, "--out", str(tmp / f"fly_{_slug(path)}"), "--quiet"]
     for flag, v in (("--cache-mb", args.cache_mb), ("--gpu-mb", args.gpu_mb)):
         if v is not None:
             cmd += [flag, str(v)]
-    return run_measured(cmd, tmp / f"fly_{path}.rss", ranks=args.ranks)
+    return run_measured(cmd, tmp / f"fly_{_slug(path)}.rss", ranks=args.ranks)
+
+
+def _slug(name: str) -> str:
+    """``name`` (a path name, or a keyframe file's path) as one file name."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", name)
 
 
 def run(args) -> int:
@@ -180,9 +189,13 @@ def run(args) -> int:
     from .frame import demo_store
 
     console = Console(width=None if Console().is_terminal else 170)
-    store = Path(args.store) if args.store else demo_store(args.workdir)
     sections = {s.strip() for s in args.sections.split(",") if s.strip()}
     paths = [p.strip() for p in args.paths.split(",") if p.strip()]
+    bad = [p for p in paths if p not in BUILTIN_PATHS and not (p.endswith(".json") and Path(p).is_file())]
+    if bad or not paths:
+        raise ConfigError(f"--paths {args.paths}: {', '.join(bad) or 'nothing given'} is neither a built-in path "
+                          f"({', '.join(BUILTIN_PATHS)}) nor a keyframe .json file")
+    store = terrain_store(args.store) if args.store else demo_store(args.workdir)
     cfg = _config(args, paths[0])
     console.print(f"[bold]bench memory[/] {store}, {args.ranks} ranks, {args.size}, {args.frames} frames, budgets per rank: "
                   f"RAM cache {cfg.cache_mb} MiB + GL pool {cfg.gpu_mb} MiB; figures are each rank's VmHWM (MiB)")
@@ -192,10 +205,16 @@ def run(args) -> int:
         if base is not None:
             console.print("empty GL rank (imports, MPI, GL context, one framebuffer): "
                           + ", ".join(f"{r['hwm']:.0f}" for r in base))
+        failed = []
         for path in paths:
             fly = _fly(args, store, path, tmp) if "fly" in sections else None
             acc = _probe(args, store, f"account:{path}", tmp) if "account" in sections else None
+            if (fly is not None and fly.returncode != 0) or ("account" in sections and acc is None):
+                failed.append(path)
             _print(console, path, args, base, fly, acc)
+    if failed:
+        console.print(f"[red]bench memory: the flights of {', '.join(failed)} failed; no figures for them[/]")
+        return 1
     return 0
 
 
@@ -203,8 +222,14 @@ def _print(console, path: str, args, base, fly, acc) -> None:
     from rich.table import Table
 
     b = max((r["hwm"] for r in base), default=0.0) if base else 0.0
-    if fly is not None:
-        peaks = [fly.rank_peak_rss.get(r, 0) / 2**20 for r in range(args.ranks)]
+    if fly is not None and fly.returncode != 0:
+        console.print(f"[bold]{path}[/]: `massview render --ranks {args.ranks} --path {path}` [red]failed (exit {fly.returncode})[/]: "
+                      "no peak RSS to report")
+    elif fly is not None:
+        ranks = dict(fly.rank_peak_rss)
+        if args.ranks == 1 and not ranks.get(0):  # one rank: render runs in the launcher process itself
+            ranks[0] = fly.peak_rss
+        peaks = [ranks.get(r, 0) / 2**20 for r in range(args.ranks)]
         verdict = "all under 1 GiB" if peaks and max(peaks) < GIB else "NOT all under 1 GiB"
         console.print(f"[bold]{path}[/]: `massview render --ranks {args.ranks} --path {path}` (exit {fly.returncode}, "
                       f"{fly.wall_s:.0f} s): per rank {', '.join(f'{p:.0f}' for p in peaks)} MiB ({verdict}); "

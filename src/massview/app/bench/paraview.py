@@ -41,6 +41,7 @@ import numpy as np
 from ...core.paths import load_path
 from ...core.config import parse_size
 from ...core.errors import ConfigError
+from .args import int_list, positive, size, terrain_store
 from .frame import STAGES as _STAGE_NAMES
 
 __all__ = ["add_arguments", "run", "surface_triangles", "bracket_steps", "auto_steps", "interpolate_ms", "x_display"]
@@ -50,11 +51,11 @@ _SCRIPT = Path(__file__).with_name("pvbatch_script.py")
 
 def add_arguments(p) -> None:
     p.add_argument("store", nargs="?", default=None, help="terrain store (default: the demo's 4097² terrain)")
-    p.add_argument("--size", default="1280x1024")
-    p.add_argument("--frames", type=int, default=8, help="cameras along the flyover path (default 8)")
-    p.add_argument("--ranks", default="1,2", help="rank counts (default 1,2)")
+    p.add_argument("--size", type=size, default="1280x1024")
+    p.add_argument("--frames", type=positive, default=8, help="cameras along the flyover path (default 8)")
+    p.add_argument("--ranks", type=int_list(1, example="1,2"), default="1,2", help="rank counts (default 1,2)")
     p.add_argument("--workdir", default="out/bench", help="where the exported grid and the demo terrain go")
-    p.add_argument("--steps", default="auto", help="ParaView surfaces: every STEP-th sample, comma-separated; auto: as many triangles as massview drew "
+    p.add_argument("--steps", type=int_list(1, extra=("auto",), example="auto or 9,10"), default="auto", help="ParaView surfaces: every STEP-th sample, comma-separated; auto: as many triangles as massview drew "
                         "(default auto; 1 is the full surface)")
     p.add_argument("--skip-massview", action="store_true", help="only run pvbatch")
     p.add_argument("--reuse", action="store_true", help="reuse pvbatch results already in --workdir (pv_RANKS_STEP.json)")
@@ -266,7 +267,7 @@ def run(args) -> int:
 
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    store = Path(args.store) if args.store else demo_store(args.workdir)
+    store = terrain_store(args.store) if args.store else demo_store(args.workdir)
     grid = export_grid(store, workdir)
     cams = workdir / "pv_cameras.json"
     export_cameras(store, args.frames, args.size, cams)

@@ -30,20 +30,21 @@ from ...core.paths import load_path
 from ...core.stats import FrameStats
 from ...core.task import Task
 from ...parallel.runtime import self_comm
+from .args import int_list, positive, size, terrain_store
 
 __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(p) -> None:
     p.add_argument("store")
-    p.add_argument("--ranks", default="1,2,3,4")
-    p.add_argument("--size", default="1280x1024")
-    p.add_argument("--frames", type=int, default=6)
+    p.add_argument("--ranks", type=int_list(1), default="1,2,3,4")
+    p.add_argument("--size", type=size, default="1280x1024")
+    p.add_argument("--frames", type=positive, default=6)
     p.add_argument("--tau", type=float, default=1.0)
-    p.add_argument("--max-plain", type=int, default=40_000_000, help="largest plain mesh to draw as the baseline (triangles)")
+    p.add_argument("--max-plain", type=positive, default=40_000_000, help="largest plain mesh to draw as the baseline (triangles)")
     p.add_argument("--skip-parallel", action="store_true", help="only the one-rank LOD vs plain-mesh comparison")
     p.add_argument("--draw", action="store_true", help="only the draw throughput: K-patch vs plain mesh vs VTK (terrain_draw.py)")
-    p.add_argument("--draw-reps", type=int, default=5, help="draws per path in --draw")
+    p.add_argument("--draw-reps", type=positive, default=5, help="draws per path in --draw")
     p.add_argument("--no-vtk", action="store_true", help="--draw without the pyvista/VTK child")
 
 
@@ -171,6 +172,7 @@ def run(args) -> int:
     from rich.table import Table
 
     console = Console(width=None if Console().is_terminal else 150)
+    terrain_store(args.store)
     if args.draw:
         from .terrain_draw import run_draw
 
