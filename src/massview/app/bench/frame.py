@@ -304,6 +304,11 @@ def _print(console, results, args, store) -> None:
                   f"{sum(s['floor_ms']):.1f}", f"{not_drawing:.0%}", f"{p['throughput_fps']:.2f} ({p['throughput_fps'] / s['throughput_fps']:.2f}×)",
                   f"{s['throughput_fps']:.2f}", f"{p['latency_ms']:.0f} / {s['latency_ms']:.0f}", f"{s['busy']:.0%} / {p['busy']:.0%}")
     console.print(t)
+    console.print("each stage: its mean ms (slowest rank) and, in brackets, its ratio to its floor — lod: the front's arrays read and "
+                  "written once ÷ memory bandwidth (a loose bound: the LOD is not bandwidth-bound, so its ratio is large); draw: its "
+                  "triangles ÷ the plain-mesh rate (Mtri/s plain); readback, encode, composite, finish: the bytes they must touch ÷ "
+                  "memory bandwidth; transfer: the bytes received ÷ point-to-point bandwidth (it includes waiting for a peer's draw). "
+                  "not drawing: 1 − draw ÷ frame (issue 20: at most 30 % at 2 ranks).")
     console.print("cores busy: CPU time of every thread of every rank (llvmpipe's raster threads included) ÷ (wall time × cores); "
                   "a pipelined loop can raise throughput by at most 1 ÷ the synchronous loop's share.")
     probe = next((r["gil_probe"] for r in results if r.get("gil_probe") is not None), None)

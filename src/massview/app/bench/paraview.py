@@ -309,7 +309,7 @@ def _print(console, pv: dict, mv: dict, ranks: list[int], steps: list[int], args
             ms = [mv[(mode, n)]["sync"]["latency_ms"] for n in ranks]
             rows.append(("massview", f"LOD, {mode}", ms, mv[(mode, ranks[0])]["sync"]["triangles"] / 1e6))
     for system, label, ms, mtri in rows:
-        t.add_row(system, label, *(f"{v:.0f}" for v in ms), f"{mtri:.1f}", f"{ms[0] / ms[-1]:.2f}×")
+        t.add_row(system, label, *(f"{v:.0f}" for v in ms), f"{mtri:.3f}", f"{ms[0] / ms[-1]:.2f}×")
     console.print(t)
     _print_compositing(console, pv, mv, ranks, steps)
     _print_equal(console, pv, mv, ranks, steps)
