@@ -15,6 +15,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
 from pathlib import Path
 
@@ -228,3 +230,124 @@ def test_bench_ingest_deletes_at_its_end_and_the_next_run_says_so(tmp_path):
     assert "files were deleted" in " ".join(second.stdout.split())  # (the floor copy of the first run)
     left = sorted(p.name for p in (tmp_path / "w").iterdir())
     assert not [n for n in left if n.endswith(".zarr") or ".old-" in n or n.startswith("floor.tmp")], left
+
+
+def test_bench_ingest_dem_must_be_an_existing_file(tmp_path):
+    """An explicit ``--dem`` that does not exist is an error naming it (exit 2), and nothing is
+    generated: it silently generated a 1 GiB synthetic DEM at that path and benchmarked it
+    (walk12 finding 2). A folder, or a file prepare does not read, is an error too."""
+    from conftest import run_cli
+
+    missing, work = tmp_path / "missing.npy", tmp_path / "w"
+    proc = run_cli("bench", "ingest", "--dem", missing, "--workdir", work, "--fly", "off", "--size", 129, check=False)
+    assert proc.returncode == 2 and f"--dem {missing}: no such file" in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr and "generating" not in proc.stdout
+    assert sorted(tmp_path.iterdir()) == []  # (no DEM, no .partial, no work folder)
+    proc = run_cli("bench", "ingest", "--dem", tmp_path, "--workdir", work, "--fly", "off", check=False)
+    assert proc.returncode == 2 and f"--dem {tmp_path}: is a folder" in proc.stderr and "Traceback" not in proc.stderr
+    (tmp_path / "x.npy").write_text("not an array")
+    proc = run_cli("bench", "ingest", "--dem", tmp_path / "x.npy", "--workdir", work, "--fly", "off", check=False)
+    assert proc.returncode == 2 and "not a DEM prepare reads" in proc.stderr and "Traceback" not in proc.stderr
+    assert not work.exists()
+
+
+def test_compile_clock_counts_what_numba_compiles():
+    """``compile_clock`` counts the signatures numba compiles within its block and the seconds
+    they take; none for a function already compiled."""
+    from massview.data.jit import compile_clock, njit
+
+    @njit
+    def twice(x):
+        return 2 * x
+
+    with compile_clock() as clock:
+        assert twice(3) == 6
+    assert clock.kernels >= 1 and clock.seconds > 0
+    with compile_clock() as again:
+        assert twice(4) == 8
+    assert again.kernels == 0 and again.seconds == 0
+
+
+def _compiling_prepare_file(*a, **kw):
+    """prepare_file, after compiling a function no cache holds (what a new checkout's prepare does)."""
+    from massview.app import terrain_cmds
+    from massview.data.jit import njit
+
+    @njit
+    def plus_one(x):
+        return x + 1
+
+    assert plus_one(1) == 2
+    return terrain_cmds._real_prepare_file(*a, **kw)
+
+
+def test_prepare_records_a_compile_in_the_stages_file(tmp_path, monkeypatch):
+    """``prepare terrain`` writes to ``MASSVIEW_STAGES_FILE`` what numba compiled during the
+    ingest (``bench ingest`` runs it with --quiet, which hides the compile note), and that
+    nothing compiled when all was loaded or in memory."""
+    from massview.app import terrain_cmds
+    from massview.app.cli import build_parser
+
+    np.save(tmp_path / "d.npy", SyntheticSource(129, seed=2).read(0, 129, 0, 129).astype(np.float32))
+    stages = tmp_path / "stages.json"
+    monkeypatch.setenv("MASSVIEW_STAGES_FILE", str(stages))
+
+    def prepare(out):
+        argv = ["prepare", "terrain", str(tmp_path / "d.npy"), "--spacing", "10", "-o", str(tmp_path / out), "--quiet"]
+        assert terrain_cmds.cmd_prepare(build_parser(argv).parse_args(argv)) == 0
+        return json.loads(stages.read_text())
+
+    prepare("a.zarr")  # (the kernels loaded, or compiled, once in this process)
+    assert prepare("b.zarr")["compile"] == {"seconds": 0, "kernels": 0}
+    monkeypatch.setattr(terrain_cmds, "_real_prepare_file", terrain_cmds.prepare_file, raising=False)
+    monkeypatch.setattr(terrain_cmds, "prepare_file", _compiling_prepare_file)
+    said = prepare("c.zarr")
+    assert said["compile"]["kernels"] >= 1 and said["compile"]["seconds"] > 0 and said["stages"]
+
+
+def test_bench_ingest_warms_the_kernels_and_warns_of_a_compile_in_its_figure(tmp_path, monkeypatch, capsys):
+    """``bench ingest`` prepares a small DEM untimed first (the kernels load, or compile, before
+    the clock starts: walk12 finding 1, 14 MB/s for 90 on a new checkout) and says so; when the
+    timed prepare's stages file says numba compiled, it warns that the figure includes it."""
+    from massview.app.bench import ingest
+    from massview.app.cli import build_parser
+
+    real = ingest.run_measured
+
+    def measured(cmd, rss_file, ranks=0):  # the timed prepare, as if it had compiled for 1.5 s
+        r = real(cmd, rss_file, ranks)
+        f = Path(os.environ["MASSVIEW_STAGES_FILE"])
+        f.write_text(json.dumps({**json.loads(f.read_text()), "compile": {"seconds": 1.5, "kernels": 3}}))
+        return r
+
+    monkeypatch.setattr(ingest, "run_measured", measured)
+    argv = ["bench", "ingest", "--size", "129", "--workdir", str(tmp_path / "w"), "--fly", "off", "--workers", "1"]
+    assert ingest.run(build_parser(argv).parse_args(argv)) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "warming the ingest kernels with an untimed prepare of a 129² synthetic DEM" in out, out
+    assert "warning: numba compiled 3 kernel signatures during the timed prepare: the figures above include 1.5 s of " \
+           "compiling; run again" in out, out
+    left = sorted(p.name for p in (tmp_path / "w").iterdir())
+    assert not [n for n in left if n.endswith(".zarr") or n.startswith(("floor.tmp", "warmup.tmp"))], left
+
+
+def test_bench_ingest_deletes_what_it_wrote_on_ctrl_c(tmp_path, monkeypatch):
+    """Ctrl-C during the timed prepare: the partial store and its lock are deleted, not left for
+    the next run (walk12 finding 13: 627 MB kept), and the interruption goes on."""
+    from massview.app.bench import ingest
+    from massview.app.cli import build_parser
+
+    def interrupted(cmd, rss_file, ranks=0):
+        store = Path(cmd[cmd.index("-o") + 1])
+        (store / "heights").mkdir(parents=True)
+        (store / "heights" / "c.0.0").write_bytes(b"x" * 100)
+        store.with_name(f".{store.name}.lock").write_text("pid")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ingest, "run_measured", interrupted)
+    argv = ["bench", "ingest", "--size", "129", "--workdir", str(tmp_path / "w"), "--fly", "off", "--workers", "1"]
+    with pytest.raises(KeyboardInterrupt):
+        ingest.run(build_parser(argv).parse_args(argv))
+    left = sorted(p.name for p in (tmp_path / "w").iterdir())
+    assert "synthetic_129_seed1.npy" in left  # (the DEM is kept for later runs)
+    assert not [n for n in left if ".zarr" in n or n.endswith(".tmp")], left

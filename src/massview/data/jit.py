@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from contextlib import contextmanager
 
 from numba import njit
 from numba.core import event
 
-__all__ = ["cached_jit", "njit", "on_first_compile"]
+__all__ = ["CompileClock", "cached_jit", "compile_clock", "njit", "on_first_compile"]
 
 
 def _arraymath_without_scipy_blas() -> None:
@@ -77,3 +78,46 @@ def on_first_compile(callback):
     every kernel the block runs loads from the cache."""
     with event.install_listener("numba:compile", _FirstCompile(callback)):
         yield
+
+
+class CompileClock(event.Listener):
+    """What numba compiled while it listened: ``kernels``, the signatures compiled (a kernel's
+    callees compiled with it count too; a signature loaded from the disk cache does not), and
+    ``seconds``, the wall time during which at least one compile ran (nested and concurrent
+    compiles counted once)."""
+
+    def __init__(self):
+        self._lock, self._active, self._since = threading.Lock(), 0, 0.0
+        self.kernels, self.seconds = 0, 0.0
+
+    def on_start(self, ev) -> None:
+        with self._lock:
+            if self._active == 0:
+                self._since = time.perf_counter()
+            self._active += 1
+            self.kernels += 1
+
+    def on_end(self, ev) -> None:
+        with self._lock:
+            self._active -= 1
+            if self._active == 0:
+                self.seconds += time.perf_counter() - self._since
+
+    def _close(self) -> None:  # (a compile still open when the block ends: counted up to now)
+        with self._lock:
+            if self._active > 0:
+                self.seconds += time.perf_counter() - self._since
+                self._active = 0
+
+
+@contextmanager
+def compile_clock():
+    """Yields a :class:`CompileClock` that counts numba's compiles within the block, in every
+    thread (``prepare terrain`` records it in ``MASSVIEW_STAGES_FILE`` for ``bench ingest``,
+    which warns when its figure includes compiling)."""
+    clock = CompileClock()
+    try:
+        with event.install_listener("numba:compile", clock):
+            yield clock
+    finally:
+        clock._close()
