@@ -313,3 +313,6 @@ def test_bench_help_describes_what_is_measured():
     flat = " ".join(head.split())
     assert "network + memory floor" in flat and "For each rank count" in flat and ":data:" not in flat and "``" not in flat
     assert "\n\n" in head.split("[--json JSON]", 1)[1].strip()
+    from massview.app.cli import _doc_text
+
+    assert _doc_text("A :func:`~m.f` at ~/.cache in ~2 s.\n\nmassview bench q:\n\nB.", "q") == "A m.f at ~/.cache in ~2 s.\n\nB."
