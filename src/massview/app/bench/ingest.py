@@ -250,10 +250,10 @@ def _recent_deletion(work: Path) -> str | None:
             f"for the figure of a quiet file system, start the next run {_RECENT_S // 60} minutes after the last one ends")
 
 
-def _check_dem(given: str) -> tuple[Path, int]:
-    """The ``--dem`` file, checked as prepare will open it, and its smaller side: a ConfigError
-    (exit 2) naming ``--dem`` and the path when it does not exist, is a folder or is no DEM
-    prepare reads. (A missing one was generated as a 1 GiB synthetic DEM and benchmarked,
+def _check_dem(given: str) -> tuple[Path, int, str]:
+    """The ``--dem`` file, checked as prepare will open it, its smaller side and its sample type
+    (the table's title: it said float32 for any DEM): a ConfigError (exit 2) naming ``--dem``
+    and the path when it does not exist, is a folder or is no DEM prepare reads. (A missing one was generated as a 1 GiB synthetic DEM and benchmarked,
     walk12 finding 2.)"""
     import warnings
 
@@ -279,7 +279,7 @@ def _check_dem(given: str) -> tuple[Path, int]:
         raise ConfigError(f"--dem {dem}: not a DEM prepare reads ({why})") from None
     except OSError as e:
         raise ConfigError(f"--dem {dem}: cannot be read ({e.strerror or e})") from None
-    return dem, min(src.rows, src.cols)
+    return dem, min(src.rows, src.cols), str(getattr(src, "dtype", "float32"))
 
 
 def _warm_up(work: Path, side: int, args, console, made: list[Path]) -> Path:
@@ -349,7 +349,7 @@ def _run(args, made: list[Path]) -> int:
     from ..terrain_cmds import store_info
 
     console = Console()
-    given, side = _check_dem(args.dem) if args.dem else (None, args.size)  # (before anything is made)
+    given, side, dtype = _check_dem(args.dem) if args.dem else (None, args.size, "float32")  # (before anything is made)
     work = check_output_dir(Path(args.workdir), "--workdir")
     dem = given or work / f"synthetic_{args.size}_seed{args.seed}.npy"
     if not dem.exists():  # in a child process: this one must stay small (see _peak_rss)
@@ -394,7 +394,7 @@ def _run(args, made: list[Path]) -> int:
         return run.returncode
     prep_s, rss = run.wall_s, run.peak_rss
     info = store_info(store)
-    t = Table(title=f"ingest of {dem.name} ({nbytes / 2**30:.2f} GiB float32), block {args.block}, workers {args.workers or 'all'}")
+    t = Table(title=f"ingest of {dem.name} ({nbytes / 2**30:.2f} GiB {dtype}), block {args.block}, workers {args.workers or 'all'}")
     t.add_column("figure")
     t.add_column("value", justify="right")
     t.add_row("prepare wall time", f"{prep_s:.1f} s")
