@@ -60,7 +60,7 @@ from ...parallel.composite import COMPOSITORS, PIECES, composite, deliver, final
 from ...parallel.decompose import sort_last_ranges
 from ...parallel.exchange import (WAIT_ENV_VAR, WAIT_MODES, Outbox, barrier, max_over_ranks, measure_bandwidth, measure_memory_bandwidth,
                                   set_wait_mode)
-from ...parallel.runtime import local_cores, relaunch, world
+from ...parallel.runtime import launch_env, local_cores, relaunch, world
 from .args import int_list, positive, size
 
 __all__ = ["add_arguments", "run", "worker"]
@@ -263,11 +263,10 @@ def _print(console, results: list[dict], args) -> None:
 
 
 def default_wait(ranks: int) -> str:
-    """The wait mode a ``render --ranks N`` job on this machine uses (the launcher's
-    :func:`~massview.parallel.runtime.launch_env`, unless the environment sets one)."""
-    from ...parallel.runtime import WAIT_ENV
-
-    return os.environ.get(WAIT_ENV_VAR) or (WAIT_ENV[WAIT_ENV_VAR] if ranks > local_cores() else "poll")
+    """The wait mode a ``render --ranks N`` job on this machine uses: what the launcher's
+    :func:`~massview.parallel.runtime.launch_env` gives its ranks (the environment's own
+    setting first), and the ranks' default where it gives none."""
+    return launch_env(ranks, dict(os.environ)).get(WAIT_ENV_VAR) or "poll"
 
 
 def _print_ranks(console, results: list[dict]) -> None:

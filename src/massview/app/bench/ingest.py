@@ -253,8 +253,8 @@ def _recent_deletion(work: Path) -> str | None:
 def _check_dem(given: str) -> tuple[Path, int, str]:
     """The ``--dem`` file, checked as prepare will open it, its smaller side and its sample type
     (the table's title: it said float32 for any DEM): a ConfigError (exit 2) naming ``--dem``
-    and the path when it does not exist, is a folder or is no DEM prepare reads. (A missing one was generated as a 1 GiB synthetic DEM and benchmarked,
-    walk12 finding 2.)"""
+    and the path when it does not exist, is a folder or is no DEM prepare reads. (A missing one
+    was generated as a 1 GiB synthetic DEM and benchmarked, walk12 finding 2.)"""
     import warnings
 
     from ...core.errors import ConfigError, MassviewError
@@ -282,6 +282,19 @@ def _check_dem(given: str) -> tuple[Path, int, str]:
     return dem, min(src.rows, src.cols), str(getattr(src, "dtype", "float32"))
 
 
+def _generate_cmd(dem: Path, size: int, seed: int) -> list[str]:
+    """The child command that writes the synthetic DEM ``dem`` (``size``², ``seed``)."""
+    return [sys.executable, "-m", "massview", "generate", "terrain", str(dem), "--size", str(size), "--seed", str(seed), "--quiet"]
+
+
+def _prepare_cmd(dem: Path, store: Path, args) -> list[str]:
+    """The child ``prepare terrain`` of ``dem`` into ``store`` with the bench's ``--block``,
+    ``--workers`` and colour: the timed one and the warm-up's (the same, so that it loads the
+    kernels the timed one takes)."""
+    return [sys.executable, "-m", "massview", "prepare", "terrain", str(dem), "-o", str(store), "--block", str(args.block),
+            "--workers", str(args.workers), "--quiet"] + (["--no-color"] if args.no_color else [])
+
+
 def _warm_up(work: Path, side: int, args, console, made: list[Path]) -> Path:
     """Load (or, the first time, compile) the ingest's numba kernels before the clock starts: an
     untimed child ``prepare terrain`` of a small synthetic DEM (generated once into the work
@@ -299,15 +312,12 @@ def _warm_up(work: Path, side: int, args, console, made: list[Path]) -> Path:
     console.print(f"warming the ingest kernels with an untimed prepare of a {n}² synthetic DEM ... ", end="")
     t0 = time.perf_counter()
     if not dem.exists():
-        gen = subprocess.run([sys.executable, "-m", "massview", "generate", "terrain", str(dem), "--size", str(n), "--seed", "1",
-                              "--quiet"], stdout=subprocess.DEVNULL)
+        gen = subprocess.run(_generate_cmd(dem, n, 1), stdout=subprocess.DEVNULL)
         if gen.returncode != 0:
             console.print(f"[yellow]generating it failed (exit {gen.returncode}); the timed prepare may include compiling[/]")
             return store
-    cmd = [sys.executable, "-m", "massview", "prepare", "terrain", str(dem), "-o", str(store), "--block", str(args.block),
-           "--workers", str(args.workers), "--quiet"] + (["--no-color"] if args.no_color else [])
     stages.unlink(missing_ok=True)
-    proc = subprocess.run(cmd, env=dict(os.environ, MASSVIEW_STAGES_FILE=str(stages)), stdout=subprocess.DEVNULL)
+    proc = subprocess.run(_prepare_cmd(dem, store, args), env=dict(os.environ, MASSVIEW_STAGES_FILE=str(stages)), stdout=subprocess.DEVNULL)
     dt = time.perf_counter() - t0
     try:
         c = json.loads(stages.read_text()).get("compile") or {}
@@ -356,8 +366,7 @@ def _run(args, made: list[Path]) -> int:
         console.print(f"generating {dem} (once; kept for later runs) ...")
         made.append(dem.with_name(dem.name + ".partial"))
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "massview", "generate", "terrain", str(dem), "--size", str(args.size),
-                        "--seed", str(args.seed), "--quiet"], check=True)
+        subprocess.run(_generate_cmd(dem, args.size, args.seed), check=True)
         console.print(f"generated in {time.perf_counter() - t0:.1f} s")
     nbytes = dem.stat().st_size
     store = work / f"{dem.stem}.zarr"
@@ -374,10 +383,7 @@ def _run(args, made: list[Path]) -> int:
     recent = _recent_deletion(work)
     if recent:
         console.print(f"[yellow]note:[/] {recent}")
-    cmd = [sys.executable, "-m", "massview", "prepare", "terrain", str(dem), "-o", str(store), "--block", str(args.block),
-           "--workers", str(args.workers), "--quiet"]
-    if args.no_color:
-        cmd.append("--no-color")
+    cmd = _prepare_cmd(dem, store, args)
     console.print("running: " + " ".join(cmd[2:]))
     stages_file = work / "prepare.stages.json"
     stages_file.unlink(missing_ok=True)
