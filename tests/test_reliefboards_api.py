@@ -27,6 +27,7 @@ def test_api_frames_equal_the_cli_frames(tmp_path):
     assert c[0]["boards_drawn"] == 0 and c[0]["requests"] > 0  # frame 0: nothing has arrived
     assert sum(k["boards_drawn"] > 0 for k in c[1:]) >= 3  # boards drawn: the frames depend on them
     assert all(k["far_original"] == 0 for k in c[1:])  # waiting: every far object has its board from frame 1 on
+    assert res.summary["first_complete_frame"] is not None  # a frame with every far object drawn from a current board
     for f, img in enumerate(res.images):
         cli = np.asarray(Image.open(tmp_path / "frames" / f"{f:05d}.png").convert("RGB"))
         assert np.array_equal(img, cli), f"frame {f} differs"

@@ -30,7 +30,10 @@ def test_boards_come_from_backends_and_replace_far_originals(tmp_path):
     assert s["angle_error_deg"]["max"] < 45.0  # never a board past E
     recs = _records(out)
     assert all(len(r["counters"]["pending_by_backend"]) == 2 for r in recs)
-    assert s["first_complete_frame"] is not None  # every far object drawn from a current board at some frame
+    # (whether some frame is complete, every far object drawn from a current board, depends on how
+    # far the backends lag: a loaded CI machine had none in 16 frames; test_api_frames_equal_the_cli_frames
+    # asserts it with --wait-boards)
+    assert s["boards_drawn"] > 0
     assert 0 < s["diff_fraction"] < 0.2  # boards differ from all-original geometry, but little
     assert (out / "frames" / "00015.png").exists()
 

@@ -11,7 +11,11 @@
 
 ``guarded(comm, fn)`` runs a rank's work; an exception on any rank prints that rank's error
 once and calls ``MPI_Abort`` so that every rank ends and ``mpiexec`` exits non-zero — a
-failing rank never leaves the others waiting in a collective.
+failing rank never leaves the others waiting in a collective. In a job started by
+:func:`relaunch` the rank writes its error line to a file instead (:data:`ERRORS_ENV`), and the
+launching process prints it once the job has ended: hydra's ``MPI_Abort`` teardown can end the
+job before its proxy has forwarded what the rank wrote to stderr (a CI run lost both the rank's
+line and MPICH's own "Abort(1)" line).
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from __future__ import annotations
 import os
 import shutil
 import sys
+import tempfile
 import traceback
 from pathlib import Path
 
@@ -27,6 +32,7 @@ from .launcher import run_job
 
 __all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env", "local_cores", "interrupt_on_sigterm", "ignore_late_sigterm"]
 
+ERRORS_ENV = "MASSVIEW_RANK_ERRORS"  # the file a rank of a relaunched job writes its error line to
 _JOB_VARS = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "HYDRA_CONTROL_FD", "MASSVIEW_UNDER_MPI")
 
 
@@ -55,8 +61,43 @@ def relaunch(argv: list[str], nranks: int) -> int:
     then reaches the caller (KeyboardInterrupt for SIGINT, ``SystemExit(143)`` for SIGTERM)
     unless the job stopped cleanly on it (status 0, as the viewer does)."""
     cmd = [find_mpiexec(), "-n", str(nranks), sys.executable, "-m", "massview", *argv]
-    env = launch_env(nranks, dict(os.environ, MASSVIEW_UNDER_MPI="1"))
-    return run_job(cmd, env)
+    fd, errors = tempfile.mkstemp(prefix="massview-errors-", suffix=".txt")
+    os.close(fd)
+    env = launch_env(nranks, dict(os.environ, MASSVIEW_UNDER_MPI="1", **{ERRORS_ENV: errors}))
+    try:
+        return run_job(cmd, env)
+    finally:
+        _relay_errors(errors)
+
+
+def _relay_errors(path: str) -> None:
+    """Print what the job's ranks wrote to ``path`` (their error lines) and remove it."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            text = f.read()
+        os.unlink(path)
+    except OSError:
+        return
+    if text:
+        sys.stderr.write(text if text.endswith("\n") else text + "\n")
+        sys.stderr.flush()
+
+
+def _say(msg: str, size: int) -> None:
+    """A rank's error line: to the launcher's file (:data:`ERRORS_ENV`) in a job of several
+    ranks that :func:`relaunch` started, else (or where that file cannot be written) to stderr."""
+    path = os.environ.get(ERRORS_ENV)
+    if size > 1 and path:
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_APPEND)
+            try:
+                os.write(fd, (msg + "\n").encode("utf-8", "replace"))  # one write: lines of several ranks never mix
+            finally:
+                os.close(fd)
+            return
+        except OSError:
+            pass
+    print(msg, file=sys.stderr, flush=True)
 
 
 def interrupt_on_sigterm() -> None:
@@ -96,6 +137,8 @@ def world():
 def guarded(comm, fn, *args, **kw):
     """Run ``fn`` on this rank; on an exception print it once, prefixed by the rank, and abort
     every rank with exit status 1 (a single-rank run exits the same way, without MPI_Abort).
+    In a job :func:`relaunch` started, the line goes to the launcher, which prints it after the
+    job (:func:`_say`).
 
     An interruption (KeyboardInterrupt: SIGINT, or SIGTERM through :func:`interrupt_on_sigterm`)
     of a job that massview launched itself (:func:`relaunch`) aborts with status 130 quietly:
@@ -118,7 +161,7 @@ def guarded(comm, fn, *args, **kw):
         else:
             msg = prefix + f"{type(e).__name__}: {e}\n" + "".join(traceback.format_exception(e))
         if not quiet:
-            print(msg, file=sys.stderr, flush=True)
+            _say(msg, size)
         if size > 1:
             if quiet:
                 _close_stderr()
