@@ -13,14 +13,19 @@ from massview.data.cache import BlockCache
 
 
 class Store:
-    """A fake block store with per-key sizes and an optional latency (like zarr's LatencyStore)."""
+    """A fake block store with per-key sizes and an optional latency (like zarr's LatencyStore);
+    a load of a key in ``held`` waits until the test opens ``gate`` (30 s at most), so tests
+    about what happens while a load is in progress do not depend on timing."""
 
-    def __init__(self, latency=0.0):
+    def __init__(self, latency=0.0, held=()):
         self.latency = latency
         self.loads = []
+        self.held, self.gate = set(held), threading.Event()
 
     def __call__(self, key):
         self.loads.append(key)
+        if key in self.held:
+            self.gate.wait(30)
         time.sleep(self.latency)
         if key == "bad":
             raise CorruptBlockError("block bad does not decode")
@@ -59,17 +64,25 @@ def test_never_over_budget_and_returns_stored_bytes(ops, budget):
     assert seen_max <= budget and cache.resident_bytes <= budget
 
 
+def _until(cond, limit=30.0):
+    t0 = time.monotonic()
+    while not cond():
+        assert time.monotonic() - t0 < limit, "the cache's worker never started the load"  # a hang guard, not a speed test
+        time.sleep(0.001)
+
+
 def test_higher_priority_loads_first_and_stale_requests_drop():
-    store = Store(latency=0.02)
+    store = Store(held={100})
     cache = BlockCache(store, 10**6, workers=1, max_age=1)
-    cache.request(100, 0.0)  # occupies the worker
-    time.sleep(0.005)
+    cache.request(100, 0.0)  # occupies the worker until the gate opens
+    _until(lambda: store.loads == [100])
     for k, p in [(1, 1.0), (2, 5.0), (3, 3.0)]:
         cache.request(k, p)
     cache.begin_frame()
     cache.request(2, 5.0)
     cache.request(3, 3.0)  # 1 is not renewed
     cache.begin_frame()  # 1 was last asked for two frames ago: stale
+    store.gate.set()
     while not cache.idle():
         time.sleep(0.005)
     cache.close()
@@ -78,12 +91,12 @@ def test_higher_priority_loads_first_and_stale_requests_drop():
 
 
 def test_get_never_blocks_and_errors_surface():
-    store = Store(latency=0.2)
+    store = Store(held={5})
     cache = BlockCache(store, 10**6)
-    t0 = time.perf_counter()
     cache.request(5)
-    assert cache.get(5) is None
-    assert time.perf_counter() - t0 < 0.1  # not waiting for the 0.2 s load (loose bound on a non-blocking call)
+    assert cache.get(5) is None  # the load is held until the gate opens: a get that waited for it would return the block
+    store.gate.set()
+    assert np.array_equal(cache.get_blocking(5), store(5))
     cache.request("bad")
     with pytest.raises(CorruptBlockError, match="block bad"):
         for _ in range(200):

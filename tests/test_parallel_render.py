@@ -1,7 +1,5 @@
 """Parallel equals serial, on real renders under real mpiexec (DESIGN.md, central oracle)."""
 
-import time
-
 import numpy as np
 import pytest
 from PIL import Image
@@ -97,14 +95,11 @@ def test_wall_tiles_assemble_to_the_serial_image(tmp_path, cases, serial_small, 
 
 
 def test_exception_on_one_rank_ends_every_rank(tmp_path):
-    t0 = time.monotonic()
     proc = run_cli("render", SMALL_SCENE, "--ranks", 4, "--frames", 3, "--size", SMALL_SIZE, "--out", tmp_path,
-                   "-q", "--fault", "2:1", check=False, timeout=120)
-    elapsed = time.monotonic() - t0
+                   "-q", "--fault", "2:1", check=False, timeout=120)  # a hang raises TimeoutExpired
     assert proc.returncode != 0
     assert proc.stderr.count("injected fault at frame 1") == 1, proc.stderr
     assert "rank 2 of 4" in proc.stderr
-    assert elapsed < 60  # a hang would hit the subprocess timeout instead
 
 
 def test_issue_command_binary_swap_four_ranks(tmp_path):
