@@ -30,7 +30,7 @@ from pathlib import Path
 from ..core.errors import MassviewError, ParallelError, disk_full, full_disk_line
 from .launcher import run_job
 
-__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env", "local_cores", "interrupt_on_sigterm", "ignore_late_sigterm"]
+__all__ = ["in_mpi_job", "find_mpiexec", "relaunch", "world", "self_comm", "guarded", "say_rank_error", "reuse_freed_memory", "return_free_heap", "raster_threads", "launch_env", "local_cores", "interrupt_on_sigterm", "ignore_late_sigterm"]
 
 ERRORS_ENV = "MASSVIEW_RANK_ERRORS"  # the file a rank of a relaunched job writes its error line to
 _JOB_VARS = ("PMI_RANK", "PMI_SIZE", "PMIX_RANK", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "HYDRA_CONTROL_FD", "MASSVIEW_UNDER_MPI")
@@ -83,7 +83,7 @@ def _relay_errors(path: str) -> None:
         sys.stderr.flush()
 
 
-def _say(msg: str, size: int) -> None:
+def say_rank_error(msg: str, size: int) -> None:
     """A rank's error line: to the launcher's file (:data:`ERRORS_ENV`) in a job of several
     ranks that :func:`relaunch` started, else (or where that file cannot be written) to stderr."""
     path = os.environ.get(ERRORS_ENV)
@@ -138,7 +138,7 @@ def guarded(comm, fn, *args, **kw):
     """Run ``fn`` on this rank; on an exception print it once, prefixed by the rank, and abort
     every rank with exit status 1 (a single-rank run exits the same way, without MPI_Abort).
     In a job :func:`relaunch` started, the line goes to the launcher, which prints it after the
-    job (:func:`_say`).
+    job (:func:`say_rank_error`).
 
     An interruption (KeyboardInterrupt: SIGINT, or SIGTERM through :func:`interrupt_on_sigterm`)
     of a job that massview launched itself (:func:`relaunch`) aborts with status 130 quietly:
@@ -161,7 +161,7 @@ def guarded(comm, fn, *args, **kw):
         else:
             msg = prefix + f"{type(e).__name__}: {e}\n" + "".join(traceback.format_exception(e))
         if not quiet:
-            _say(msg, size)
+            say_rank_error(msg, size)
         if size > 1:
             if quiet:
                 _close_stderr()

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import queue
-import sys
 import threading
 
 import numpy as np
@@ -104,7 +103,9 @@ class MpiLink:
         return buf
 
     def fail(self, err: BaseException) -> None:
-        print(f"massview: error on rank 0 (dmmr server): {type(err).__name__}: {err}", file=sys.stderr, flush=True)
+        from ..parallel.runtime import say_rank_error
+
+        say_rank_error(f"massview: error on rank 0 (dmmr server): {type(err).__name__}: {err}", self.comm.Get_size())
         self.comm.Abort(1)
 
 
