@@ -90,3 +90,22 @@ sys.exit(runtime.relaunch(["render"], 2))
     assert proc.stderr.strip() == "massview: error on rank 1 of 2: broken", proc.stderr
     left = proc.stdout.split("left:", 1)[1].strip()
     assert not os.path.exists(left)
+
+
+def test_without_a_writable_temporary_folder_the_job_still_runs():
+    code = r"""
+import sys, tempfile
+from massview.parallel import runtime
+
+def job(cmd, env):
+    print("file:", env.get(runtime.ERRORS_ENV), flush=True)
+    return 0
+
+def full(*a, **k):
+    raise OSError(28, "No space left on device")
+
+runtime.run_job, tempfile.mkstemp = job, full
+sys.exit(runtime.relaunch(["render"], 2))
+"""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=clean_env(), timeout=60)
+    assert proc.returncode == 0 and "file: None" in proc.stdout, proc.stderr

@@ -61,13 +61,18 @@ def relaunch(argv: list[str], nranks: int) -> int:
     then reaches the caller (KeyboardInterrupt for SIGINT, ``SystemExit(143)`` for SIGTERM)
     unless the job stopped cleanly on it (status 0, as the viewer does)."""
     cmd = [find_mpiexec(), "-n", str(nranks), sys.executable, "-m", "massview", *argv]
-    fd, errors = tempfile.mkstemp(prefix="massview-errors-", suffix=".txt")
-    os.close(fd)
-    env = launch_env(nranks, dict(os.environ, MASSVIEW_UNDER_MPI="1", **{ERRORS_ENV: errors}))
+    env = dict(os.environ, MASSVIEW_UNDER_MPI="1")
     try:
-        return run_job(cmd, env)
+        fd, errors = tempfile.mkstemp(prefix="massview-errors-", suffix=".txt")
+        os.close(fd)
+        env[ERRORS_ENV] = errors
+    except OSError:  # no writable temporary folder: the ranks print their lines themselves
+        errors = None
+    try:
+        return run_job(cmd, launch_env(nranks, env))
     finally:
-        _relay_errors(errors)
+        if errors is not None:
+            _relay_errors(errors)
 
 
 def _relay_errors(path: str) -> None:
