@@ -220,7 +220,7 @@ class DefaultsHelpFormatter(argparse.HelpFormatter):
 def _doc_text(doc: str | None, name: str, paragraphs: int = 2) -> str:
     """A bench module's ``--help`` description: the first ``paragraphs`` paragraphs of its
     docstring without reST markup (what it runs, what it prints, what the figures mean)."""
-    parts = [re.sub(r":[a-z]+:`~?", "`", " ".join(p.split())).replace("``", "").replace("`", "")  # (roles: :func:`~a.b` → b)
+    parts = [re.sub(r":[a-z]+:`~?", "`", " ".join(p.split())).replace("``", "").replace("`", "")  # (roles: :func:`~a.b` → a.b)
              for p in (doc or name).strip().split("\n\n")]
     parts = [p for p in parts if p and not re.fullmatch(r"massview bench [^.]*:", p)]  # (a bare usage line heading the text)
     return "\n\n".join(parts[:paragraphs])

@@ -12,6 +12,7 @@ import numpy as np
 from ..core.errors import ConfigError
 from ..parallel.exchange import sleep_until
 from ..parallel.roles import Role
+from ..parallel.runtime import say_rank_error
 from .dmmr_client import ClientTask
 
 __all__ = ["ROLES", "MpiLink", "LocalLink"]
@@ -103,8 +104,6 @@ class MpiLink:
         return buf
 
     def fail(self, err: BaseException) -> None:
-        from ..parallel.runtime import say_rank_error
-
         say_rank_error(f"massview: error on rank 0 (dmmr server): {type(err).__name__}: {err}", self.comm.Get_size())
         self.comm.Abort(1)
 
